@@ -1,0 +1,382 @@
+"""Tests of the batched Tsit5 solver against independent references.
+
+References: the rooted-tree order conditions (computed here, not copied), closed-form
+solutions, scipy's DOP853 at tight tolerance, and finite differences (gradcheck).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import sys
+
+import numpy as np
+import pytest
+import torch
+from scipy.integrate import solve_ivp
+from scipy.linalg import expm
+
+from mpnode_cli.solver import Status, solve
+from mpnode_cli.solver import tableau as tab
+
+solve_mod = sys.modules["mpnode_cli.solver.solve"]
+
+# ----------------------------------------------------------------------------- order conditions
+
+
+def rooted_trees(order: int):
+    """All rooted trees with `order` vertices, as sorted tuples of child subtrees."""
+    if order == 1:
+        return [()]
+    trees = set()
+    # Children of the root: a multiset of trees whose sizes sum to order - 1.
+    for sizes in _partitions(order - 1):
+        for combo in itertools.product(*(rooted_trees(s) for s in sizes)):
+            trees.add(tuple(sorted(combo)))
+    return sorted(trees)
+
+
+def _partitions(n, largest=None):
+    largest = largest or n
+    if n == 0:
+        yield []
+        return
+    for k in range(min(n, largest), 0, -1):
+        for rest in _partitions(n - k, k):
+            yield [k, *rest]
+
+
+def tree_size(t) -> int:
+    return 1 + sum(tree_size(c) for c in t)
+
+
+def gamma(t) -> int:
+    return tree_size(t) * math.prod(gamma(c) for c in t)
+
+
+def stage_weights(t, a: np.ndarray) -> np.ndarray:
+    """Φ_i(t): product over children of Σ_j a_ij Φ_j(child); 1 for the single vertex."""
+    phi = np.ones(a.shape[0])
+    for child in t:
+        phi = phi * (a @ stage_weights(child, a))
+    return phi
+
+
+def tableau_arrays():
+    s = len(tab.C)
+    a = np.zeros((s, s))
+    for i, row in enumerate(tab.A):
+        a[i, : len(row)] = row
+    a[s - 1, : s - 1] = tab.B[:-1]
+    return a, np.array(tab.B), np.array(tab.E), np.array(tab.C)
+
+
+def test_number_of_trees_matches_known_counts():
+    assert [len(rooted_trees(k)) for k in range(1, 6)] == [1, 1, 2, 4, 9]
+
+
+def test_row_sums_are_the_nodes():
+    a, _, _, c = tableau_arrays()
+    np.testing.assert_allclose(a.sum(axis=1), c, atol=1e-14)
+
+
+def test_b_satisfies_all_order_conditions_up_to_5():
+    a, b, _, _ = tableau_arrays()
+    for order in range(1, 6):
+        for t in rooted_trees(order):
+            assert b @ stage_weights(t, a) == pytest.approx(1 / gamma(t), abs=1e-13), t
+
+
+def test_embedded_weights_have_order_4_but_not_5():
+    a, b, e, _ = tableau_arrays()
+    b_hat = b - e
+    for order in range(1, 5):
+        for t in rooted_trees(order):
+            assert b_hat @ stage_weights(t, a) == pytest.approx(1 / gamma(t), abs=1e-13), t
+    residual5 = max(abs(b_hat @ stage_weights(t, a) - 1 / gamma(t)) for t in rooted_trees(5))
+    assert residual5 > 1e-5  # otherwise the error estimate would not estimate anything
+    assert e.sum() == pytest.approx(0.0, abs=1e-15)
+
+
+def test_fsal_and_dense_output_conditions():
+    a, b, _, _ = tableau_arrays()
+    assert tab.C[-1] == 1.0 and tab.B[-1] == 0.0
+    interp = np.array(tab.INTERP)  # (7, 4): coefficients of θ, θ², θ³, θ⁴
+    np.testing.assert_allclose(interp.sum(axis=1), b, atol=1e-14)  # b_i(1) = b_i
+    for theta in (0.1, 0.37, 0.5, 0.8):
+        b_theta = interp @ np.array([theta, theta**2, theta**3, theta**4])
+        for order in range(1, 5):
+            for t in rooted_trees(order):
+                want = theta ** tree_size(t) / gamma(t)
+                assert b_theta @ stage_weights(t, a) == pytest.approx(want, abs=1e-12)
+
+
+# ----------------------------------------------------------------------------- convergence
+
+M = np.array([[-0.1, 1.0, 0.0], [-1.0, -0.1, 0.3], [0.0, -0.3, -0.5]])
+
+
+def linear_exact(y0: np.ndarray, t: np.ndarray) -> np.ndarray:
+    return np.stack([expm(M * tt) @ y0 for tt in t])
+
+
+def observed_order(hs, errors) -> float:
+    return float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
+
+
+def test_fixed_step_converges_with_order_5():
+    y0 = np.array([1.0, 0.5, -0.3])
+    mt = torch.tensor(M)
+    ts = torch.tensor([0.0, 1.0, 2.0])
+    exact = linear_exact(y0, ts.numpy())
+    hs = [0.4, 0.2, 0.1, 0.05]
+    errors = []
+    for h in hs:
+        sol = solve(lambda t, y: y @ mt.T, torch.tensor(y0)[None], ts, fixed_dt=h)
+        errors.append(np.abs(sol.ys[0].numpy() - exact).max())
+    assert 4.6 < observed_order(hs, errors) < 5.6, errors
+
+
+def test_embedded_solution_has_order_4_and_error_estimate_tracks_it():
+    """y4 = y5 − err is 4th order, and err ≈ its local error (catches a wrong error weight)."""
+    y0 = torch.tensor([[1.0, 0.5, -0.3]], dtype=torch.float64)
+    mt = torch.tensor(M)
+    tsit5 = solve_mod._Tableau(torch.float64, torch.device("cpu"))
+    f = lambda t, y: y @ mt.T  # noqa: E731
+    hs = [0.2, 0.1, 0.05, 0.025]
+    local4, ratios = [], []
+    for h in hs:
+        t0, step = torch.zeros(1, dtype=torch.float64), torch.full((1,), h, dtype=torch.float64)
+        y5, err, _, _ = solve_mod._rk_step(f, tsit5, t0, step, y0, f(None, y0), t0 + step)
+        exact = torch.tensor(expm(M * h) @ y0[0].numpy())
+        true4 = exact - (y5[0] - err[0])
+        local4.append(true4.abs().max().item())
+        ratios.append((err[0] - true4).norm().item() / true4.norm().item())
+    assert 4.6 < observed_order(hs, local4) < 5.6  # local error of a 4th-order method: h^5
+    assert ratios[-1] < 0.05  # err is the 4th-order solution's error, to leading order
+
+
+def test_dense_output_error_has_order_at_least_4():
+    """Outputs between steps come from the interpolant: error ~ h^5 locally, ≥ h^4 globally."""
+    y0 = torch.tensor([[1.0, 0.5, -0.3]], dtype=torch.float64)
+    mt = torch.tensor(M)
+    ts = torch.linspace(0.0, 2.0, 41, dtype=torch.float64)
+    exact = linear_exact(y0[0].numpy(), ts.numpy())
+    hs, errors = [0.4, 0.2, 0.1, 0.05], []
+    for h in hs:
+        # Steps fixed at h via the stop grid (tstops), outputs in between interpolated.
+        stops = torch.arange(h, 2.0 + 1e-9, h, dtype=torch.float64)
+        sol = solve(lambda t, y: y @ mt.T, y0, ts, rtol=1e3, atol=1e3, dt0=h, tstops=stops)
+        errors.append(np.abs(sol.ys[0].numpy() - exact).max())
+    assert observed_order(hs, errors) > 3.8, errors
+
+
+# ----------------------------------------------------------------------------- accuracy vs scipy
+
+
+def lorenz(t, y):
+    x, yy, z = y.unbind(-1)
+    return torch.stack((10 * (yy - x), x * (28 - z) - yy, x * yy - 8 / 3 * z), -1)
+
+
+def two_body(t, y):
+    r = y[..., :2]
+    rn = r.norm(dim=-1, keepdim=True)
+    return torch.cat((y[..., 2:], -r / rn**3), -1)
+
+
+def van_der_pol(t, y):
+    x, v = y.unbind(-1)
+    return torch.stack((v, (1 - x**2) * v - x), -1)
+
+
+def numpy_version(f):
+    return lambda t, y: f(t, torch.tensor(y)[None])[0].numpy()
+
+
+PROBLEMS = {
+    "lorenz": (lorenz, [[1.0, 1.0, 1.0], [-2.0, 3.0, 20.0]], 2.0),
+    "two_body": (two_body, [[1.0, 0.0, 0.0, 1.2], [0.8, 0.0, 0.0, 1.0]], 6.0),
+    "van_der_pol": (van_der_pol, [[2.0, 0.0], [0.5, -1.0]], 8.0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PROBLEMS))
+def test_matches_scipy_dop853_at_tight_tolerance(name):
+    f, y0s, t_end = PROBLEMS[name]
+    ts = torch.linspace(0.0, t_end, 33, dtype=torch.float64)
+    y0 = torch.tensor(y0s, dtype=torch.float64)
+    sol = solve(f, y0, ts, rtol=1e-10, atol=1e-12)
+    assert bool(sol.success.all())
+    for i, y in enumerate(y0s):
+        ref = solve_ivp(numpy_version(f), (0.0, t_end), y, method="DOP853", t_eval=ts.numpy(),
+                        rtol=1e-13, atol=1e-14).y.T
+        rel = np.linalg.norm(sol.ys[i].numpy() - ref) / np.linalg.norm(ref)
+        assert rel < 1e-7, (name, i, rel)
+
+
+def test_float32_solve_is_accurate_to_its_tolerance():
+    ts = torch.linspace(0.0, 6.0, 13, dtype=torch.float64)
+    y0 = torch.tensor([[2.0, 0.0]], dtype=torch.float32)
+    sol = solve(van_der_pol, y0, ts, rtol=1e-5, atol=1e-6)
+    assert sol.ys.dtype == torch.float32
+    ref = solve_ivp(numpy_version(van_der_pol), (0, 6), [2.0, 0.0], method="DOP853",
+                    t_eval=ts.numpy(), rtol=1e-12, atol=1e-12).y.T
+    assert np.abs(sol.ys[0].double().numpy() - ref).max() < 1e-3
+
+
+# ----------------------------------------------------------------------------- batching & status
+
+
+def parametrised_rhs(mu: torch.Tensor, blow: torch.Tensor):
+    """Van der Pol with per-sample μ; where blow = 1 instead x' = v + x², v' = 0 (blows up)."""
+
+    def f(t, y):
+        x, v = y.unbind(-1)
+        return torch.stack((v + blow * x**2, (1 - blow) * (mu * (1 - x**2) * v - x)), -1)
+
+    return f
+
+
+def test_each_sample_in_a_batch_equals_the_sample_solved_alone():
+    gen = torch.Generator().manual_seed(0)
+    batch = 64
+    mu = torch.rand(batch, generator=gen, dtype=torch.float64) * 2
+    blow = torch.zeros(batch, dtype=torch.float64)
+    blow[[3, 17, 40]] = 1.0  # these samples blow up in finite time
+    y0 = torch.rand(batch, 2, generator=gen, dtype=torch.float64) * 4 - 2
+    y0[[3, 17, 40], 0] = 3.0
+    ts = torch.linspace(0.0, 5.0, 26, dtype=torch.float64)
+    sol = solve(parametrised_rhs(mu, blow), y0, ts, rtol=1e-8, atol=1e-10)
+    assert set(sol.status[[3, 17, 40]].tolist()) <= {Status.NON_FINITE, Status.DT_UNDERFLOW}
+    assert bool((sol.status[blow == 0] == Status.SUCCESS).all())
+    for i in (0, 3, 5, 17, 22, 40, 51, 63):
+        alone = solve(parametrised_rhs(mu[i : i + 1], blow[i : i + 1]), y0[i : i + 1], ts,
+                      rtol=1e-8, atol=1e-10)
+        assert alone.status[0] == sol.status[i]
+        assert alone.stats["n_steps"][0] == sol.stats["n_steps"][i]
+        torch.testing.assert_close(alone.ys[0], sol.ys[i], rtol=1e-12, atol=1e-12,
+                                   equal_nan=True)
+
+
+def test_blow_up_is_marked_and_other_samples_succeed():
+    f = lambda t, y: y**2  # noqa: E731  y(0)=1 → 1/(1−t), singular at t = 1
+    y0 = torch.tensor([[1.0], [0.1], [-1.0]], dtype=torch.float64)
+    ts = torch.linspace(0.0, 2.0, 21, dtype=torch.float64)
+    sol = solve(f, y0, ts)
+    assert Status(int(sol.status[0])) in (Status.NON_FINITE, Status.DT_UNDERFLOW)
+    assert sol.status[1:].tolist() == [Status.SUCCESS, Status.SUCCESS]
+    exact = y0[1:, 0, None] / (1 - y0[1:, 0, None] * ts)
+    torch.testing.assert_close(sol.ys[1:, :, 0], exact, rtol=1e-5, atol=1e-7)
+    # The failed sample keeps its solution up to the failure; later outputs are NaN.
+    before = ts < 0.95
+    torch.testing.assert_close(sol.ys[0, before, 0], 1 / (1 - ts[before]), rtol=1e-4, atol=0)
+    assert bool(torch.isnan(sol.ys[0, ts > 1.0, 0]).all())
+    assert Status.DT_UNDERFLOW.message and "max_steps" in Status.MAX_STEPS.message
+
+
+def test_max_steps_marks_only_the_samples_that_need_more():
+    rate = torch.tensor([1.0, 2000.0], dtype=torch.float64)  # the second is stiff
+    y0 = torch.ones(2, 1, dtype=torch.float64)
+    sol = solve(lambda t, y: -rate[:, None] * y, y0, [0.0, 1.0, 2.0], max_steps=50)
+    assert sol.status.tolist() == [Status.SUCCESS, Status.MAX_STEPS]
+    assert sol.stats["n_steps"][1] == 50
+    assert sol.ys[0, -1, 0].item() == pytest.approx(math.exp(-2.0), rel=1e-5)
+
+
+def test_non_finite_initial_state_is_marked():
+    y0 = torch.tensor([[1.0], [math.nan]], dtype=torch.float64)
+    sol = solve(lambda t, y: -y, y0, [0.0, 1.0])
+    assert sol.status.tolist() == [Status.SUCCESS, Status.NON_FINITE]
+    sol = solve(lambda t, y: -y, y0, [0.0, 1.0], fixed_dt=0.1)
+    assert sol.status.tolist() == [Status.SUCCESS, Status.NON_FINITE]
+
+
+def test_stats_count_function_evaluations():
+    calls = []
+
+    def f(t, y):
+        calls.append(1)
+        return -y
+
+    sol = solve(f, torch.ones(3, 2, dtype=torch.float64), [0.0, 1.0])
+    st = sol.stats
+    assert torch.equal(st["n_steps"], st["n_accepted"] + st["n_rejected"])
+    assert int(st["n_f_evals"].max()) == len(calls) == 2 + 6 * int(st["n_steps"].max())
+
+
+# ----------------------------------------------------------------------------- stops, fixed steps
+
+
+def test_tstops_let_a_zero_order_hold_input_be_integrated_exactly():
+    switch = 0.537
+    u = lambda t: torch.where(t < switch, 1.0, -2.0)  # noqa: E731
+    f = lambda t, y: u(t)[:, None].to(y.dtype).expand_as(y)  # noqa: E731
+    ts = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    exact = torch.where(ts < switch, ts, switch - 2 * (ts - switch))
+    y0 = torch.zeros(1, 1, dtype=torch.float64)
+    with_stop = solve(f, y0, ts, tstops=[switch], rtol=1e-8, atol=1e-10)
+    torch.testing.assert_close(with_stop.ys[0, :, 0], exact, rtol=0, atol=1e-12)
+    fixed = solve(f, y0, ts, tstops=[switch], fixed_dt=0.3)
+    torch.testing.assert_close(fixed.ys[0, :, 0], exact, rtol=0, atol=1e-12)
+
+
+def test_fixed_dt_steps_align_with_output_times():
+    calls = []
+
+    def f(t, y):
+        calls.append(t[0].item())
+        return -y
+
+    ts = [0.0, 0.25, 1.0]
+    sol = solve(f, torch.ones(1, 1, dtype=torch.float64), ts, fixed_dt=0.1)
+    # [0, 0.25] in 3 steps, [0.25, 1] in 8 steps: 11 steps, 6 new evaluations each.
+    assert int(sol.stats["n_steps"][0]) == 11 and len(calls) == 1 + 6 * 11
+    torch.testing.assert_close(sol.ys[0, :, 0], torch.exp(-torch.tensor(ts, dtype=torch.float64)),
+                               rtol=1e-8, atol=0)
+
+
+def test_input_validation():
+    y0 = torch.ones(2, 1)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        solve(lambda t, y: y, y0, [0.0, 1.0, 1.0])
+    with pytest.raises(ValueError, match="float32 or float64"):
+        solve(lambda t, y: y, torch.ones(2, 1, dtype=torch.int64), [0.0, 1.0])
+    sol = solve(lambda t, y: y, y0, [0.5])
+    assert sol.ys.shape == (2, 1, 1)
+
+
+# ----------------------------------------------------------------------------- gradients
+
+
+def make_problem(theta):
+    def f(t, y):
+        return -theta[0] * y + theta[1] * torch.sin(y) * y.flip(-1)
+
+    return f
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "fixed"])
+def test_gradcheck_through_the_solve(mode):
+    ts = torch.tensor([0.0, 0.2, 0.5], dtype=torch.float64)
+    options = {"rtol": 1e-10, "atol": 1e-12} if mode == "adaptive" else {"fixed_dt": 0.05}
+
+    def run(y0, theta):
+        return solve(make_problem(theta), y0, ts, **options).ys
+
+    y0 = torch.tensor([[0.3, -0.7], [1.1, 0.2]], dtype=torch.float64, requires_grad=True)
+    theta = torch.tensor([0.8, 0.5], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (y0, theta), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_gradients_are_finite_when_a_sample_in_the_batch_fails():
+    theta = torch.tensor(1.0, dtype=torch.float64, requires_grad=True)
+    f = lambda t, y: theta * y**2  # noqa: E731
+    y0 = torch.tensor([[0.1], [1.0]], dtype=torch.float64)
+    sol = solve(f, y0, [0.0, 0.5, 2.0])
+    assert sol.status.tolist()[0] == Status.SUCCESS and sol.status.tolist()[1] != Status.SUCCESS
+    sol.ys[0].sum().backward()
+    assert torch.isfinite(theta.grad)
+    # d/dθ of y(t) = y0 / (1 − θ y0 t) at θ = 1: y0² t / (1 − y0 t)²
+    want = sum(0.01 * t / (1 - 0.1 * t) ** 2 for t in (0.5, 2.0))
+    assert theta.grad.item() == pytest.approx(want, rel=1e-4)
