@@ -14,7 +14,8 @@ time spent inside `f` (the rest is solver overhead).
 
 Wall times are noisy on a shared 2-core machine: read the ratios between solvers of one run.
 
-Usage: python bench/solver.py [--batches 1 64 512 4096] [--repeats 3] [--out bench/results/solver.md]
+Usage: python bench/solver.py [--batches 1 64 512 4096] [--repeats 3]
+                              [--out bench/results/solver.md]
 """
 
 from __future__ import annotations
@@ -104,6 +105,21 @@ def bench_ours(f, y0, ts, rtol, atol, repeats):
         sol.stats["n_steps"].max()), share
 
 
+def bench_ours_compiled(f, y0, ts, rtol, atol, repeats):
+    """The same solver with its step function compiled by torch.compile (inductor)."""
+    solve_module = sys.modules["mpnode_cli.solver.solve"]
+    solve_module._COMPILE = True
+    try:
+        start = time.perf_counter()
+        solve(f, y0, ts, rtol=rtol, atol=atol)  # compiles (first call for this f/shape)
+        compile_s = time.perf_counter() - start
+        wall, sol = median_time(lambda: solve(f, y0, ts, rtol=rtol, atol=atol), repeats)
+    finally:
+        solve_module._COMPILE = False
+    return (wall, sol.ys.double().numpy(), int(sol.stats["n_f_evals"].max()),
+            int(sol.stats["n_steps"].max()), None, compile_s)
+
+
 def bench_torchdiffeq(f, y0, ts, rtol, atol, repeats):
     import torchdiffeq
 
@@ -162,6 +178,8 @@ def main(argv=None) -> int:
     parser.add_argument("--scipy-samples", type=int, default=64,
                         help="scipy is looped over at most this many samples, then extrapolated")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--compile-batches", type=int, nargs="*", default=[1, 512],
+                        help="batch sizes at which the torch.compile variant is also timed")
     parser.add_argument("--out", type=Path, default=Path("bench/results/solver.md"))
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -187,6 +205,9 @@ def main(argv=None) -> int:
                 "torchode tsit5": bench_torchode(f, y0, ts, rtol, atol, args.repeats),
                 "torchdiffeq dopri5": bench_torchdiffeq(f, y0, ts, rtol, atol, args.repeats),
             }
+            if batch in args.compile_batches:
+                *res, compile_s = bench_ours_compiled(f, y0, ts, rtol, atol, args.repeats)
+                results[f"mpnode tsit5 + torch.compile (compile {compile_s:.0f} s)"] = tuple(res)
             for method in ("RK45", "DOP853"):
                 wall, ys, nfev, steps, share, n = bench_scipy(
                     method, h_np, y0_np, ts_np, rtol, atol, args.scipy_samples)
@@ -211,7 +232,8 @@ def write_table(args, rows):
     import torchode
 
     lines = [
-        "# Solver benchmark: batched coupled Lorenz (N=10, 30 states), t ∈ [0, 2.5], saved every 0.05",
+        "# Solver benchmark: batched coupled Lorenz (N=10, 30 states), t ∈ [0, 2.5], "
+        "saved every 0.05",
         "",
         f"Machine: {platform.processor() or platform.machine()}, {args.threads} threads, "
         f"torch {torch.__version__}, torchode {getattr(torchode, '__version__', '?')}, "

@@ -7,8 +7,9 @@ the batch; see `../shared/reference/solver-notes.md` §3), and a sample that fai
 and marked while the others go on.
 
 Design points (solver-notes §7):
-- Stage sums are one fused `baddbmm` per stage over a `[B, 7, F]` stage buffer, with the step
-  size folded into the tableau (`h·A` per sample), so a stage costs two tensor ops plus `f`.
+- Stage sums are one fused `addmv` per stage over a stage-major `[7, B, F]` buffer of h·k_i
+  (the per-sample step size is applied once, when a stage is stored), so a stage costs two
+  tensor ops plus `f`.
 - Dense output uses Tsit5's free 4th-order interpolant, so steps are never shortened to hit
   output times; the outputs crossed by a step are written with a bounded, static-shape
   scatter (no `nonzero`).
@@ -21,6 +22,7 @@ Design points (solver-notes §7):
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -154,9 +156,11 @@ def solve(
     batch, shape = y0.shape[0], y0.shape[1:]
     n_out = ts.numel()
     y = y0.reshape(batch, -1)  # (B, F)
+    flat = len(shape) == 1  # f sees (B, F) already: skip two reshapes per evaluation
 
     def fun(t: torch.Tensor, yf: torch.Tensor) -> torch.Tensor:
-        out = f(t, yf.view(batch, *shape)).reshape(batch, -1)
+        out = f(t, yf if flat else yf.view(batch, *shape))
+        out = out if flat else out.reshape(batch, -1)
         return out if out.dtype == y0.dtype else out.to(y0.dtype)
 
     if n_out == 1:
@@ -167,8 +171,7 @@ def solve(
     if fixed_dt is not None:
         ys, status, stats = _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps)
     else:
-        ys, status, stats = _solve_adaptive(f, shape, fun, y, ts, stops, rtol, atol, dt0,
-                                            max_steps)
+        ys, status, stats = _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
 
 
@@ -199,47 +202,88 @@ class _Tableau:
         ae = a.to(dtype=dtype, device=device)  # (8, 7)
         self.ae_rows = [ae[i, :i].contiguous() for i in range(n)]
         self.e = ae[n].contiguous()
-        self.c = torch.tensor(tableau.C, dtype=torch.float64, device=device)  # (7,)
+        self.c_inner = torch.tensor(tableau.C[1:5], dtype=torch.float64, device=device)  # (4,)
+        self.neg_inf = torch.tensor(-math.inf, dtype=torch.float64, device=device)
         # Interpolant: b(θ) = [θ, θ², θ³, θ⁴] @ interp, interp (4, 7).
         self.interp = torch.tensor(tableau.INTERP, dtype=torch.float64, device=device).T
 
 
-def _rk_step(fun: RHS, tab: _Tableau, t: torch.Tensor, h: torch.Tensor, y: torch.Tensor,
-             k1: torch.Tensor, t_end: torch.Tensor):
+class _Stages:
+    """The stage buffer `[7, B, F]` of h·k_i and its views, made once per solve.
+
+    Stage-major, so that a stage input y + Σ_j a_ij h·k_j is one addmv over the column-major
+    (B·F, i) view and h is applied once, when a stage is stored. Reused from step to step
+    unless autograd is recording (then each step needs a fresh buffer, since the graph keeps
+    the previous one alive).
+    """
+
+    def __init__(self, batch: int, feat: int, like: torch.Tensor, reuse: bool):
+        self.shape, self.like, self.reuse = (7, batch, feat), like, reuse
+        self.views = self._views() if reuse else None
+
+    def _views(self):
+        hk = torch.empty(self.shape, dtype=self.like.dtype, device=self.like.device)
+        hk_t = hk.view(7, -1).T  # (B·F, 7)
+        return hk, [hk[i] for i in range(7)], [hk_t[:, :i] for i in range(8)]
+
+    def get(self):
+        """`(buffer, per-stage views or None, column views)`.
+
+        Views of a buffer that autograd writes into must be taken after the write (a view
+        made before an in-place write counts as a leaf), so the recording case returns no
+        stage views and the column views are taken lazily.
+        """
+        if self.reuse:
+            return self.views
+        hk = torch.empty(self.shape, dtype=self.like.dtype, device=self.like.device)
+        return hk, None, _LazyColumns(hk)
+
+
+class _LazyColumns:
+    """`cols[i]` is the (B·F, i) column-major view of the first i stages, taken on access."""
+
+    def __init__(self, hk: torch.Tensor):
+        self.hk = hk
+
+    def __getitem__(self, i: int) -> torch.Tensor:
+        return self.hk.view(7, -1).T[:, :i]
+
+
+def _rk_step(fun: RHS, tab: _Tableau, stages: _Stages, t: torch.Tensor, h: torch.Tensor,
+             y: torch.Tensor, k1: torch.Tensor, t_end: torch.Tensor):
     """One Tsit5 step of size `h` for every sample.
 
     Args:
         t: `[B]` float64 step start; h: `[B]` float64 step sizes (0 freezes a sample);
-        t_end: `[B]` float64 step end (t + h, or exactly the stop the step lands on); stages
-            are evaluated strictly before it, so a zero-order-hold input that changes at a
-            stop is seen from the left inside the step;
-        y: `[B, F]` state at t; k1: `[B, F]` f(t, y) (FSAL from the previous step).
+        y: `[B, F]` state at t; k1: `[B, F]` f(t, y) (FSAL from the previous step);
+        t_end: `[B]` float64 step end (t + h, or exactly the stop the step lands on). The
+            c = 1 stages are evaluated just before it, so a zero-order-hold input that
+            changes at a stop is seen from the left inside the step.
 
     Returns:
         y_new `[B, F]`; err `[B, F]`, the local error estimate h·Σ e_i k_i; f_new `[B, F]`,
-        f(t + h, y_new); and the stage buffer `[7, B, F]` holding h·k_i.
+        f at (t_end, y_new); and the stage buffer `[7, B, F]` holding h·k_i.
     """
     batch, feat = y.shape
     hc = h.to(y.dtype)[:, None]  # (B, 1)
-    t_left = torch.nextafter(t_end, t_end.new_tensor(-math.inf))
-    tcs = torch.minimum(t[:, None] + h[:, None] * tab.c, t_left[:, None]).unbind(1)  # 7 × (B,)
-    # Stage-major buffer of h·k_i: a stage input y + Σ_j a_ij h·k_j is then one addmv over the
-    # column-major (B·F, i) view, with no per-stage broadcast of h. A fresh buffer each step:
-    # autograd may keep the previous one alive.
-    hk = torch.empty(7, batch, feat, dtype=y.dtype, device=y.device)
-    hk[0] = hc * k1
-    hk_t = hk.view(7, batch * feat).T  # (B·F, 7)
+    t_left = torch.nextafter(t_end, tab.neg_inf)
+    # Stage times; c5 = c6 = 1, whose time is the step end (from the left).
+    tcs = (*torch.addcmul(t[:, None], h[:, None], tab.c_inner).unbind(1), t_left, t_left)
+    hk, hk_i, hk_cols = stages.get()
     y_flat = y.view(-1)
-    for i in range(1, 7):
-        yi = torch.addmv(y_flat, hk_t[:, :i], tab.ae_rows[i]).view(batch, feat)
-        fi = fun(tcs[i], yi)
-        if fi.requires_grad and torch.is_grad_enabled():
-            hk[i] = hc * fi
-        else:  # saves a copy per stage; `out=` is not differentiable
-            torch.mul(fi, hc, out=hk[i])
+    for i in range(7):
+        if i == 0:
+            fi = k1
+        else:
+            yi = torch.addmv(y_flat, hk_cols[i], tab.ae_rows[i]).view(batch, feat)
+            fi = fun(tcs[i - 1], yi)
+        if hk_i is None:
+            hk[i] = fi * hc
+        else:  # `out=` saves a temporary but is not differentiable
+            torch.mul(fi, hc, out=hk_i[i])
     # Row 6 of the tableau is b, so the last stage input is the new state (b7 = 0) and the
     # last stage is the FSAL derivative at it.
-    err = torch.mv(hk_t, tab.e).view(batch, feat)
+    err = torch.mv(hk_cols[7], tab.e).view(batch, feat)
     return yi, err, fi, hk
 
 
@@ -267,7 +311,7 @@ def _initial_step(fun, t0, y, k1, rtol, atol, span):
         return torch.where(torch.isfinite(h) & (h > 0), h, span * 1e-6)
 
 
-def _solve_adaptive(f, shape, fun, y, ts, stops, rtol, atol, dt0, max_steps):
+def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps):
     batch, feat = y.shape
     dev, f64 = y.device, torch.float64
     tab = _Tableau(y.dtype, dev)
@@ -301,13 +345,20 @@ def _solve_adaptive(f, shape, fun, y, ts, stops, rtol, atol, dt0, max_steps):
     arange_out = torch.arange(n_out, device=dev)
 
     stop_t = stops_pad[stop_idx]  # (B,) next time a step must land on
-    consts = (tab, ts, stops_pad, n_stops, rtol, atol, max_steps)
+    stages = _Stages(batch, feat, y, reuse=not (torch.is_grad_enabled() and k1.requires_grad))
+    consts = (tab, stages, ts, stops_pad, n_stops, rtol, atol, max_steps)
     state = (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
-             status, out_idx)
+             out_idx)
     step = _compiled_step() if _COMPILE else _step
     while True:
-        state, jumped, n_cross, flags, (t_old, h, y_old, hk) = step(f, shape, consts, state)
-        any_running, width, any_jumped = flags.tolist()  # the one host sync of the step
+        state, flags, extra = step(fun, consts, state)
+        any_running, width, any_jumped, any_failed = flags.tolist()  # the step's one sync
+        jumped, n_cross, failed, code, (t_old, h, y_old, hk) = extra
+        if any_failed:  # rare: record why those samples stopped
+            too_many, underflow = code
+            why = torch.where(too_many, Status.NON_FINITE,
+                              torch.where(underflow, Status.DT_UNDERFLOW, Status.MAX_STEPS))
+            status = torch.where(failed, why, status)
         if width > 0:
             out_idx = state[-1]
             _write_outputs(ys, ts, tab, t_old, h, y_old, hk, out_idx, n_cross, width,
@@ -321,7 +372,7 @@ def _solve_adaptive(f, shape, fun, y, ts, stops, rtol, atol, dt0, max_steps):
         if not any_running:
             break
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
-     status, out_idx) = state
+     out_idx) = state
     n_f += 6 * n_steps
     stats = {"n_steps": n_steps, "n_accepted": n_acc, "n_rejected": n_steps - n_acc,
              "n_f_evals": n_f}
@@ -341,16 +392,11 @@ def _compiled_step():
 _STEP_COMPILED = None
 
 
-def _step(f, shape, consts, state):
+def _step(fun, consts, state):
     """Attempt one step for every running sample; pure tensor code, no host sync."""
-    tab, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
+    tab, stages, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
-     status, out_idx) = state
-    batch = y.shape[0]
-
-    def fun(tt, yf):
-        out = f(tt, yf.view(batch, *shape)).reshape(batch, -1)
-        return out if out.dtype == y.dtype else out.to(y.dtype)
+     out_idx) = state
 
     # ---- attempt one step of size h (clipped so as not to cross the next stop)
     with torch.no_grad():
@@ -358,7 +404,7 @@ def _step(f, shape, consts, state):
         land = dt >= to_stop
         h = torch.where(running, torch.minimum(dt, to_stop), 0.0)
         t_new = torch.where(land, stop_t, t + h)
-    y_new, err, f_new, hk = _rk_step(fun, tab, t, h, y, k1, t_new)
+    y_new, err, f_new, hk = _rk_step(fun, tab, stages, t, h, y, k1, t_new)
 
     # ---- error control and bookkeeping, outside autograd
     with torch.no_grad():
@@ -371,32 +417,28 @@ def _step(f, shape, consts, state):
         grow = (_SAFETY * q * err_prev.pow(_BETA2)).clamp(_FACTOR_MIN, _FACTOR_MAX)
         shrink = (_SAFETY * q).clamp(_FACTOR_MIN, _SAFETY)
         dt_next = h * torch.where(accept, grow, shrink)
+        landed = accept & land
         # A step clipped at a stop says little about the step size the solution allows:
         # keep the proposal it was clipped from.
-        dt_next = torch.where(accept & land, torch.maximum(dt_next, dt), dt_next)
+        dt_next = torch.where(landed, torch.maximum(dt_next, dt), dt_next)
         dt = torch.where(running, dt_next, dt)
         err_prev = torch.where(accept, r.clamp_min(_ERR_PREV_FLOOR), err_prev)
 
         n_cross = torch.where(accept, torch.searchsorted(ts, t_new, right=True) - out_idx, 0)
         n_steps = n_steps + running
         n_acc = n_acc + accept
-        landed = accept & land
         stop_idx = stop_idx + landed
         stop_t = stops_pad[stop_idx]
         n_nonfinite = torch.where(finite, 0, n_nonfinite + running)
         not_done = stop_idx < n_stops
-        code = torch.where(
-            n_nonfinite >= _MAX_NON_FINITE_REJECTS,
-            int(Status.NON_FINITE),
-            torch.where((t + dt <= t) & ~accept, int(Status.DT_UNDERFLOW),
-                        torch.where(n_steps >= max_steps, int(Status.MAX_STEPS), 0)),
-        )
-        failed = running & not_done & (code > 0)
-        status = torch.where(failed, code, status)
+        too_many = n_nonfinite >= _MAX_NON_FINITE_REJECTS
+        underflow = (t + dt <= t) & ~accept
+        out_of_steps = n_steps >= max_steps
+        failed = (too_many | underflow | out_of_steps) & running & not_done
         running_next = running & not_done & ~failed
         # Landing on an interior stop invalidates FSAL: f may change there (a new control).
         jumped = landed & not_done
-        flags = torch.stack([running_next.any().long(), n_cross.max(), jumped.any().long()])
+        flags = torch.stack([running_next.any(), n_cross.max(), jumped.any(), failed.any()])
 
     # ---- advance accepted samples; FSAL: the last stage is f at the new state
     acc2 = accept[:, None]
@@ -404,8 +446,9 @@ def _step(f, shape, consts, state):
     k1 = torch.where(acc2, f_new, k1)
     t_next = torch.where(accept, t_new, t)
     state = (t_next, dt, y_next, k1, running_next, stop_idx, stop_t, err_prev, n_steps, n_acc,
-             n_nonfinite, status, out_idx)
-    return state, jumped, n_cross, flags, (t, h, y, hk)
+             n_nonfinite, out_idx)
+    code = (too_many, underflow)
+    return state, flags, (jumped, n_cross, failed, code, (t, h, y, hk))
 
 
 def _write_outputs(ys, ts, tab, t, h, y, hk, out_idx, n_cross, width, arange_out):
@@ -432,7 +475,7 @@ def _fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[
     """Step end times: every output time and stop, with equal substeps of ≤ fixed_dt between."""
     marks = torch.unique(torch.cat([ts, stops])).tolist()
     grid = []
-    for a, b in zip(marks[:-1], marks[1:], strict=True):
+    for a, b in itertools.pairwise(marks):
         n = max(1, math.ceil((b - a) / fixed_dt - 1e-9))
         grid.extend(a + (b - a) * (i / n) for i in range(1, n))
         grid.append(b)
@@ -440,7 +483,7 @@ def _fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[
 
 
 def _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps):
-    batch, feat = y.shape
+    batch = y.shape[0]
     dev = y.device
     tab = _Tableau(y.dtype, dev)
     n_out = ts.numel()
@@ -453,6 +496,8 @@ def _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps):
     t_prev = out_times[0]
     t = torch.full((batch,), t_prev, dtype=torch.float64, device=dev)
     k1 = fun(t, y)
+    stages = _Stages(batch, y.shape[1], y,
+                     reuse=not (torch.is_grad_enabled() and k1.requires_grad))
     running = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
     status = torch.where(running, Status.SUCCESS, Status.NON_FINITE)
     n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
@@ -466,7 +511,7 @@ def _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps):
             break
         h = torch.where(running, t_next - t_prev, zero)
         t_end = torch.full_like(t, t_next)
-        y_new, _, f_new, _ = _rk_step(fun, tab, t, h, y, k1, t_end)
+        y_new, _, f_new, _ = _rk_step(fun, tab, stages, t, h, y, k1, t_end)
         ok = running & torch.isfinite(y_new).all(dim=1) & torch.isfinite(f_new).all(dim=1)
         status = torch.where(running & ~ok, Status.NON_FINITE, status)
         n_steps += running

@@ -130,9 +130,10 @@ class System(ABC):
         """The batched vector field for K trajectories.
 
         Args:
-            adjacency: `[K, N, N]` float64, the graph of each trajectory.
+            adjacency: `[K, N, N]` float64, the graph of each trajectory, or `[1, N, N]`
+                when all K trajectories share one graph (the generator's usual case).
             params: `graph_params` of each trajectory's graph, stacked on a leading `[K]`
-                axis (e.g. `coupling: [K, 3N, 3N]`).
+                axis (e.g. `coupling: [K, 3N, 3N]`), or `[1, ...]` when shared.
 
         Returns:
             `f(t, y)` with `t: [K]`, `y: [K, N, D]` → `dy/dt: [K, N, D]`; pure torch, with
@@ -154,3 +155,20 @@ class System(ABC):
         args = [f"{key}={value:g}" for key, value in self.params.items()]
         args += [f"{key}={getattr(self, key)!r}" for key in self.options]
         return f"{type(self).__name__}({', '.join(args)})"
+
+
+def neighbour_sum(adjacency: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Σ_j A_ij x_j for every trajectory.
+
+    Args:
+        adjacency: `[K, N, N]` per trajectory, or `[1, N, N]` shared by all.
+        x: `[K, N, D]`.
+
+    Returns:
+        `[K, N, D]`.
+    """
+    if adjacency.shape[0] == 1 and x.shape[0] != 1:
+        # One shared graph: a single (K·D, N) @ (N, N) product. A broadcast `adjacency @ x`
+        # runs a batched matmul over an expanded (stride-0) operand, ~100× slower on CPU.
+        return (x.transpose(1, 2) @ adjacency[0].T).transpose(1, 2)
+    return adjacency @ x

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System
+from mpnode_cli.systems.base import RHS, System, neighbour_sum
 
 if TYPE_CHECKING:
     import torch
@@ -77,7 +77,7 @@ class Gene(System):
 
         def f(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             activation = y**h / (1.0 + y**h)  # [K, N, 1]
-            return -b * y**f_exp + adjacency @ activation
+            return -b * y**f_exp + neighbour_sum(adjacency, activation)
 
         return f
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System
+from mpnode_cli.systems.base import RHS, System, neighbour_sum
 
 if TYPE_CHECKING:
     import torch
@@ -65,6 +65,8 @@ class Kuramoto(System):
             # Σ_j A_ij sin(θ_j − θ_i) = cos θ_i (A sin θ)_i − sin θ_i (A cos θ)_i: two
             # matmuls instead of a [K, N, N, 3] tensor of pairwise differences.
             sin, cos = torch.sin(y), torch.cos(y)  # [K, N, 3]
-            return omega + coupling * (cos * (adjacency @ sin) - sin * (adjacency @ cos))
+            return omega + coupling * (
+                cos * neighbour_sum(adjacency, sin) - sin * neighbour_sum(adjacency, cos)
+            )
 
         return f

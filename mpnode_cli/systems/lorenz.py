@@ -73,7 +73,7 @@ class Lorenz(System):
         return rng.uniform(-1.0, 1.0, size=(k, adjacency.shape[0], 3))
 
     def rhs(self, adjacency: torch.Tensor, params: dict[str, torch.Tensor]) -> RHS:
-        """f(t [K], y [K, N, 3]) → [K, N, 3], with `params["coupling"]` `[K, 3N, 3N]`.
+        """f(t [K], y [K, N, 3]) → [K, N, 3], with `params["coupling"]` `[K or 1, 3N, 3N]`.
 
         `adjacency` is not read: H already carries the graph.
         """
@@ -87,6 +87,8 @@ class Lorenz(System):
             lorenz = torch.stack(
                 (sigma * (y_ - x_), x_ * (rho - z_) - y_, x_ * y_ - beta * z_), dim=-1
             )  # [K, N, 3]
+            if h.shape[0] == 1:  # one shared H: a single (K, 3N) @ (3N, 3N) product
+                return lorenz + (y.reshape(y.shape[0], -1) @ h[0].T).view(y.shape)
             flat = y.reshape(y.shape[0], -1, 1)  # [K, 3N, 1], node-major
             return lorenz + (h @ flat).reshape(y.shape)
 

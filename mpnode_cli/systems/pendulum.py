@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System
+from mpnode_cli.systems.base import RHS, System, neighbour_sum
 
 if TYPE_CHECKING:
     import torch
@@ -82,7 +82,8 @@ class Pendulum(System):
             theta, theta_dot = y[..., 0], y[..., 1]  # [K, N] each
             sin, cos = torch.sin(theta), torch.cos(theta)
             # Σ_j A_ij (sin θ_j − sin θ_i), the springs' pull on node i.
-            spring = (adjacency @ sin.unsqueeze(-1)).squeeze(-1) - degree * sin  # [K, N]
+            pull = neighbour_sum(adjacency, sin.unsqueeze(-1)).squeeze(-1)  # [K, N]
+            spring = pull - degree * sin
             theta_ddot = (m * sin * (length * theta_dot**2 - g) + k * length * spring) / (
                 m * length * cos
             )

@@ -1,0 +1,241 @@
+"""`mpnode generate SYSTEM [options]`: simulate ground truth and write an HDF5 dataset.
+
+The command only parses: it layers a preset, a config file and the options given (later
+wins), builds a `GenerateConfig`, calls `mpnode_cli.data.generate.generate`, and turns the
+result or the error into output and an exit code (2 for usage errors, 1 for numerical
+failure, 130 for Ctrl-C). torch and h5py are imported inside the function.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+# Fields that exclude each other: one given by a later layer drops the other from earlier
+# layers, so `--preset gene-ba-4x4 --nodes 25` means 25 nodes rather than a conflict.
+_EXCLUSIVE = (("nodes", "grid"), ("topology", "edge_list"))
+
+
+def _complete_system(incomplete: str) -> list[str]:
+    from mpnode_cli.systems.registry import SYSTEMS
+
+    return [name for name in SYSTEMS if name.startswith(incomplete)]
+
+
+def _complete_preset(incomplete: str) -> list[str]:
+    from mpnode_cli.data.presets import PRESETS
+
+    return [name for name in PRESETS if name.startswith(incomplete)]
+
+
+def generate_command(
+    system: str | None = typer.Argument(
+        None,
+        help="pendulum, lorenz, gene or kuramoto (may come from --preset or --config).",
+        autocompletion=_complete_system,
+        show_default=False,
+    ),
+    preset: str | None = typer.Option(
+        None,
+        help="Start from one of the paper's datasets, e.g. lorenz10, gene-ba-8x8.",
+        autocompletion=_complete_preset,
+    ),
+    config_file: Path | None = typer.Option(
+        None, "--config", help="TOML (or JSON) file of config fields; options override it."
+    ),
+    nodes: int | None = typer.Option(None, help="Number of nodes N."),
+    grid: int | None = typer.Option(None, help="Square grid side: N = grid² (gene)."),
+    topology: str | None = typer.Option(None, help="complete, chain, er, ba or ws."),
+    graphs: int | None = typer.Option(None, help="Distinct graphs G; trajectories spread evenly."),
+    graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
+    edge_list: Path | None = typer.Option(None, help="Your own graph: text file of 'i j' lines."),
+    trajectories: int | None = typer.Option(None, help="Number of trajectories K."),
+    t_end: float | None = typer.Option(None, help="Last sample time (samples 0, dt, ..)."),
+    dt: float | None = typer.Option(None, help="Sample spacing."),
+    seed: int | None = typer.Option(None, help="Seed of initial states and split."),
+    split: str | None = typer.Option(
+        None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."
+    ),
+    rtol: float | None = typer.Option(None, help="Solver relative tolerance (default 1e-8)."),
+    atol: float | None = typer.Option(None, help="Solver absolute tolerance (default 1e-10)."),
+    dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
+    out: Path | None = typer.Option(
+        None, help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5)."
+    ),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
+    chunk_size: int | None = typer.Option(
+        None, help="Trajectories per solver batch (default 256)."
+    ),
+    coupling: float | None = typer.Option(
+        None, help="lorenz: ‖H‖_F (default 0.01; the paper's high is 1.0)."
+    ),
+    init: str | None = typer.Option(None, help="gene: initial states, uniform or hotspot."),
+    ic_range: str | None = typer.Option(None, help="pendulum: small (code) or paper (appendix)."),
+    param: list[str] | None = typer.Option(
+        None,
+        "--param",
+        "-p",
+        metavar="NAME=VALUE",
+        help="System parameter NAME=VALUE, e.g. -p K=0.5 (repeatable).",
+    ),
+) -> None:
+    """Simulate ground truth on graphs and write an HDF5 dataset."""
+    from mpnode_cli.config import GenerateConfig, read_config_file
+    from mpnode_cli.data.presets import get_preset
+
+    options = {
+        "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
+        "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
+        "t_end": t_end, "dt": dt, "seed": seed, "split": split, "rtol": rtol, "atol": atol,
+        "dtype": dtype, "out": out, "chunk_size": chunk_size,
+    }  # fmt: skip
+    options = {key: value for key, value in options.items() if value is not None}
+    try:
+        params = _parse_params(param or [])
+        for key, value in (("coupling", coupling), ("init", init), ("ic_range", ic_range)):
+            if value is not None:
+                params[key] = value
+        if params:
+            options["params"] = params
+        layers = [
+            (f"preset {preset}", get_preset(preset) if preset else {}),
+            (f"config {config_file}", read_config_file(config_file) if config_file else {}),
+            ("command line", options),
+        ]
+        fields = _merge(layers)
+        if "system" not in fields:
+            from mpnode_cli.systems.registry import SYSTEMS
+
+            raise ValueError(f"give a SYSTEM ({', '.join(SYSTEMS)}) or --preset NAME")
+        config = GenerateConfig(**fields)
+    except ValueError as exc:
+        _usage_error(_message(exc))
+    _run(config, force)
+
+
+def _run(config: Any, force: bool) -> None:
+    """Generate with a progress bar, then print the summary table."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from mpnode_cli.data.generate import GenerateError, generate, resolve_config
+
+    try:
+        config = resolve_config(config)
+    except ValueError as exc:
+        _usage_error(_message(exc))
+    columns = (
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+    )
+    console = Console(stderr=True)
+    # No bar when stderr is not a terminal (pipes, logs, tests): it would only add noise.
+    with Progress(
+        *columns, console=console, transient=True, disable=not console.is_terminal
+    ) as bar:
+        task = bar.add_task(f"solving {config.system}", total=config.trajectories)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        try:
+            summary = generate(config, overwrite=force, progress=progress)
+        except (FileExistsError, ValueError) as exc:
+            bar.stop()
+            _usage_error(_message(exc))
+        except GenerateError as exc:
+            bar.stop()
+            typer.echo(f"Error: {exc}", err=True)
+            raise typer.Exit(code=1) from None
+        except KeyboardInterrupt:
+            bar.stop()
+            typer.echo(f"Interrupted: nothing written to {config.out}", err=True)
+            raise typer.Exit(code=130) from None
+    _print_summary(config, summary)
+
+
+def _print_summary(config: Any, summary: Any) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    train, val, test = summary.split_counts
+    table = Table(title=f"wrote {summary.path}", show_header=False, title_justify="left")
+    table.add_column(style="bold")
+    table.add_column(justify="right")
+    rows = [
+        ("system", f"{config.system} on {config.graphs} × {config.topology}"),
+        ("nodes", str(config.nodes)),
+        ("trajectories", f"{summary.trajectories} ({train} train / {val} val / {test} test)"),
+        ("samples", f"{config.num_steps + 1} (dt {config.dt:g}, t_end {config.t_end:g})"),
+        ("failed / rejected", f"{summary.failed} / {summary.rejected} (redrawn)"),
+        ("RHS evaluations", f"{summary.n_f_evals:,}"),
+        ("seconds", f"{summary.seconds:.2f} ({summary.solve_seconds:.2f} solving)"),
+    ]
+    for row in rows:
+        table.add_row(*row)
+    Console().print(table)
+
+
+def _parse_params(items: list[str]) -> dict[str, float | str]:
+    """`["K=0.5", "init=hotspot"]` → `{"K": 0.5, "init": "hotspot"}` (numbers as floats)."""
+    params: dict[str, float | str] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ValueError(f"--param expects NAME=VALUE, got {item!r}")
+        try:
+            params[name] = float(value)
+        except ValueError:
+            params[name] = value
+    return params
+
+
+def _merge(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """Later layers override earlier ones; `params` merge key by key.
+
+    Args:
+        layers: `(where it came from, fields)`, lowest precedence first.
+
+    Raises:
+        ValueError: two layers name different systems, or `params` is not a table.
+    """
+    fields: dict[str, Any] = {}
+    source = ""
+    for where, layer in layers:
+        layer = dict(layer)
+        if "system" in layer and fields.get("system") not in (None, layer["system"]):
+            raise ValueError(
+                f"system '{layer['system']}' ({where}) disagrees with '{fields['system']}' "
+                f"({source})"
+            )
+        source = where if "system" in layer else source
+        for a, b in _EXCLUSIVE:
+            for given, other in ((a, b), (b, a)):
+                if given in layer and other not in layer:
+                    fields.pop(other, None)
+        params = layer.pop("params", {})
+        if not isinstance(params, dict):
+            raise ValueError(f"params ({where}) must be a table of NAME = value")
+        params = {**fields.get("params", {}), **params}
+        fields.update(layer)
+        if params:
+            fields["params"] = params
+    return fields
+
+
+def _message(exc: Exception) -> str:
+    """One line for a user: pydantic's multi-line errors condensed, others as they are."""
+    from pydantic import ValidationError
+
+    from mpnode_cli.config import error_line
+
+    return error_line(exc) if isinstance(exc, ValidationError) else str(exc)
+
+
+def _usage_error(message: str) -> None:
+    typer.echo(f"Error: {message}", err=True)
+    raise typer.Exit(code=2)

@@ -1,0 +1,79 @@
+"""`mpnode info FILE`: a dataset's summary, read from its header without loading states."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+
+def info_command(
+    path: Path = typer.Argument(..., metavar="FILE", help="An mpnode dataset (.h5)."),
+) -> None:
+    """Print a dataset's summary."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
+
+    try:
+        header = read_header(path)
+    except (FileNotFoundError, DatasetFormatError) as exc:
+        typer.echo(f"Error: {exc}", err=True)
+        raise typer.Exit(code=2) from None
+
+    table = Table(title=str(path), show_header=False, title_justify="left")
+    table.add_column(style="bold")
+    table.add_column()
+    for name, value in _rows(header):
+        table.add_row(name, value)
+    Console().print(table)
+
+
+def _rows(header: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, text) rows of the summary table."""
+    import numpy as np
+
+    attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
+    (k, t, n, d), states_dtype = shapes["states"]
+    adjacency = header["adjacency"]  # [G, N, N]
+    train, val, test = np.bincount(header["split"], minlength=3)[:3]
+    edges = adjacency.reshape(len(adjacency), -1).sum(axis=1) / 2  # undirected edges per graph
+    failed = int(np.count_nonzero(header["solver_status"]))
+    scalars = ", ".join(f"{key}={value:g}" for key, value in header["scalar_params"].items())
+    per_graph = ", ".join(
+        f"{name.removeprefix('params/')} {list(shape)}"
+        for name, (shape, _) in shapes.items()
+        if name.startswith("params/")
+    )
+    rows = [
+        ("format", f"{attrs['format']} v{attrs['format_version']}"),
+        ("system", attrs["system"]),
+        ("nodes × state", f"{n} × {d} ({', '.join(attrs['state_names'])})"),
+        ("controls", ", ".join(attrs["control_names"]) or "none"),
+        ("trajectories", f"{k} ({train} train / {val} val / {test} test)"),
+        ("samples", f"{t} (dt {attrs['dt']:g}, t_end {attrs['dt'] * (t - 1):g})"),
+        (
+            "graphs",
+            f"{len(adjacency)} × {config.get('topology', '?')}, {edges.mean():g} edges on average",
+        ),
+        ("parameters", scalars or "none"),
+        ("per-graph parameters", per_graph or "none"),
+        ("states dtype", states_dtype),
+        ("seeds", f"trajectories {attrs['seed']}, graphs {config.get('graph_seed', '?')}"),
+        (
+            "solver",
+            f"rtol {config.get('rtol', '?')}, atol {config.get('atol', '?')}, "
+            f"{failed} unfinished in the file",
+        ),
+    ]
+    if "n_rejected" in attrs:
+        rows.append(
+            ("redrawn", f"{attrs.get('n_failed', 0)} failed, {attrs['n_rejected']} rejected")
+        )
+    hidden = [name.removeprefix("hidden/") for name in shapes if name.startswith("hidden/")]
+    if hidden:
+        rows.append(("hidden states", ", ".join(hidden)))
+    rows.append(("written", f"{attrs['created_utc']} by mpnode {attrs['mpnode_version']}"))
+    return rows

@@ -1,0 +1,179 @@
+"""Pydantic models of each verb's configuration: the one source of truth for what a run did.
+
+A config is built from (lowest precedence first) a preset, a TOML/JSON file, and command-line
+options; its resolved form (every default filled in) is written next to the artifact it made,
+so any dataset or run can be reproduced from its own files.
+
+This module checks what can be checked without knowing the system (types, ranges, `dt` vs
+`t_end`, the split). System-dependent defaults and checks (its topologies, node counts,
+parameters) are filled in by `mpnode_cli.data.generate.resolve_config`, which keeps this
+module free of imports from higher floors.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+# Relative slack when checking that t_end is a whole number of dt steps (0.3 / 0.1 is not
+# exactly 3 in binary floating point).
+_GRID_TOL = 1e-9
+
+
+class GenerateConfig(BaseModel):
+    """What `mpnode generate` makes: one system on G graphs, K trajectories, one HDF5 file.
+
+    Fields left `None` take the system's defaults in `resolve_config`.
+
+    Attributes:
+        system: registry name (`pendulum`, `lorenz`, `gene`, `kuramoto`).
+        params: scalar parameters and options of the system, e.g. `{"coupling": 1.0}` for
+            lorenz, `{"init": "hotspot"}` for gene, `{"K": 0.5}` for kuramoto.
+        nodes: N, the number of nodes (default: the system's, or the edge list's).
+        grid: side of a square grid, N = grid² (gene's 4×4 and 8×8 layouts).
+        topology: one of the system's topologies (default: the system's).
+        graphs: G, distinct graphs in the dataset; trajectories are spread evenly over them.
+        graph_seed: graph g is built with seed `graph_seed + g`; per-graph parameters (lorenz
+            coupling, kuramoto ω) are drawn from `default_rng([graph_seed, g])`, so datasets
+            that share a graph seed share their systems whatever their trajectory seed.
+        edge_list: a user's graph as a text file of `i j` lines (then `topology` is
+            `"edgelist"`).
+        trajectories: K.
+        t_end: last sample time; samples are `0, dt, ..., t_end`.
+        dt: sample spacing.
+        seed: seed of the initial states and of the train/validation/test split.
+        split: train, validation, test fractions (by trajectory), summing to 1.
+        rtol, atol: solver tolerances (float64 throughout).
+        dtype: storage dtype of `states`.
+        out: output file (default `datasets/<system>-n<N>-<topology>-s<seed>.h5`).
+        chunk_size: trajectories solved together in one batch (bounds memory).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    system: str
+    params: dict[str, float | str] = Field(default_factory=dict)
+    nodes: int | None = Field(None, ge=1)
+    grid: int | None = Field(None, ge=1)
+    topology: str | None = None
+    graphs: int = Field(1, ge=1)
+    graph_seed: int = 0
+    edge_list: Path | None = None
+    trajectories: int | None = Field(None, ge=1)
+    t_end: float | None = Field(None, gt=0)
+    dt: float | None = Field(None, gt=0)
+    seed: int = 0
+    split: tuple[float, float, float] = (0.7, 0.15, 0.15)
+    rtol: float = Field(1e-8, gt=0, lt=1)
+    atol: float = Field(1e-10, gt=0)
+    dtype: Literal["float32", "float64"] = "float32"
+    out: Path | None = None
+    chunk_size: int = Field(256, ge=1)
+
+    @field_validator("split", mode="before")
+    @classmethod
+    def _parse_split(cls, value: Any) -> Any:
+        """Accept the command line's `"0.7,0.15,0.15"` as well as a list of three numbers."""
+        parts = value.replace(" ", "").split(",") if isinstance(value, str) else value
+        try:
+            numbers = tuple(float(p) for p in parts)
+        except (TypeError, ValueError):
+            numbers = ()
+        if len(numbers) != 3:
+            raise ValueError(f"expected three fractions like 0.7,0.15,0.15, got {value!r}")
+        return numbers
+
+    @field_validator("split")
+    @classmethod
+    def _check_split(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
+        if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(
+            sum(value), 1.0, abs_tol=1e-6
+        ):
+            shown = ",".join(f"{x:g}" for x in value)
+            raise ValueError(
+                f"train,validation,test fractions must lie in [0, 1] and sum to 1, got {shown}"
+            )
+        return value
+
+    @model_validator(mode="after")
+    def _check_cross_fields(self) -> GenerateConfig:
+        if self.dt is not None and self.t_end is not None:
+            if self.dt > self.t_end:
+                raise ValueError(f"dt ({self.dt:g}) is larger than t_end ({self.t_end:g})")
+            steps = self.t_end / self.dt
+            if abs(steps - round(steps)) > _GRID_TOL * max(1.0, steps):
+                raise ValueError(
+                    f"t_end ({self.t_end:g}) must be a whole number of dt ({self.dt:g}) steps"
+                )
+        if self.nodes is not None and self.grid is not None and self.nodes != self.grid**2:
+            raise ValueError(
+                f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of side "
+                f"{self.grid} has {self.grid**2} nodes; give only one of them"
+            )
+        if self.edge_list is not None and self.topology not in (None, "edgelist"):
+            raise ValueError(f"give either a topology ({self.topology}) or an edge list, not both")
+        if self.trajectories is not None and self.trajectories < self.graphs:
+            raise ValueError(
+                f"trajectories ({self.trajectories}) must be at least graphs ({self.graphs}) "
+                "so that every graph has a trajectory"
+            )
+        return self
+
+    @property
+    def num_steps(self) -> int:
+        """Number of dt steps, T − 1 (after resolution)."""
+        if self.t_end is None or self.dt is None:
+            raise ValueError("num_steps needs a resolved config (t_end and dt set)")
+        return round(self.t_end / self.dt)
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """Read a config file's fields: TOML, or JSON (e.g. a dataset's stored `config`).
+
+    Args:
+        path: `.toml` or `.json` file whose top-level keys are config fields.
+
+    Returns:
+        The raw fields, to be merged with presets and options and then validated.
+
+    Raises:
+        ValueError: a missing file, or one that does not parse.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    try:
+        if path.suffix == ".json":
+            data = json.loads(text)
+        else:
+            data = tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"config file {path} does not parse: {exc}") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"config file {path} must hold a table of fields")
+    return data
+
+
+def error_line(exc: ValidationError) -> str:
+    """One line for a user out of a pydantic error: the first problem, where and what.
+
+    Example: `trajectories: Input should be greater than or equal to 1 (got -5)`.
+    """
+    err = exc.errors()[0]
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    loc = ".".join(str(p) for p in err["loc"])
+    if err["type"] == "extra_forbidden":
+        return f"unknown config field '{loc}'"
+    if err["type"] == "missing":
+        return f"missing config field '{loc}'"
+    # Our own ValueErrors already quote the value; pydantic's built-in ones do not.
+    quoted = err["type"] == "value_error" or isinstance(err.get("input"), dict)
+    got = "" if quoted else f" (got {err['input']!r})"
+    return f"{loc}: {msg}{got}" if loc else msg

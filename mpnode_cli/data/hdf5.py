@@ -1,0 +1,335 @@
+"""Dataset files, format "mpnode-dataset" version 1: writer and reader.
+
+The layout is documented field by field in `docs/dataset-format.md`. In short: root
+attributes describe the system and carry the resolved generate config; `states [K, T, N, D]`
+holds the trajectories (one HDF5 chunk per trajectory); `graph/adjacency [G, N, N]` with
+`graph_index [K]` says which graph each trajectory ran on; `params/` holds the system's
+parameters; `split [K]` assigns trajectories to train/validation/test.
+
+Writes are atomic: the file is written under a temporary name in the target folder and
+renamed when complete, so an interrupted run (Ctrl-C included) leaves nothing at the target.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import uuid
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from mpnode_cli import __version__
+
+FORMAT = "mpnode-dataset"
+FORMAT_VERSION = 1
+SPLIT_NAMES: tuple[str, ...] = ("train", "validation", "test")
+
+# Root attributes the format defines; any others a writer adds land in `Dataset.extra_attrs`.
+_ROOT_ATTRS = frozenset(
+    {
+        "format",
+        "format_version",
+        "system",
+        "num_nodes",
+        "node_dim",
+        "control_dim",
+        "dt",
+        "state_names",
+        "control_names",
+        "seed",
+        "config",
+        "mpnode_version",
+        "created_utc",
+    }
+)
+
+
+class DatasetFormatError(ValueError):
+    """A file that is not an mpnode dataset this version of mpnode can read."""
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One dataset file in memory (numpy arrays).
+
+    Attributes:
+        system: the system's registry name.
+        dt: sample spacing.
+        state_names: `[D]` names of a node's state components.
+        control_names: `[U]` names of a node's control components (empty if none).
+        seed: seed of the initial states and split.
+        config: the resolved generate config (JSON-compatible dict).
+        time: float64 `[T]`.
+        states: `[K, T, N, D]` (float32 or float64).
+        adjacency: uint8 `[G, N, N]`, `A[g, i, j] = 1` iff node j sends to node i.
+        graph_index: int32 `[K]`, the graph of each trajectory.
+        split: uint8 `[K]`, 0 train, 1 validation, 2 test.
+        params: per-graph parameters, each with a leading `[G]` axis.
+        scalar_params: the system's scalar parameters by ASCII name.
+        solver_status: int8 `[K]`, `mpnode_cli.solver.Status` of each trajectory.
+        solver_n_f_evals: int32 `[K]`, right-hand-side evaluations of each trajectory.
+        controls: `[K, T, N, U]` zero-order-hold controls, or None when U = 0.
+        hidden: unobserved states besides the nodes, each `[K, T, ...]`.
+        extra_attrs: further root attributes (e.g. `n_rejected`, `n_failed`).
+        mpnode_version, created_utc: filled in by the writer when None.
+    """
+
+    system: str
+    dt: float
+    state_names: tuple[str, ...]
+    control_names: tuple[str, ...]
+    seed: int
+    config: dict[str, Any]
+    time: np.ndarray
+    states: np.ndarray
+    adjacency: np.ndarray
+    graph_index: np.ndarray
+    split: np.ndarray
+    params: dict[str, np.ndarray] = field(default_factory=dict)
+    scalar_params: dict[str, float] = field(default_factory=dict)
+    solver_status: np.ndarray | None = None
+    solver_n_f_evals: np.ndarray | None = None
+    controls: np.ndarray | None = None
+    hidden: dict[str, np.ndarray] = field(default_factory=dict)
+    extra_attrs: dict[str, Any] = field(default_factory=dict)
+    mpnode_version: str | None = None
+    created_utc: str | None = None
+
+    @property
+    def num_trajectories(self) -> int:
+        """K."""
+        return self.states.shape[0]
+
+    @property
+    def num_nodes(self) -> int:
+        """N."""
+        return self.states.shape[2]
+
+    @property
+    def node_dim(self) -> int:
+        """D."""
+        return self.states.shape[3]
+
+    @property
+    def control_dim(self) -> int:
+        """U (0 for autonomous systems)."""
+        return len(self.control_names)
+
+    @property
+    def num_graphs(self) -> int:
+        """G."""
+        return self.adjacency.shape[0]
+
+
+def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> Path:
+    """Write `ds` to `path` atomically.
+
+    Args:
+        path: target file; its folder is created if missing.
+        ds: the dataset; shapes are checked against each other first.
+        overwrite: replace an existing file (otherwise refuse).
+
+    Returns:
+        The path written.
+
+    Raises:
+        FileExistsError: `path` exists and `overwrite` is False.
+        ValueError: inconsistent shapes.
+    """
+    path = Path(path)
+    _check_shapes(ds)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} already exists (use --force to overwrite)")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # A unique name beside the target (same filesystem, so the rename is atomic), created
+    # by h5py itself so that the file gets the user's usual permissions.
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        with h5py.File(tmp, "x") as f:
+            _write(f, ds)
+        os.replace(tmp, path)
+    except BaseException:  # KeyboardInterrupt too: never leave a half-written temp behind
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _write(f: h5py.File, ds: Dataset) -> None:
+    k, t, n, d = ds.states.shape
+    f.attrs.update(
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "system": ds.system,
+            "num_nodes": n,
+            "node_dim": d,
+            "control_dim": len(ds.control_names),
+            "dt": float(ds.dt),
+            "state_names": json.dumps(list(ds.state_names)),
+            "control_names": json.dumps(list(ds.control_names)),
+            "seed": int(ds.seed),
+            "config": json.dumps(ds.config, sort_keys=True),
+            "mpnode_version": ds.mpnode_version or __version__,
+            "created_utc": ds.created_utc or datetime.now(UTC).isoformat(timespec="seconds"),
+        }
+    )
+    for key, value in ds.extra_attrs.items():
+        if key in _ROOT_ATTRS:
+            raise ValueError(f"extra attribute '{key}' would overwrite a format attribute")
+        f.attrs[key] = value
+    f.create_dataset("time", data=np.asarray(ds.time, dtype=np.float64))
+    # One trajectory per chunk: training reads whole trajectories in random order.
+    f.create_dataset("states", data=ds.states, chunks=(1, t, n, d))
+    if ds.controls is not None and len(ds.control_names) > 0:
+        f.create_dataset("controls", data=ds.controls, chunks=(1, *ds.controls.shape[1:]))
+    f.create_dataset("graph/adjacency", data=np.asarray(ds.adjacency, dtype=np.uint8))
+    f.create_dataset("graph_index", data=np.asarray(ds.graph_index, dtype=np.int32))
+    params = f.create_group("params")
+    for name, value in ds.params.items():
+        params.create_dataset(name, data=np.asarray(value, dtype=np.float64))
+    for name, value in ds.scalar_params.items():
+        params.attrs[name] = float(value)
+    for name, value in ds.hidden.items():
+        f.create_dataset(f"hidden/{name}", data=value, chunks=(1, *value.shape[1:]))
+    f.create_dataset("split", data=np.asarray(ds.split, dtype=np.uint8))
+    status = np.zeros(k) if ds.solver_status is None else ds.solver_status
+    n_f_evals = np.zeros(k) if ds.solver_n_f_evals is None else ds.solver_n_f_evals
+    f.create_dataset("solver/status", data=np.asarray(status, dtype=np.int8))
+    f.create_dataset("solver/n_f_evals", data=np.asarray(n_f_evals, dtype=np.int32))
+
+
+def _check_shapes(ds: Dataset) -> None:
+    if ds.states.ndim != 4:
+        raise ValueError(f"states must be [K, T, N, D], got shape {ds.states.shape}")
+    k, t, n, d = ds.states.shape
+    expected = {
+        "time": (ds.time, (t,)),
+        "adjacency": (ds.adjacency, (ds.adjacency.shape[0], n, n)),
+        "graph_index": (ds.graph_index, (k,)),
+        "split": (ds.split, (k,)),
+    }
+    if ds.controls is not None:
+        expected["controls"] = (ds.controls, (k, t, n, len(ds.control_names)))
+    for name, value in ds.hidden.items():
+        expected[f"hidden/{name}"] = (value, (k, t, *value.shape[2:]))
+    for name, (array, shape) in expected.items():
+        if np.shape(array) != shape:
+            raise ValueError(f"{name} has shape {np.shape(array)}, expected {shape}")
+    if len(ds.state_names) != d:
+        raise ValueError(f"{len(ds.state_names)} state names for node_dim {d}")
+    if k and not 0 <= int(np.min(ds.graph_index)) <= int(np.max(ds.graph_index)) < len(
+        ds.adjacency
+    ):
+        raise ValueError("graph_index points outside graph/adjacency")
+
+
+def read_dataset(path: str | Path) -> Dataset:
+    """Read a whole dataset file into memory.
+
+    Raises:
+        DatasetFormatError: not an mpnode dataset, or a newer format version.
+        FileNotFoundError: no such file.
+    """
+    with _open(path) as f:
+        attrs = _root_attrs(f)
+        has_controls = "controls" in f
+        return Dataset(
+            system=attrs["system"],
+            dt=attrs["dt"],
+            state_names=tuple(json.loads(attrs["state_names"])),
+            control_names=tuple(json.loads(attrs["control_names"])),
+            seed=attrs["seed"],
+            config=json.loads(attrs["config"]),
+            time=f["time"][()],
+            states=f["states"][()],
+            adjacency=f["graph/adjacency"][()],
+            graph_index=f["graph_index"][()],
+            split=f["split"][()],
+            params={name: value[()] for name, value in f["params"].items()},
+            scalar_params={name: float(v) for name, v in f["params"].attrs.items()},
+            solver_status=f["solver/status"][()],
+            solver_n_f_evals=f["solver/n_f_evals"][()],
+            controls=f["controls"][()] if has_controls else None,
+            hidden={name: v[()] for name, v in f["hidden"].items()} if "hidden" in f else {},
+            extra_attrs={key: v for key, v in attrs.items() if key not in _ROOT_ATTRS},
+            mpnode_version=attrs["mpnode_version"],
+            created_utc=attrs["created_utc"],
+        )
+
+
+def read_header(path: str | Path) -> dict[str, Any]:
+    """A dataset's root attributes and every array's shape and dtype, without the data.
+
+    Returns:
+        `{"attrs": {...}, "shapes": {name: (shape, dtype str)}, "split": [K] uint8,
+        "solver_status": [K] int8, "adjacency": [G, N, N], "scalar_params": {...}}`; the
+        JSON attributes (`config`, `state_names`, `control_names`) are decoded.
+
+    Raises:
+        DatasetFormatError, FileNotFoundError: as `read_dataset`.
+    """
+    with _open(path) as f:
+        attrs = _root_attrs(f)
+        for key in ("config", "state_names", "control_names"):
+            attrs[key] = json.loads(attrs[key])
+        shapes: dict[str, tuple[tuple[int, ...], str]] = {}
+        f.visititems(
+            lambda name, obj: (
+                shapes.__setitem__(name, (obj.shape, str(obj.dtype)))
+                if isinstance(obj, h5py.Dataset)
+                else None
+            )
+        )
+        return {
+            "attrs": attrs,
+            "shapes": shapes,
+            "split": f["split"][()],
+            "solver_status": f["solver/status"][()],
+            "adjacency": f["graph/adjacency"][()],
+            "scalar_params": {name: float(v) for name, v in f["params"].attrs.items()},
+        }
+
+
+def _open(path: str | Path) -> h5py.File:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no such dataset file: {path}")
+    try:
+        return h5py.File(path, "r")
+    except OSError:
+        raise DatasetFormatError(f"{path} is not an HDF5 file") from None
+
+
+def _root_attrs(f: h5py.File) -> dict[str, Any]:
+    """Root attributes as Python values, after checking the format name and version."""
+    attrs = {key: _py(value) for key, value in f.attrs.items()}
+    name = attrs.get("format")
+    if name != FORMAT:
+        what = f"format '{name}'" if name is not None else "no 'format' attribute"
+        raise DatasetFormatError(f"{f.filename} is not an mpnode dataset ({what})")
+    version = attrs.get("format_version")
+    if not isinstance(version, int) or version < 1:
+        raise DatasetFormatError(f"{f.filename} has an invalid format_version {version!r}")
+    if version > FORMAT_VERSION:
+        raise DatasetFormatError(
+            f"{f.filename} is mpnode-dataset version {version}, newer than this mpnode "
+            f"reads (up to {FORMAT_VERSION}): upgrade mpnode"
+        )
+    missing = sorted(_ROOT_ATTRS - set(attrs))
+    if missing:
+        raise DatasetFormatError(f"{f.filename} lacks root attributes: {', '.join(missing)}")
+    return attrs
+
+
+def _py(value: Any) -> Any:
+    """numpy scalars and bytes from h5py attributes → plain Python values."""
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

@@ -1,0 +1,177 @@
+"""Dataset files (format v1): round trip, atomic writes, and refusal of foreign or newer files."""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from mpnode_cli.data import hdf5
+from mpnode_cli.data.hdf5 import (
+    Dataset,
+    DatasetFormatError,
+    read_dataset,
+    read_header,
+    write_dataset,
+)
+
+K, T, N, D, U, G = 5, 4, 3, 2, 1, 2
+
+
+def _dataset(**overrides) -> Dataset:
+    rng = np.random.default_rng(0)
+    fields = dict(
+        system="toy",
+        dt=0.1,
+        state_names=("a", "b"),
+        control_names=("u",),
+        seed=7,
+        config={"system": "toy", "split": [0.6, 0.2, 0.2]},
+        time=np.arange(T) * 0.1,
+        states=rng.standard_normal((K, T, N, D)).astype(np.float32),
+        adjacency=np.stack([np.ones((N, N), np.uint8) - np.eye(N, dtype=np.uint8)] * G),
+        graph_index=np.array([0, 0, 0, 1, 1], dtype=np.int32),
+        split=np.array([0, 0, 0, 1, 2], dtype=np.uint8),
+        params={"coupling": rng.standard_normal((G, 3 * N, 3 * N))},
+        scalar_params={"sigma": 10.0, "K": 1 / 3},
+        solver_status=np.zeros(K, np.int8),
+        solver_n_f_evals=np.arange(K, dtype=np.int32),
+        controls=rng.standard_normal((K, T, N, U)).astype(np.float32),
+        hidden={"load": rng.standard_normal((K, T, 6))},
+        extra_attrs={"n_rejected": 3},
+    )
+    fields.update(overrides)
+    return Dataset(**fields)
+
+
+def _assert_same(a: Dataset, b: Dataset) -> None:
+    for name in ("time", "states", "adjacency", "graph_index", "split", "controls"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+        assert getattr(a, name).dtype == getattr(b, name).dtype, name
+    for name in ("system", "dt", "state_names", "control_names", "seed", "config"):
+        assert getattr(a, name) == getattr(b, name), name
+    assert a.params.keys() == b.params.keys()
+    np.testing.assert_array_equal(a.params["coupling"], b.params["coupling"])
+    np.testing.assert_array_equal(a.hidden["load"], b.hidden["load"])
+    assert a.scalar_params == b.scalar_params
+
+
+def test_round_trip(tmp_path):
+    ds = _dataset()
+    path = write_dataset(tmp_path / "sub" / "d.h5", ds)
+    back = read_dataset(path)
+    _assert_same(ds, back)
+    assert back.extra_attrs == {"n_rejected": 3}
+    assert (back.num_trajectories, back.num_nodes, back.node_dim) == (K, N, D)
+    assert (back.control_dim, back.num_graphs) == (U, G)
+    assert back.mpnode_version and back.created_utc
+    np.testing.assert_array_equal(back.solver_n_f_evals, ds.solver_n_f_evals)
+
+
+def test_layout_matches_format_v1(tmp_path):
+    path = write_dataset(tmp_path / "d.h5", _dataset())
+    with h5py.File(path) as f:
+        assert f.attrs["format"] == "mpnode-dataset" and f.attrs["format_version"] == 1
+        assert (f.attrs["num_nodes"], f.attrs["node_dim"], f.attrs["control_dim"]) == (N, D, U)
+        assert json.loads(f.attrs["state_names"]) == ["a", "b"]
+        assert json.loads(f.attrs["config"])["system"] == "toy"
+        assert f["states"].chunks == (1, T, N, D)  # one trajectory per chunk
+        assert f["states"].dtype == np.float32 and f["time"].dtype == np.float64
+        assert f["graph/adjacency"].dtype == np.uint8 and f["graph_index"].dtype == np.int32
+        assert f["split"].dtype == np.uint8
+        assert f["solver/status"].dtype == np.int8 and f["solver/n_f_evals"].dtype == np.int32
+        assert f["params/coupling"].shape == (G, 3 * N, 3 * N)
+        assert f["params"].attrs["sigma"] == 10.0
+        assert f["hidden/load"].shape == (K, T, 6)
+
+
+def test_no_controls_dataset_when_autonomous(tmp_path):
+    ds = _dataset(control_names=(), controls=None, hidden={})
+    path = write_dataset(tmp_path / "d.h5", ds)
+    with h5py.File(path) as f:
+        assert "controls" not in f and "hidden" not in f and f.attrs["control_dim"] == 0
+    back = read_dataset(path)
+    assert back.controls is None and back.hidden == {}
+
+
+def test_header_without_data(tmp_path):
+    path = write_dataset(tmp_path / "d.h5", _dataset())
+    header = read_header(path)
+    assert header["shapes"]["states"] == ((K, T, N, D), "float32")
+    assert header["attrs"]["state_names"] == ["a", "b"]
+    assert header["adjacency"].shape == (G, N, N)
+
+
+def test_refuses_to_overwrite_unless_asked(tmp_path):
+    path = write_dataset(tmp_path / "d.h5", _dataset())
+    with pytest.raises(FileExistsError, match="--force"):
+        write_dataset(path, _dataset(seed=8))
+    write_dataset(path, _dataset(seed=8), overwrite=True)
+    assert read_dataset(path).seed == 8
+
+
+@pytest.mark.parametrize("error", [KeyboardInterrupt, RuntimeError])
+def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch, error):
+    real_write = hdf5._write
+
+    def write_then_fail(f, ds):
+        real_write(f, ds)  # a fully written temp file, then the interruption
+        raise error("interrupted")
+
+    monkeypatch.setattr(hdf5, "_write", write_then_fail)
+    with pytest.raises(error):
+        write_dataset(tmp_path / "d.h5", _dataset())
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
+    path = write_dataset(tmp_path / "d.h5", _dataset(seed=1))
+
+    def fail(f, ds):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(hdf5, "_write", fail)
+    with pytest.raises(KeyboardInterrupt):
+        write_dataset(path, _dataset(seed=2), overwrite=True)
+    assert read_dataset(path).seed == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["d.h5"]
+
+
+def test_newer_version_is_rejected(tmp_path):
+    path = write_dataset(tmp_path / "d.h5", _dataset())
+    with h5py.File(path, "a") as f:
+        f.attrs["format_version"] = 2
+    with pytest.raises(DatasetFormatError, match=r"version 2, newer.*upgrade mpnode"):
+        read_dataset(path)
+    with pytest.raises(DatasetFormatError, match="newer"):
+        read_header(path)
+
+
+def test_other_files_are_rejected(tmp_path):
+    foreign = tmp_path / "foreign.h5"
+    with h5py.File(foreign, "w") as f:
+        f.attrs["format"] = "something-else"
+    with pytest.raises(DatasetFormatError, match=r"not an mpnode dataset.*something-else"):
+        read_dataset(foreign)
+    bare = tmp_path / "bare.h5"
+    h5py.File(bare, "w").close()
+    with pytest.raises(DatasetFormatError, match="no 'format' attribute"):
+        read_dataset(bare)
+    text = tmp_path / "text.h5"
+    text.write_text("not hdf5")
+    with pytest.raises(DatasetFormatError, match="not an HDF5 file"):
+        read_dataset(text)
+    with pytest.raises(FileNotFoundError):
+        read_dataset(tmp_path / "missing.h5")
+
+
+def test_inconsistent_shapes_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="graph_index has shape"):
+        write_dataset(tmp_path / "d.h5", _dataset(graph_index=np.zeros(K + 1, np.int32)))
+    with pytest.raises(ValueError, match="outside graph/adjacency"):
+        write_dataset(tmp_path / "d.h5", _dataset(graph_index=np.full(K, G, np.int32)))
+    with pytest.raises(ValueError, match="would overwrite a format attribute"):
+        write_dataset(tmp_path / "d.h5", _dataset(extra_attrs={"seed": 1}))
+    assert list(tmp_path.iterdir()) == []
