@@ -1,0 +1,151 @@
+"""Datasets as tensors for learning: splits, normalization, per-trajectory graphs.
+
+`TrajectoryData` holds a dataset file's trajectories as torch tensors with each trajectory's
+own adjacency (gathered from the file's `[G, N, N]` by `graph_index`), so a batch is just an
+index. `Normalizer` is the z-score of the authors' `ztransform` (mpnode-jl-notes §2.3): one
+mean and std per node feature, pooled over nodes, time and trajectories — but fitted on the
+**train split only** (the authors fitted on all data, validation included).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mpnode_cli.data.hdf5 import read_dataset
+
+SPLITS = {"train": 0, "validation": 1, "test": 2}
+_STD_FLOOR = 1e-8  # a constant feature is centred, not divided by zero
+
+
+@dataclass(frozen=True)
+class Normalizer:
+    """Per-feature z-score of node states (and controls).
+
+    Attributes:
+        x_mean, x_std: `[D]` float32. u_mean, u_std: `[U]` float32 (empty when U = 0).
+    """
+
+    x_mean: torch.Tensor
+    x_std: torch.Tensor
+    u_mean: torch.Tensor
+    u_std: torch.Tensor
+
+    @staticmethod
+    def fit(states: torch.Tensor, controls: torch.Tensor | None = None) -> Normalizer:
+        """Fit on `states [K, T, N, D]` (and `controls [K, T, N, U]`)."""
+        x_mean, x_std = _moments(states)
+        if controls is None or controls.shape[-1] == 0:
+            u_mean = u_std = torch.zeros(0)
+        else:
+            u_mean, u_std = _moments(controls)
+        return Normalizer(x_mean, x_std, u_mean, u_std)
+
+    def to_dict(self) -> dict[str, list[float]]:
+        return {name: getattr(self, name).tolist()
+                for name in ("x_mean", "x_std", "u_mean", "u_std")}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> Normalizer:
+        return Normalizer(**{name: torch.tensor(d[name], dtype=torch.float32)
+                             for name in ("x_mean", "x_std", "u_mean", "u_std")})
+
+    def norm_x(self, x: torch.Tensor) -> torch.Tensor:
+        return (x - self.x_mean.to(x)) / self.x_std.to(x)
+
+    def denorm_x(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.x_std.to(x) + self.x_mean.to(x)
+
+    def norm_u(self, u: torch.Tensor) -> torch.Tensor:
+        return (u - self.u_mean.to(u)) / self.u_std.to(u)
+
+
+def _moments(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    flat = v.reshape(-1, v.shape[-1]).double()  # (K·T·N, F)
+    mean, std = flat.mean(dim=0), flat.std(dim=0, correction=0)
+    std = torch.where(std > _STD_FLOOR, std, torch.ones_like(std))
+    return mean.float(), std.float()
+
+
+@dataclass(frozen=True)
+class TrajectoryData:
+    """Trajectories of one dataset file (or a subset) as tensors.
+
+    Attributes:
+        states: float32 `[K, T, N, D]`. controls: float32 `[K, T, N, U]` or None.
+        adjacency: float32 `[K, N, N]`, each trajectory's graph (`A[k, i, j] = 1` iff j → i).
+        time: float64 `[T]`. split: uint8 `[K]` (0 train, 1 validation, 2 test).
+        system, state_names, control_names: from the file. path: where it was read.
+        fingerprint: sha256 of states, adjacency and time of the whole file.
+        attrs: other facts from the file (`topology`, `config`, ...).
+    """
+
+    states: torch.Tensor
+    controls: torch.Tensor | None
+    adjacency: torch.Tensor
+    time: torch.Tensor
+    split: torch.Tensor
+    system: str
+    state_names: tuple[str, ...]
+    control_names: tuple[str, ...]
+    path: Path
+    fingerprint: str
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @staticmethod
+    def load(path: str | Path) -> TrajectoryData:
+        """Read an mpnode dataset file (format errors propagate as `DatasetFormatError`)."""
+        ds = read_dataset(path)
+        states = np.ascontiguousarray(ds.states, dtype=np.float32)
+        adjacency = ds.adjacency[ds.graph_index].astype(np.float32)  # [K, N, N]
+        digest = hashlib.sha256()
+        for array in (states, ds.adjacency, ds.graph_index, ds.time):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        controls = None
+        if ds.controls is not None and ds.controls.shape[-1] > 0:
+            controls = torch.from_numpy(np.ascontiguousarray(ds.controls, dtype=np.float32))
+        topology = ds.config.get("topology") if isinstance(ds.config, dict) else None
+        return TrajectoryData(
+            states=torch.from_numpy(states), controls=controls,
+            adjacency=torch.from_numpy(adjacency),
+            time=torch.from_numpy(np.asarray(ds.time, dtype=np.float64)),
+            split=torch.from_numpy(ds.split.astype(np.uint8)),
+            system=ds.system, state_names=tuple(ds.state_names),
+            control_names=tuple(ds.control_names), path=Path(path),
+            fingerprint=digest.hexdigest(),
+            attrs={"topology": topology, "config": ds.config, "dt": ds.dt})
+
+    def __len__(self) -> int:
+        return self.states.shape[0]
+
+    @property
+    def num_nodes(self) -> int:
+        return self.states.shape[2]
+
+    @property
+    def node_dim(self) -> int:
+        return self.states.shape[3]
+
+    @property
+    def control_dim(self) -> int:
+        return 0 if self.controls is None else self.controls.shape[3]
+
+    def take(self, index: torch.Tensor) -> TrajectoryData:
+        """The trajectories at `index` (`[K']` int64 or bool), sharing the file's facts."""
+        return replace(self, states=self.states[index], adjacency=self.adjacency[index],
+                       controls=None if self.controls is None else self.controls[index],
+                       split=self.split[index])
+
+    def subset(self, which: str) -> TrajectoryData:
+        """One split ("train", "validation", "test") or "all"."""
+        if which == "all":
+            return self
+        if which not in SPLITS:
+            raise ValueError(f"unknown split '{which}' (choose from: train, validation, "
+                             "test, all)")
+        return self.take(self.split == SPLITS[which])

@@ -1,0 +1,1 @@
+"""Learned simulators: MP-NODE and (later) its baselines, by name in `registry`."""

@@ -1,0 +1,25 @@
+"""Models by name: what `--model` accepts and checkpoints record."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from torch import nn
+
+from mpnode_cli.models.mpnode import MPNODE
+
+MODELS: dict[str, type[nn.Module]] = {"mpnode": MPNODE}
+
+
+def build_model(kind: str, config: dict[str, Any]) -> nn.Module:
+    """Rebuild a model from its kind and `model.config`.
+
+    Raises:
+        ValueError: unknown kind or configuration.
+    """
+    if kind not in MODELS:
+        raise ValueError(f"unknown model '{kind}' (choose from: {', '.join(MODELS)})")
+    try:
+        return MODELS[kind](**config)
+    except TypeError as exc:
+        raise ValueError(f"bad configuration for model '{kind}': {exc}") from None

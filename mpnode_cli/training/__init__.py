@@ -1,0 +1,1 @@
+"""Training: losses, the loop (train/finetune), evaluation and checkpoints."""
