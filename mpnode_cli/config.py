@@ -73,7 +73,7 @@ class GenerateConfig(BaseModel):
     atol: float = Field(1e-10, gt=0)
     dtype: Literal["float32", "float64"] = "float32"
     out: Path | None = None
-    chunk_size: int = Field(256, ge=1)
+    chunk_size: int = Field(1024, ge=1)
 
     @field_validator("split", mode="before")
     @classmethod

@@ -66,7 +66,7 @@ def generate_command(
     ),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
     chunk_size: int | None = typer.Option(
-        None, help="Trajectories per solver batch (default 256)."
+        None, help="Trajectories per solver batch (default 1024)."
     ),
     coupling: float | None = typer.Option(
         None, help="lorenz: ‖H‖_F (default 0.01; the paper's high is 1.0)."

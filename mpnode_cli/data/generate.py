@@ -169,8 +169,10 @@ def generate(
     for round_ in range(MAX_REDRAW_ROUNDS + 1):
         for chunk, gi in _chunks(pending, graph_index, config.chunk_size):
             tic = time.perf_counter()
-            shared = {name: value[gi : gi + 1] for name, value in params.items()}
-            sol = _solve_chunk(system, config, ts, adjacency[gi : gi + 1], shared, y0[chunk])
+            # `[1, ...]` when the chunk shares one graph, else one copy per trajectory.
+            which = slice(gi, gi + 1) if gi is not None else graph_index[chunk]
+            chunk_params = {name: value[which] for name, value in params.items()}
+            sol = _solve_chunk(system, config, ts, adjacency[which], chunk_params, y0[chunk])
             solve_seconds += time.perf_counter() - tic
             states[chunk] = sol.ys.numpy()
             status[chunk] = sol.status.numpy()
@@ -253,22 +255,23 @@ def _read_edge_list(path: Path) -> np.ndarray:
 
 
 def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):
-    """Yield `(trajectory ids, graph id)`: at most `size` trajectories, all of one graph.
+    """Yield `(trajectory ids, graph id or None)`: at most `size` trajectories at a time.
 
-    Chunks never mix graphs, so the right-hand side gets one shared adjacency and parameter
-    set (`[1, ...]`) and aggregates with one matmul instead of a batched one.
+    With one graph, every chunk shares it (graph id given): the right-hand side then gets
+    one adjacency and parameter set (`[1, ...]`) and aggregates with a single matmul. With
+    several graphs, chunks mix them (graph id None) and carry per-trajectory copies: one
+    batched solve beats one small solve per graph, whose per-step overhead dominates.
     """
-    for gi in np.unique(graph_index[pending]):
-        block = pending[graph_index[pending] == gi]
-        for chunk in np.array_split(block, math.ceil(len(block) / size)):
-            yield chunk, int(gi)
+    graphs = np.unique(graph_index[pending])
+    for chunk in np.array_split(pending, math.ceil(len(pending) / size)):
+        yield chunk, (int(graphs[0]) if len(graphs) == 1 else None)
 
 
 def _solve_chunk(system, config, ts, adjacency, params, y0):
-    """Solve one chunk of trajectories of one graph in float64.
+    """Solve one chunk of trajectories in float64.
 
     Args:
-        adjacency: uint8 `[1, N, N]`; params: the graph's parameters `[1, ...]`;
+        adjacency: uint8 `[1, N, N]` shared or `[B, N, N]`; params: `[1, ...]` or `[B, ...]`;
         y0: `[B, N, D]`; ts: torch `[T]`.
     """
     import torch
