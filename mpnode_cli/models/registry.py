@@ -6,9 +6,12 @@ from typing import Any
 
 from torch import nn
 
+from mpnode_cli.models.gnode import GNODE
+from mpnode_cli.models.l2s import L2S
 from mpnode_cli.models.mpnode import MPNODE
+from mpnode_cli.models.node import NODE
 
-MODELS: dict[str, type[nn.Module]] = {"mpnode": MPNODE}
+MODELS: dict[str, type[nn.Module]] = {"mpnode": MPNODE, "l2s": L2S, "gnode": GNODE, "node": NODE}
 
 
 def build_model(kind: str, config: dict[str, Any]) -> nn.Module:

@@ -1,0 +1,177 @@
+"""L2S: Learning to Simulate (Sanchez-Gonzalez et al. 2020) without edge features.
+
+The paper's Fig. 1 (right): encode → process → decode, one step ahead.
+- Encoder: MLP on a node's input — its current normalized state, the last C − 1 state
+  differences (`history` C, default 1 so that every model starts from x(t₀) alone) and its
+  control — to a latent of size 128, then LayerNorm.
+- Processor: `steps` (10) message-passing steps with **unshared** weights: edge MLP on
+  [h_receiver, h_sender], sum over incoming edges, node MLP on [h_i, Σ_j e_ij], residual
+  h_i ← h_i + node(...); MLPs are 2×128 ReLU followed by LayerNorm.
+- Decoder: MLP (no LayerNorm) → the normalized next-step state difference Δ.
+Trained one step ahead with random-walk input noise (`one_step_loss`); evaluated by
+autoregressive rollout over the whole horizon, x_{t+1} = x_t + Δ̂. Departures from DeepMind's
+simulator (systems-notes §6a): no positions, so no edge features and no connectivity radius;
+a first-order Δ instead of an acceleration with semi-implicit Euler.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+from mpnode_cli.models.aggregate import EdgeIndex
+from mpnode_cli.models.base import Rollout, mlp
+
+
+def _mlp_ln(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
+    return nn.Sequential(*mlp(in_dim, hidden, layers, out_dim, "relu"), nn.LayerNorm(out_dim))
+
+
+class L2S(nn.Module):
+    """Encode–process–decode GNN simulator, one step of the dataset's dt at a time.
+
+    Args:
+        node_dim: D. control_dim: U.
+        latent: node/edge latent size; hidden, mlp_layers: the MLPs (128, 2).
+        steps: message-passing steps (unshared weights).
+        history: C, states in the input window (C − 1 differences are fed).
+        graph: "sys" or "full" (complete graph with self-loops).
+    """
+
+    kind: ClassVar[str] = "l2s"
+    transferable: ClassVar[bool] = True
+    one_step: ClassVar[bool] = True
+
+    def __init__(self, node_dim: int, control_dim: int = 0, latent: int = 128,
+                 hidden: int = 128, mlp_layers: int = 2, steps: int = 10, history: int = 1,
+                 graph: str = "sys"):
+        super().__init__()
+        if history < 1 or steps < 1:
+            raise ValueError("history and steps must be ≥ 1")
+        if graph not in ("sys", "full"):
+            raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
+        self.config = {"node_dim": node_dim, "control_dim": control_dim, "latent": latent,
+                       "hidden": hidden, "mlp_layers": mlp_layers, "steps": steps,
+                       "history": history, "graph": graph}
+        self.node_dim, self.control_dim, self.history, self.graph = (
+            node_dim, control_dim, history, graph)
+        in_dim = node_dim * history + control_dim
+        self.encoder = _mlp_ln(in_dim, hidden, mlp_layers, latent)
+        self.edge_fns = nn.ModuleList(
+            _mlp_ln(2 * latent, hidden, mlp_layers, latent) for _ in range(steps))
+        self.node_fns = nn.ModuleList(
+            _mlp_ln(2 * latent, hidden, mlp_layers, latent) for _ in range(steps))
+        self.decoder = mlp(latent, hidden, mlp_layers, node_dim, "relu")
+        # Statistics of the normalized one-step differences, set by `fit_statistics`.
+        self.register_buffer("delta_mean", torch.zeros(node_dim))
+        self.register_buffer("delta_std", torch.ones(node_dim))
+        self.register_buffer("step_dt", torch.zeros((), dtype=torch.float64))
+
+    # -------------------------------------------------------------- one step
+    def _edges(self, adjacency: torch.Tensor) -> EdgeIndex:
+        if self.graph == "full":
+            adjacency = torch.ones_like(adjacency)
+        return EdgeIndex.from_adjacency(adjacency)
+
+    def delta(self, window: torch.Tensor, edges: EdgeIndex, u: torch.Tensor | None):
+        """Normalized Δ̂ for one step.
+
+        Args:
+            window: `[B, C, N, D]` the last C normalized states (oldest first).
+            edges: the batch's graph. u: `[B, N, U]` or None.
+
+        Returns:
+            `[B, N, D]` in the units of the fitted Δ statistics (zero mean, unit std).
+        """
+        current = window[:, -1]  # (B, N, D)
+        feats = [current, *(window[:, k + 1] - window[:, k]
+                             for k in range(window.shape[1] - 1))]
+        if u is not None:
+            feats.append(u.to(current.dtype))
+        h = self.encoder(torch.cat(feats, dim=-1))  # (B, N, L)
+        flat_size = h.shape[0] * h.shape[1]
+        for edge_fn, node_fn in zip(self.edge_fns, self.node_fns, strict=True):
+            hf = h.reshape(flat_size, -1)
+            e = edge_fn(torch.cat([hf[edges.receivers], hf[edges.senders]], dim=-1))  # (E, L)
+            summed = torch.zeros_like(hf).index_add_(0, edges.receivers, e).view_as(h)
+            h = h + node_fn(torch.cat([h, summed], dim=-1))
+        return self.decoder(h)
+
+    @torch.no_grad()
+    def fit_statistics(self, states: torch.Tensor, dt: float) -> None:
+        """Fit the Δ normalization on normalized training states `[K, T, N, D]`."""
+        diff = (states[:, 1:] - states[:, :-1]).reshape(-1, self.node_dim).double()
+        std = diff.std(dim=0, correction=0)
+        self.delta_mean.copy_(diff.mean(dim=0).float())
+        self.delta_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)).float())
+        self.step_dt.fill_(dt)
+
+    def one_step_loss(self, states: torch.Tensor, adjacency: torch.Tensor,
+                      controls: torch.Tensor | None = None, *, noise_std: float = 3e-3,
+                      generator: torch.Generator | None = None) -> torch.Tensor:
+        """MSE of the normalized Δ over every step of every trajectory, with input noise.
+
+        A random walk of total std `noise_std` (in normalized state units) is added along
+        each input window, as L2S does; the target Δ leads from the *noisy* current state to
+        the true next one, so the model learns to correct its own drift.
+
+        Args:
+            states: `[B, T, N, D]` normalized; adjacency: `[B, N, N]`; controls `[B, T, N, U]`.
+        """
+        c = self.history
+        batch, steps = states.shape[0], states.shape[1] - c
+        # All windows at once: (B, steps, C, N, D) → (B·steps, C, N, D).
+        windows = states.unfold(1, c, 1)[:, :steps].permute(0, 1, 4, 2, 3)
+        windows = windows.reshape(batch * steps, c, *states.shape[2:])
+        if noise_std > 0:
+            eps = torch.randn(windows.shape, generator=generator, dtype=windows.dtype,
+                              device=windows.device) * (noise_std / c**0.5)
+            windows = windows + eps.cumsum(dim=1)
+        target = states[:, c:].reshape(batch * steps, *states.shape[2:]) - windows[:, -1]
+        adj = adjacency.repeat_interleave(steps, dim=0)
+        u = None
+        if self.control_dim:
+            u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
+        pred = self.delta(windows, self._edges(adj), u)
+        return ((pred - (target - self.delta_mean) / self.delta_std) ** 2).mean()
+
+    # -------------------------------------------------------------- rollout
+    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                controls: torch.Tensor | None = None, *, history: torch.Tensor | None = None,
+                **_solver_options) -> Rollout:
+        """Autoregressive rollout, one dataset step at a time.
+
+        Args:
+            x0: `[B, N, D]` normalized start; ts: `[T]` sample times (spacing must be the
+                training dt); adjacency: `[B, N, N]`; controls: `[B, T, N, U]` or None.
+            history: `[B, C, N, D]` the first C states (needed when C > 1; then the rollout
+                starts from the data's first C states).
+            Solver options are accepted and ignored: this model takes discrete steps.
+        """
+        if x0.shape[-1] != self.node_dim:
+            raise ValueError(f"states have {x0.shape[-1]} features per node but the model "
+                             f"expects {self.node_dim}")
+        ts = ts.to(torch.float64)
+        spacing = ts[1:] - ts[:-1]
+        if float(self.step_dt) > 0 and spacing.numel() and not torch.allclose(
+                spacing, torch.full_like(spacing, float(self.step_dt)), rtol=1e-6):
+            raise ValueError(f"L2S steps by the training dt {float(self.step_dt):g}; these "
+                             "samples are spaced differently")
+        c = self.history
+        if c > 1 and history is None:
+            raise ValueError(f"this L2S model needs the first {c} states (history={c})")
+        window = history if c > 1 else x0.unsqueeze(1)
+        edges = self._edges(adjacency.to(x0.dtype))
+        states = list(window.unbind(1))
+        for k in range(c - 1, ts.numel() - 1):
+            u = controls[:, k] if self.control_dim else None
+            d = self.delta(window, edges, u) * self.delta_std + self.delta_mean
+            nxt = window[:, -1] + d
+            states.append(nxt)
+            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+        out = torch.stack(states, dim=1)  # (B, T, N, D)
+        return Rollout(states=out, messages=None,
+                       status=torch.zeros(x0.shape[0], dtype=torch.long, device=x0.device),
+                       n_f_evals=0)

@@ -1,0 +1,68 @@
+"""A monolithic neural ODE over the whole system state (the authors' `ndeln4`).
+
+mpnode-jl-notes §5.2: `Chain(DenseLN(N·(D+U) → 32, tanh), DenseLN(32 → 32, tanh),
+Dense(32 → N·D))` with `DenseLN` = Dense then LayerNorm. It sees every node at once, so it is
+tied to one node count N and cannot transfer to another graph size (`transferable = False`).
+The graph is not an input: coupling must be learned from the concatenated state.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+from mpnode_cli.models.base import ACTIVATIONS, Rollout, zoh_controls
+from mpnode_cli.solver import solve
+
+
+class NODE(nn.Module):
+    """Neural ODE on the flattened state `[N·D]` of the whole system.
+
+    Args:
+        node_dim: D. control_dim: U. num_nodes: N (fixed for this model).
+        hidden, layers, activation: the MLP (each hidden layer Linear → LayerNorm → act).
+    """
+
+    kind: ClassVar[str] = "node"
+    transferable: ClassVar[bool] = False
+
+    def __init__(self, node_dim: int, num_nodes: int, control_dim: int = 0, hidden: int = 32,
+                 layers: int = 2, activation: str = "tanh"):
+        super().__init__()
+        if activation not in ACTIVATIONS:
+            raise ValueError(f"unknown activation '{activation}'")
+        self.config = {"node_dim": node_dim, "num_nodes": num_nodes, "control_dim": control_dim,
+                       "hidden": hidden, "layers": layers, "activation": activation}
+        self.node_dim, self.num_nodes, self.control_dim = node_dim, num_nodes, control_dim
+        width = num_nodes * (node_dim + control_dim)
+        modules: list[nn.Module] = []
+        for _ in range(layers):
+            modules += [nn.Linear(width, hidden), nn.LayerNorm(hidden), ACTIVATIONS[activation]()]
+            width = hidden
+        modules.append(nn.Linear(width, num_nodes * node_dim))
+        self.net = nn.Sequential(*modules)
+
+    def vector_field(self, u=None):
+        def f(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+            parts = [x, u(t).to(x.dtype)] if u is not None else [x]
+            flat = torch.cat(parts, dim=-1).reshape(x.shape[0], -1)  # (B, N·(D+U))
+            return self.net(flat).view_as(x)
+
+        return f
+
+    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                controls: torch.Tensor | None = None, *, rtol: float = 1e-4,
+                atol: float = 1e-4, fixed_dt: float | None = None,
+                return_messages: bool = False) -> Rollout:
+        """Integrate from x(t₀); `adjacency` is ignored (only its N is checked)."""
+        if x0.shape[1] != self.num_nodes or x0.shape[-1] != self.node_dim:
+            raise ValueError(f"this monolithic model is built for {self.num_nodes} nodes × "
+                             f"{self.node_dim} features, got {x0.shape[1]} × {x0.shape[-1]}")
+        ts = ts.to(device=x0.device, dtype=torch.float64)
+        u = zoh_controls(controls, ts) if self.control_dim else None
+        sol = solve(self.vector_field(u), x0, ts, rtol=rtol, atol=atol, fixed_dt=fixed_dt,
+                    tstops=ts[1:-1] if u is not None else None)
+        return Rollout(states=sol.ys, messages=None, status=sol.status,
+                       n_f_evals=int(sol.stats["n_f_evals"].max()))
