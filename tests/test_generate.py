@@ -195,7 +195,7 @@ def test_presets_match_the_paper():
     assert set(PRESETS) == {
         "pendulum", "lorenz3", "lorenz7", "lorenz10", "lorenz10-high", "lorenz10-long",
         *(f"gene-{t}-{s}x{s}" for t in ("ba", "er", "ws") for s in (4, 8)),
-        *(f"kuramoto10-{t}" for t in ("ba", "er", "ws")),
+        *(f"kuramoto10-{t}" for t in ("ba", "er", "ws")), "quad3", "quad6",
     }  # fmt: skip
     resolved = {name: resolve_config(GenerateConfig(**get_preset(name))) for name in PRESETS}
     assert (resolved["pendulum"].trajectories, resolved["pendulum"].num_steps) == (500, 100)

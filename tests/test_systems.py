@@ -280,12 +280,13 @@ def test_system_graph_errors():
 
 
 def test_registry():
-    assert list(SYSTEMS) == ["pendulum", "lorenz", "gene", "kuramoto"]
+    assert list(SYSTEMS) == ["pendulum", "lorenz", "gene", "kuramoto", "quadrotor"]
     for name, cls in SYSTEMS.items():
         system = get_system(name)
         assert isinstance(system, cls) and system.name == name
         assert system.default_topology in system.topologies
-        assert system.node_dim == len(system.state_names) and system.control_dim == 0
+        assert system.node_dim == len(system.state_names)
+        assert system.control_dim == (5 if name == "quadrotor" else 0)
     expected = {
         "pendulum": {"m": 1.0, "l": 1.5, "k": 2.0, "g": 9.81},
         "lorenz": {"sigma": 10.0, "rho": 28.0, "beta": 8 / 3},

@@ -13,6 +13,9 @@ from typing import Any
 
 import typer
 
+from mpnode_cli.cli.common import error_message as _message
+from mpnode_cli.cli.common import fail as _usage_error
+
 # Fields that exclude each other: one given by a later layer drops the other from earlier
 # layers, so `--preset gene-ba-4x4 --nodes 25` means 25 nodes rather than a conflict.
 _EXCLUSIVE = (("nodes", "grid"), ("topology", "edge_list"))
@@ -33,7 +36,7 @@ def _complete_preset(incomplete: str) -> list[str]:
 def generate_command(
     system: str | None = typer.Argument(
         None,
-        help="pendulum, lorenz, gene or kuramoto (may come from --preset or --config).",
+        help="pendulum, lorenz, gene, kuramoto or quadrotor (may come from --preset or --config).",
         autocompletion=_complete_system,
         show_default=False,
     ),
@@ -225,17 +228,3 @@ def _merge(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
         if params:
             fields["params"] = params
     return fields
-
-
-def _message(exc: Exception) -> str:
-    """One line for a user: pydantic's multi-line errors condensed, others as they are."""
-    from pydantic import ValidationError
-
-    from mpnode_cli.config import error_line
-
-    return error_line(exc) if isinstance(exc, ValidationError) else str(exc)
-
-
-def _usage_error(message: str) -> None:
-    typer.echo(f"Error: {message}", err=True)
-    raise typer.Exit(code=2)

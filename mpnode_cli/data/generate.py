@@ -3,11 +3,15 @@
 `generate(config)` reads top to bottom:
 1. build G graphs (seed `graph_seed + g`) and draw each graph's parameters;
 2. spread K trajectories evenly over the graphs (contiguous blocks) and draw their initial
-   states from `np.random.default_rng(seed)`, graph by graph;
-3. solve them all in float64 with our batched Tsit5, `chunk_size` trajectories at a time
-   (samples are independent in the solver, so chunking does not change the results);
+   states (and any per-trajectory inputs, `System.sample`) from
+   `np.random.default_rng(seed)`, graph by graph;
+3. simulate them all in float64 (`System.simulate`: by default one solve of the system's
+   right-hand side with our batched Tsit5), `chunk_size` trajectories at a time (samples
+   are independent in the solver, so chunking does not change the results); a system with
+   controls or hidden states (the quadrotor swarm) returns those too;
 4. redraw trajectories the solver could not finish or the system rejects (e.g. pendulums
-   near cos θ = 0), from the same generator, until none are left; the counts are stored;
+   near cos θ = 0, quadrotor flights that break a check), from the same generator, until
+   none are left; the counts are stored;
 5. split by trajectory with a generator derived from `seed`, and write the file atomically.
 
 The same config gives bit-identical `states`. Nothing here prints; progress goes through
@@ -151,13 +155,16 @@ def generate(
     # 2. Trajectories in contiguous blocks per graph, sizes differing by at most one.
     graph_index = (np.arange(k) * g // k).astype(np.int32)  # [K]
     rng = np.random.default_rng(config.seed)
-    y0 = np.concatenate(
-        [system.sample_initial(adjacency[i], int((graph_index == i).sum()), rng) for i in range(g)]
-    )  # [K, N, D]
+    draws = [system.sample(adjacency[i], int((graph_index == i).sum()), rng) for i in range(g)]
+    y0 = np.concatenate([d[0] for d in draws])  # [K, N, D]
+    inputs = {name: np.concatenate([d[1][name] for d in draws]) for name in draws[0][1]}
 
     # 3.–4. Solve, then redraw what failed or was rejected, until nothing is left.
     ts = torch.arange(config.num_steps + 1, dtype=torch.float64) * config.dt  # [T]
     states = np.empty((k, ts.numel(), *y0.shape[1:]))  # [K, T, N, D] float64
+    controls: np.ndarray | None = None  # [K, T, N, U], allocated by the first chunk with some
+    hidden: dict[str, np.ndarray] = {}  # name → [K, T, ...]
+    sim_rejected = np.zeros(k, dtype=bool)
     status = np.zeros(k, dtype=np.int8)
     n_f_evals = np.zeros(k, dtype=np.int64)
     pending, total, done = np.arange(k), k, 0
@@ -172,18 +179,29 @@ def generate(
             # `[1, ...]` when the chunk shares one graph, else one copy per trajectory.
             which = slice(gi, gi + 1) if gi is not None else graph_index[chunk]
             chunk_params = {name: value[which] for name, value in params.items()}
-            sol = _solve_chunk(system, config, ts, adjacency[which], chunk_params, y0[chunk])
+            chunk_inputs = {name: value[chunk] for name, value in inputs.items()}
+            sim = _solve_chunk(
+                system, config, ts, adjacency[which], chunk_params, y0[chunk], chunk_inputs
+            )
             solve_seconds += time.perf_counter() - tic
-            states[chunk] = sol.ys.numpy()
-            status[chunk] = sol.status.numpy()
-            n_f_evals[chunk] = sol.stats["n_f_evals"].numpy()
+            states[chunk] = sim.states.numpy()
+            status[chunk] = sim.status.numpy()
+            n_f_evals[chunk] = sim.n_f_evals.numpy()
+            if sim.controls is not None:
+                if controls is None:
+                    controls = np.empty((k, *sim.controls.shape[1:]))
+                controls[chunk] = sim.controls.numpy()
+            for name, value in sim.hidden.items():
+                hidden.setdefault(name, np.empty((k, *value.shape[1:])))[chunk] = value.numpy()
+            if sim.rejected is not None:
+                sim_rejected[chunk] = sim.rejected.numpy()
             done += len(chunk)
             if progress is not None:
                 progress(done, total)
         total_f_evals += int(n_f_evals[pending].sum())
 
         bad_status = status[pending] != 0
-        bad_reject = system.reject(states[pending]) & ~bad_status
+        bad_reject = (system.reject(states[pending]) | sim_rejected[pending]) & ~bad_status
         solved_any |= not bad_status.all()
         # Redrawing cannot help when nothing ever succeeds: say why instead of looping.
         if not solved_any and (len(pending) >= 10 or round_ == 2):
@@ -202,7 +220,9 @@ def generate(
             )
         for i in np.unique(graph_index[pending]):
             redo = pending[graph_index[pending] == i]
-            y0[redo] = system.sample_initial(adjacency[i], len(redo), rng)
+            y0[redo], redo_inputs = system.sample(adjacency[i], len(redo), rng)
+            for name, value in redo_inputs.items():
+                inputs[name][redo] = value
         total += len(pending)
 
     # 5. Split by trajectory and write.
@@ -216,6 +236,8 @@ def generate(
         config=config.model_dump(mode="json"),
         time=ts.numpy(),
         states=states.astype(config.dtype),
+        controls=None if controls is None else controls.astype(config.dtype),
+        hidden={name: value.astype(config.dtype) for name, value in hidden.items()},
         adjacency=adjacency,
         graph_index=graph_index,
         split=split,
@@ -267,22 +289,30 @@ def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):
         yield chunk, (int(graphs[0]) if len(graphs) == 1 else None)
 
 
-def _solve_chunk(system, config, ts, adjacency, params, y0):
-    """Solve one chunk of trajectories in float64.
+def _solve_chunk(system, config, ts, adjacency, params, y0, inputs):
+    """Simulate one chunk of trajectories in float64 (`System.simulate`).
 
     Args:
         adjacency: uint8 `[1, N, N]` shared or `[B, N, N]`; params: `[1, ...]` or `[B, ...]`;
-        y0: `[B, N, D]`; ts: torch `[T]`.
+        y0: `[B, N, D]`; ts: torch `[T]`; inputs: name → `[B, ...]`.
+
+    Returns:
+        A `mpnode_cli.systems.base.Simulation`.
     """
     import torch
 
-    from mpnode_cli.solver import solve
+    def tensor(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(x))
 
-    f = system.rhs(
-        torch.from_numpy(adjacency.astype(np.float64)),
-        {name: torch.from_numpy(np.ascontiguousarray(v)) for name, v in params.items()},
+    return system.simulate(
+        tensor(adjacency.astype(np.float64)),
+        {name: tensor(v) for name, v in params.items()},
+        tensor(y0),
+        ts,
+        {name: tensor(v) for name, v in inputs.items()},
+        rtol=config.rtol,
+        atol=config.atol,
     )
-    return solve(f, torch.from_numpy(y0), ts, rtol=config.rtol, atol=config.atol)
 
 
 def _split(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:

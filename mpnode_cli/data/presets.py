@@ -15,6 +15,8 @@ issue is silent:
 - pendulum: the paper's 500 trajectories, dt 0.1, 10 s, with the authors' initial-state
   box θ ∈ [−π/4, π/4], θ̇ ∈ [−0.5, 0.5] (issue 3's default); the appendix's wider box is
   `--ic-range paper`.
+- quadrotor: the paper's 463 flights of 10 s sampled every 0.2 s (App. A.5) for three
+  quads; the paper gives no count for six, so `quad6` has 463 as well.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ SYSTEM_DEFAULTS: dict[str, dict[str, Any]] = {
     "lorenz": {"trajectories": 1000, "t_end": 2.5, "dt": 0.05},
     "gene": {"trajectories": 200, "t_end": 5.0, "dt": 0.1},
     "kuramoto": {"trajectories": 500, "t_end": 2.5, "dt": 0.05},
+    "quadrotor": {"trajectories": 463, "t_end": 10.0, "dt": 0.2},
 }
 
 
@@ -67,6 +70,10 @@ def _kuramoto(topology: str) -> dict[str, Any]:
     }
 
 
+def _quadrotor(nodes: int) -> dict[str, Any]:
+    return {"system": "quadrotor", "nodes": nodes, "trajectories": 463, "t_end": 10.0, "dt": 0.2}
+
+
 PRESETS: dict[str, dict[str, Any]] = {
     "pendulum": {
         "system": "pendulum",
@@ -86,6 +93,7 @@ PRESETS: dict[str, dict[str, Any]] = {
         for topology in ("ba", "er", "ws")
     },
     **{f"kuramoto10-{topology}": _kuramoto(topology) for topology in ("ba", "er", "ws")},
+    **{f"quad{n}": _quadrotor(n) for n in (3, 6)},
 }
 
 

@@ -6,14 +6,21 @@ method each: its graph (`graph`), the parameters drawn once per graph (`graph_pa
 initial states (`sample_initial`), a batched torch right-hand side (`rhs`), and an optional
 filter of trajectories to redraw (`reject`).
 
-Systems know nothing of files or solvers. torch is imported inside `rhs` implementations so
-that importing the registry (for the CLI's choices) stays cheap.
+Two hooks serve systems that are more than an autonomous ODE on the nodes (the quadrotor
+swarm: a closed-loop flight with controls, a hidden load and per-flight plans):
+`sample` draws initial states together with per-trajectory inputs, and `simulate` turns
+them into a `Simulation` (states, optional controls and hidden states, solver status, and
+the system's own rejections). Their defaults are `sample_initial` and one `solve` of `rhs`.
+
+Systems know nothing of files. torch and the solver are imported inside methods so that
+importing the registry (for the CLI's choices) stays cheap.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -24,6 +31,32 @@ if TYPE_CHECKING:
     import torch
 
 RHS = Callable[["torch.Tensor", "torch.Tensor"], "torch.Tensor"]
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """What `System.simulate` returns for B trajectories (torch tensors).
+
+    Attributes:
+        states: `[B, T, N, D]` float64 node states at the output times; NaN after a failure.
+        status: `[B]` int, a `mpnode_cli.solver.Status` per trajectory (0 = finished).
+        n_f_evals: `[B]` int, right-hand-side evaluations spent on each trajectory.
+        controls: `[B, T, N, U]` zero-order-hold controls (`controls[:, k]` acts on
+            `[t_k, t_k+1)`), or None for an autonomous system.
+        hidden: unobserved states besides the nodes, name → `[B, T, ...]`.
+        rejected: `[B]` bool, trajectories the system itself discards (checks that need
+            more than the stored states, e.g. between samples), or None.
+        diagnostics: name → `[B]` per-trajectory figures behind `rejected` (for reports
+            and tests; not stored).
+    """
+
+    states: torch.Tensor
+    status: torch.Tensor
+    n_f_evals: torch.Tensor
+    controls: torch.Tensor | None = None
+    hidden: dict[str, torch.Tensor] = field(default_factory=dict)
+    rejected: torch.Tensor | None = None
+    diagnostics: dict[str, torch.Tensor] = field(default_factory=dict)
 
 
 class System(ABC):
@@ -139,6 +172,50 @@ class System(ABC):
             `f(t, y)` with `t: [K]`, `y: [K, N, D]` → `dy/dt: [K, N, D]`; pure torch, with
             no Python loop over K and no side effects.
         """
+
+    def sample(
+        self, adjacency: np.ndarray, k: int, rng: np.random.Generator
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Draw `k` initial states and the per-trajectory inputs `simulate` needs.
+
+        Args:
+            adjacency: `[N, N]` the graph.
+            k: number of trajectories.
+            rng: the generator to draw from.
+
+        Returns:
+            `(y0 float64 [k, N, D], inputs: name → [k, ...])`; by default `sample_initial`
+            and no inputs (so the random stream is exactly `sample_initial`'s).
+        """
+        return self.sample_initial(adjacency, k, rng), {}
+
+    def simulate(
+        self,
+        adjacency: torch.Tensor,
+        params: dict[str, torch.Tensor],
+        y0: torch.Tensor,
+        ts: torch.Tensor,
+        inputs: dict[str, torch.Tensor],
+        *,
+        rtol: float,
+        atol: float,
+    ) -> Simulation:
+        """Trajectories from `y0` sampled at `ts`; by default one float64 solve of `rhs`.
+
+        Args:
+            adjacency, params: as for `rhs` (`[1, ...]` shared or `[B, ...]`).
+            y0: `[B, N, D]` float64 initial states.
+            ts: `[T]` float64 output times.
+            inputs: `sample`'s per-trajectory inputs, each `[B, ...]` (none by default).
+            rtol, atol: solver tolerances.
+
+        Returns:
+            A `Simulation`.
+        """
+        from mpnode_cli.solver import solve
+
+        sol = solve(self.rhs(adjacency, params), y0, ts, rtol=rtol, atol=atol)
+        return Simulation(states=sol.ys, status=sol.status, n_f_evals=sol.stats["n_f_evals"])
 
     def reject(self, states: np.ndarray) -> np.ndarray:
         """Which solved trajectories to discard and redraw; none by default.

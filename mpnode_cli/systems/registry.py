@@ -11,8 +11,11 @@ from mpnode_cli.systems.gene import Gene
 from mpnode_cli.systems.kuramoto import Kuramoto
 from mpnode_cli.systems.lorenz import Lorenz
 from mpnode_cli.systems.pendulum import Pendulum
+from mpnode_cli.systems.quadrotor import Quadrotor
 
-SYSTEMS: dict[str, type[System]] = {cls.name: cls for cls in (Pendulum, Lorenz, Gene, Kuramoto)}
+SYSTEMS: dict[str, type[System]] = {
+    cls.name: cls for cls in (Pendulum, Lorenz, Gene, Kuramoto, Quadrotor)
+}
 
 
 def get_system(name: str, **params: object) -> System:

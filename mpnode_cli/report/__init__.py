@@ -1,0 +1,1 @@
+"""Reports of results: plots (matplotlib, headless) and tables (rich)."""
