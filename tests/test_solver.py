@@ -382,3 +382,12 @@ def test_gradients_are_finite_when_a_sample_in_the_batch_fails():
     # d/dθ of y(t) = y0 / (1 − θ y0 t) at θ = 1: y0² t / (1 − y0 t)²
     want = sum(0.01 * t / (1 - 0.1 * t) ** 2 for t in (0.5, 2.0))
     assert theta.grad.item() == pytest.approx(want, rel=1e-4)
+
+
+@pytest.mark.parametrize("fixed_dt", [None, 0.1])
+def test_a_non_contiguous_initial_state_is_accepted(fixed_dt):
+    x = torch.randn(4, 5, 2, 3, dtype=torch.float64)
+    y0 = x[:, 0]  # a strided view, as a model gets it from x [B, T, N, D]
+    a = solve(lambda t, y: -y, y0, [0.0, 0.5], fixed_dt=fixed_dt)
+    b = solve(lambda t, y: -y, y0.contiguous(), [0.0, 0.5], fixed_dt=fixed_dt)
+    torch.testing.assert_close(a.ys, b.ys, rtol=0, atol=0)

@@ -155,7 +155,7 @@ def solve(
 
     batch, shape = y0.shape[0], y0.shape[1:]
     n_out = ts.numel()
-    y = y0.reshape(batch, -1)  # (B, F)
+    y = y0.reshape(batch, -1).contiguous()  # (B, F); steps view it flat, e.g. y0 = x[:, 0]
     flat = len(shape) == 1  # f sees (B, F) already: skip two reshapes per evaluation
 
     def fun(t: torch.Tensor, yf: torch.Tensor) -> torch.Tensor:
