@@ -132,6 +132,97 @@ class GenerateConfig(BaseModel):
         return round(self.t_end / self.dt)
 
 
+# TrainConfig fields that are keyword arguments of a model's constructor.
+MODEL_OPTIONS = ("hidden", "layers", "activation", "message_dim", "graph", "messages",
+                 "aggregation")
+
+
+class TrainConfig(BaseModel):
+    """What `mpnode train` (and `mpnode finetune`) does: one model, one dataset, one run folder.
+
+    Defaults follow the authors' shipped MP-NODE config (mpnode-jl-notes §2.6, §10) except
+    the seed.
+
+    Attributes:
+        dataset: the training dataset (an mpnode `.h5` file); its train split is fitted,
+            its validation split selects the best epoch, its test split is reported.
+        model: registry name of the model (`mpnode`).
+        hidden, layers, activation: the node MLP (width, hidden layers, nonlinearity).
+        message_dim: M, message states per node.
+        graph: "sys" (the dataset's graph) or "full" (complete graph with self-loops, what
+            the authors' config ran).
+        messages: False clamps incoming messages to zero (the §4.1 ablation).
+        aggregation: "auto", "dense" or "scatter" neighbour mean.
+            The model options above left None take the model's own defaults (MP-NODE: the
+            authors' hidden 32, two tanh layers, M = 3; graph "sys"); the resolved config
+            written to a run holds the values used. A model that lacks an option given
+            refuses it.
+        loss: "huber" (δ = 1, summed over time and features, mean over trajectories × nodes)
+            or "mse".
+        lr: Adam learning rate. min_lr: the plateau halving stops here.
+        batch_size: trajectories per step.
+        clip: global gradient-norm clip.
+        patience: epochs without validation improvement before the lr is halved.
+        noise: std of Gaussian noise added to normalized training states (inputs and
+            targets alike), fresh every batch.
+        epochs: the last epoch to train (on resume: the total, not the extra).
+        seed: model initialization, shuffling and noise.
+        device: "cpu" or "cuda".
+        run_dir: the run folder (default `runs/<dataset>-<model>-<time>`).
+        rtol, atol: solver tolerances of the rollouts. fixed_dt: fixed-step Tsit5 instead.
+        horizon_curriculum: train on prefixes of the trajectories that grow linearly from
+            `curriculum_start` samples to the whole horizon over `curriculum_epochs` epochs
+            (validation always uses the whole horizon).
+        max_bad_steps: consecutive skipped batches (non-finite loss or gradient, solver
+            failure) before the last good state is restored with a halved lr.
+        plots: draw the test-split plots into `run_dir/plots` at the end.
+        init_checkpoint: finetune: start from this checkpoint's weights and architecture
+            (the model options above are then ignored), with a fresh optimizer.
+        trajectories: use only the first K trajectories of the train split.
+        renormalize: finetune: fit the normalization on the new train split instead of
+            reusing the checkpoint's.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    dataset: Path
+    model: str = "mpnode"
+    hidden: int | None = Field(None, ge=1)
+    layers: int | None = Field(None, ge=1)
+    activation: str | None = None
+    message_dim: int | None = Field(None, ge=0)
+    graph: Literal["sys", "full"] | None = None
+    messages: bool | None = None
+    aggregation: Literal["auto", "dense", "scatter"] | None = None
+    loss: Literal["huber", "mse"] = "huber"
+    lr: float = Field(1e-3, gt=0)
+    min_lr: float = Field(1e-6, ge=0)
+    batch_size: int = Field(128, ge=1)
+    clip: float = Field(500.0, gt=0)
+    patience: int = Field(500, ge=1)
+    noise: float = Field(1e-4, ge=0)
+    epochs: int = Field(4000, ge=0)
+    seed: int = 0
+    device: Literal["cpu", "cuda"] = "cpu"
+    run_dir: Path | None = None
+    rtol: float = Field(1e-4, gt=0, lt=1)
+    atol: float = Field(1e-4, gt=0)
+    fixed_dt: float | None = Field(None, gt=0)
+    horizon_curriculum: bool = False
+    curriculum_start: int = Field(5, ge=2)
+    curriculum_epochs: int = Field(100, ge=1)
+    max_bad_steps: int = Field(5, ge=1)
+    plots: bool = True
+    init_checkpoint: Path | None = None
+    trajectories: int | None = Field(None, ge=1)
+    renormalize: bool = False
+
+    def model_options(self) -> dict[str, Any]:
+        """The model options given (not None): keyword arguments of the model's constructor."""
+        return {name: getattr(self, name) for name in MODEL_OPTIONS
+                if getattr(self, name) is not None}
+
+
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """Read a config file's fields: TOML, or JSON (e.g. a dataset's stored `config`).
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 import typer
 
 from mpnode_cli import __version__
+from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
 from mpnode_cli.cli.generate import generate_command
 from mpnode_cli.cli.info import info_command
+from mpnode_cli.cli.train import finetune_command, train_command
 
 app = typer.Typer(
     name="mpnode",
@@ -40,34 +42,14 @@ def _root(
     """mpnode: message-passing neural ODEs for homogeneous networked systems."""
 
 
-def _not_implemented(verb: str) -> None:
-    typer.echo(f"mpnode {verb}: not implemented yet", err=True)
-    raise typer.Exit(code=2)
-
-
 # Each verb's module imports only typer at load time; heavy imports live in its function.
 app.command("generate", no_args_is_help=True)(generate_command)
 app.command("info")(info_command)
-
-# Verbs whose issues have not landed yet: they say so and exit 2 rather than pretend.
-for _verb, _help in [
-    ("train", "Train a model on a dataset."),
-    ("finetune", "Continue training a checkpoint on another dataset."),
-    ("evaluate", "Roll out a checkpoint on a dataset and report errors."),
-    ("zeroshot", "Evaluate a checkpoint on graphs it never saw."),
-    ("compare", "Compare training runs side by side."),
-]:
-
-    def _placeholder(
-        args: list[str] | None = typer.Argument(None, hidden=True), _verb: str = _verb
-    ) -> None:
-        _not_implemented(_verb)
-
-    app.command(
-        _verb,
-        help=f"{_help} (not implemented yet)",
-        context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
-    )(_placeholder)
+app.command("train")(train_command)
+app.command("finetune", no_args_is_help=True)(finetune_command)
+app.command("evaluate", no_args_is_help=True)(evaluate_command)
+app.command("zeroshot", no_args_is_help=True)(zeroshot_command)
+app.command("compare", no_args_is_help=True)(compare_command)
 
 
 def main() -> None:

@@ -1,0 +1,125 @@
+"""`mpnode evaluate`, `mpnode zeroshot` and `mpnode compare`: what a trained model is worth.
+
+evaluate: one checkpoint on one dataset split, with optional plots. zeroshot: one checkpoint
+on datasets of other sizes and topologies, with the training normalization and no training.
+compare: runs side by side from their `summary.json` (or, unfinished, their metrics).
+Exit code 2 for anything the user can fix (a missing file, incompatible sizes).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from mpnode_cli.cli.common import console, error_message, fail
+
+_SPLITS = "train, validation, test or all"
+
+
+def evaluate_command(
+    checkpoint: Path = typer.Argument(..., help="A checkpoint (.pt)."),
+    dataset: Path = typer.Argument(..., help="An mpnode dataset (.h5)."),
+    split: str = typer.Option("test", help=f"Which trajectories: {_SPLITS}."),
+    plot: bool = typer.Option(False, "--plot", help="Draw the Fig. 2 rollout and error plots."),
+    plot_dir: Path | None = typer.Option(
+        None, help="Where plots go (default <run>/plots beside the checkpoint)."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+    batch_size: int = typer.Option(128, help="Trajectories per rollout."),
+    device: str = typer.Option("cpu", help="cpu or cuda."),
+) -> None:
+    """Roll out a checkpoint on a dataset split and report its errors."""
+    from mpnode_cli.report.tables import metrics_table
+
+    ckpt = _load_checkpoint(checkpoint)
+    where = (plot_dir or _default_plot_dir(checkpoint)) if plot else None
+    row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where)
+    if json_out:
+        typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
+        return
+    title = f"{checkpoint} on {dataset} ({split}, N={row['num_nodes']})"
+    console().print(metrics_table(row["result"], ckpt.dataset["state_names"], title))
+    for path in row["plots"]:
+        typer.echo(f"wrote {path}")
+
+
+def zeroshot_command(
+    checkpoint: Path = typer.Argument(..., help="A checkpoint (.pt)."),
+    datasets: list[Path] = typer.Argument(..., help="Datasets of unseen graphs (.h5)."),
+    split: str = typer.Option("all", help=f"Which trajectories: {_SPLITS}."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+    batch_size: int = typer.Option(128, help="Trajectories per rollout."),
+    device: str = typer.Option("cpu", help="cpu or cuda."),
+) -> None:
+    """Run a trained node network on graphs it never saw, without training."""
+    from mpnode_cli.report.tables import zeroshot_table
+
+    ckpt = _load_checkpoint(checkpoint)
+    rows = [_evaluate(ckpt, path, split, "zeroshot", batch_size, device, None)
+            for path in datasets]
+    if json_out:
+        typer.echo(json.dumps({"checkpoint": str(checkpoint), "trained_on": ckpt.dataset,
+                               "datasets": rows}, indent=2))
+        return
+    trained = ckpt.dataset
+    title = (f"zero-shot: {checkpoint} (trained on {trained['system']}, "
+             f"N={trained['num_nodes']}, {trained.get('topology') or '?'})")
+    console().print(zeroshot_table(
+        [{**row, "dataset": Path(row["dataset"]).name} for row in rows], title))
+
+
+def compare_command(
+    runs: list[Path] = typer.Argument(..., help="Run folders (runs/<name>)."),
+    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+) -> None:
+    """Compare training runs: best epoch, min validation loss, Table-2 figure, test error."""
+    from mpnode_cli.report.tables import compare_table
+    from mpnode_cli.training.run import read_summary
+
+    try:
+        summaries = [read_summary(run) for run in runs]
+    except ValueError as exc:
+        fail(error_message(exc))
+    if json_out:
+        typer.echo(json.dumps(summaries, indent=2))
+        return
+    console().print(compare_table(summaries))
+
+
+def _load_checkpoint(path: Path):
+    from mpnode_cli.training.checkpoint import load_checkpoint
+
+    try:
+        return load_checkpoint(path)
+    except (FileNotFoundError, ValueError) as exc:
+        fail(error_message(exc))
+
+
+def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, device: str,
+              plot_dir: Path | None) -> dict[str, Any]:
+    import torch
+
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.evaluate import evaluate_checkpoint
+
+    if device not in ("cpu", "cuda"):
+        fail(f"unknown device '{device}' (cpu or cuda)")
+    if device == "cuda" and not torch.cuda.is_available():
+        fail("--device cuda asked for, but torch sees no CUDA device")
+    try:
+        data = TrajectoryData.load(dataset)
+        return evaluate_checkpoint(ckpt, data, split=split, verb=verb, batch_size=batch_size,
+                                   device=device, plot_dir=plot_dir)
+    except (FileNotFoundError, ValueError) as exc:
+        fail(error_message(exc))
+    except KeyboardInterrupt:
+        typer.echo("Interrupted", err=True)
+        raise typer.Exit(code=130) from None
+
+
+def _default_plot_dir(checkpoint: Path) -> Path:
+    """`runs/<name>/plots` for `runs/<name>/checkpoints/x.pt`, else beside the checkpoint."""
+    parent = checkpoint.resolve().parent
+    return (parent.parent if parent.name == "checkpoints" else parent) / "plots"

@@ -1,0 +1,227 @@
+"""`mpnode train DATASET` and `mpnode finetune CHECKPOINT DATASET`: one training loop, two doors.
+
+The commands only parse: options left out stay out, so `TrainConfig` holds the only
+defaults; a `--config` TOML file sits beneath the options. `--resume RUN_DIR` rebuilds the
+run's own config (only `--epochs`, `--device` and `--plots` may change). Exit codes: 2 for
+usage errors, 1 when training diverged, 130 for Ctrl-C (after saving `last.pt`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from mpnode_cli.cli.common import console, error_message, fail
+
+# Options shared by both commands, declared once (typer reads them as plain defaults).
+_CONFIG = typer.Option(None, "--config", help="TOML (or JSON) file of train config fields.")
+_LOSS = typer.Option(None, help="huber (default; δ=1, summed along time) or mse.")
+_LR = typer.Option(None, help="Adam learning rate (default 1e-3).")
+_MIN_LR = typer.Option(None, help="Floor of the plateau halving (default 1e-6).")
+_BATCH = typer.Option(None, help="Trajectories per step (default 128).")
+_CLIP = typer.Option(None, help="Global gradient-norm clip (default 500).")
+_PATIENCE = typer.Option(None, help="Epochs without validation gain before lr halves (500).")
+_NOISE = typer.Option(None, help="Gaussian noise std on normalized train data (1e-4).")
+_EPOCHS = typer.Option(None, help="Epochs to train (default 4000; on --resume, the total).")
+_SEED = typer.Option(None, help="Seed of initialization, shuffling and noise (default 0).")
+_DEVICE = typer.Option(None, help="cpu (default) or cuda.")
+_RUN_DIR = typer.Option(None, help="Run folder (default runs/<dataset>-<model>-<time>).")
+_RTOL = typer.Option(None, help="Solver relative tolerance (default 1e-4).")
+_ATOL = typer.Option(None, help="Solver absolute tolerance (default 1e-4).")
+_FIXED_DT = typer.Option(None, help="Fixed-step Tsit5 with this step instead of adaptive.")
+_CURRICULUM = typer.Option(
+    None, "--horizon-curriculum/--no-horizon-curriculum",
+    help="Train on growing prefixes of the trajectories.")
+_CURR_START = typer.Option(None, help="Curriculum: samples in the first epoch (default 5).")
+_CURR_EPOCHS = typer.Option(None, help="Curriculum: epochs to reach the full horizon (100).")
+_BAD_STEPS = typer.Option(None, help="Bad batches in a row before a rollback (default 5).")
+_PLOTS = typer.Option(None, "--plots/--no-plots", help="Draw test plots at the end (on).")
+_TRAJECTORIES = typer.Option(None, help="Use only the first K train trajectories.")
+
+
+def train_command(
+    dataset: Path | None = typer.Argument(
+        None, help="An mpnode dataset (.h5); optional with --resume.", show_default=False),
+    resume: Path | None = typer.Option(None, help="Continue the run in this folder."),
+    model: str | None = typer.Option(
+        None, help="mpnode (default) or a baseline: l2s, gnode, node."),
+    hidden: int | None = typer.Option(None, help="Hidden width of the node MLP (default 32)."),
+    layers: int | None = typer.Option(None, help="Hidden layers of the node MLP (default 2)."),
+    activation: str | None = typer.Option(None, help="tanh (default), relu, elu, silu, ..."),
+    message_dim: int | None = typer.Option(None, help="Message states per node (default 3)."),
+    graph: str | None = typer.Option(None, help="sys (dataset's graph, default) or full."),
+    messages: bool | None = typer.Option(
+        None, "--messages/--no-messages", help="--no-messages: the no-communication ablation."),
+    aggregation: str | None = typer.Option(None, help="auto (default), dense or scatter."),
+    config_file: Path | None = _CONFIG, loss: str | None = _LOSS, lr: float | None = _LR,
+    min_lr: float | None = _MIN_LR, batch_size: int | None = _BATCH,
+    clip: float | None = _CLIP, patience: int | None = _PATIENCE,
+    noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
+    device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
+    rtol: float | None = _RTOL, atol: float | None = _ATOL,
+    fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
+    curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
+    max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
+    trajectories: int | None = _TRAJECTORIES,
+) -> None:
+    """Train a model on a dataset's train split; results go to runs/<name>/."""
+    options = _given(locals(), exclude=("dataset", "resume", "config_file"))
+    try:
+        if resume is not None:
+            config = _resume_config(resume, dataset, options)
+        else:
+            if dataset is None:
+                raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")
+            config = _config(config_file, {**options, "dataset": dataset})
+    except ValueError as exc:
+        fail(error_message(exc))
+    _run(config, resume=resume is not None)
+
+
+def finetune_command(
+    checkpoint: Path = typer.Argument(..., help="The checkpoint to start from (.pt)."),
+    dataset: Path = typer.Argument(..., help="The dataset to finetune on (.h5)."),
+    renormalize: bool = typer.Option(
+        False, "--renormalize", help="Fit the normalization on the new data."),
+    config_file: Path | None = _CONFIG, loss: str | None = _LOSS, lr: float | None = _LR,
+    min_lr: float | None = _MIN_LR, batch_size: int | None = _BATCH,
+    clip: float | None = _CLIP, patience: int | None = _PATIENCE,
+    noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
+    device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
+    rtol: float | None = _RTOL, atol: float | None = _ATOL,
+    fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
+    curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
+    max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
+    trajectories: int | None = _TRAJECTORIES,
+) -> None:
+    """Train from a checkpoint's weights and architecture on another dataset (a new run)."""
+    options = _given(locals(), exclude=("checkpoint", "dataset", "config_file"))
+    try:
+        config = _config(config_file, {**options, "dataset": dataset,
+                                       "init_checkpoint": checkpoint})
+    except ValueError as exc:
+        fail(error_message(exc))
+    _run(config, resume=False)
+
+
+def _given(values: dict[str, Any], exclude: tuple[str, ...]) -> dict[str, Any]:
+    return {k: v for k, v in values.items() if v is not None and k not in exclude}
+
+
+def _config(config_file: Path | None, options: dict[str, Any]):
+    from mpnode_cli.config import TrainConfig, read_config_file
+
+    fields = read_config_file(config_file) if config_file else {}
+    return TrainConfig(**{**fields, **options})
+
+
+_RESUMABLE = {"epochs", "device", "plots"}  # the rest would make the run something else
+
+
+def _resume_config(run_dir: Path, dataset: Path | None, options: dict[str, Any]):
+    from mpnode_cli.training.run import read_config
+
+    config = read_config(run_dir)
+    changed = sorted(set(options) - _RESUMABLE)
+    if changed:
+        shown = ", ".join("--" + name.replace("_", "-") for name in changed)
+        raise ValueError(f"--resume continues {run_dir} as configured; only --epochs, "
+                         f"--device and --plots may change (got {shown})")
+    if dataset is not None and dataset.resolve() != Path(config.dataset).resolve():
+        raise ValueError(f"{run_dir} trained on {config.dataset}, not {dataset}")
+    return type(config)(**{**config.model_dump(), **options, "run_dir": run_dir})
+
+
+def _run(config: Any, resume: bool) -> None:
+    """Train with a progress display, then print the summary table."""
+    from dataclasses import asdict
+
+    from mpnode_cli.report.tables import train_table
+    from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
+
+    display_console = console(stderr=True)
+    try:
+        with _Display(display_console) as display:
+            summary = train(config, resume=resume, progress=display.on_event)
+    except (ValueError, FileNotFoundError) as exc:
+        fail(error_message(exc))
+    except TrainingDiverged as exc:
+        fail(f"training diverged: {exc}", code=1)
+    except TrainingInterrupted as exc:
+        typer.echo(f"Interrupted: saved {exc.run_dir}/checkpoints/last.pt (epoch {exc.epoch}); "
+                   f"continue with: mpnode train --resume {exc.run_dir}", err=True)
+        raise typer.Exit(code=130) from None
+    except KeyboardInterrupt:
+        typer.echo("Interrupted before training started: nothing to resume", err=True)
+        raise typer.Exit(code=130) from None
+    console().print(train_table(asdict(summary)))
+
+
+class _Display:
+    """A rich progress display fed by the loop's events; epoch lines go above the bars."""
+
+    def __init__(self, out):
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
+
+        self.console = out
+        # No bars when stderr is not a terminal (pipes, logs, tests); epoch lines remain.
+        self.bar = Progress(TextColumn("{task.description}"), BarColumn(),
+                            MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
+                            TextColumn("{task.fields[info]}"), console=out,
+                            transient=True, disable=not out.is_terminal)
+        self.epochs = self.bar.add_task("epochs", total=None, info="")
+        self.batches = self.bar.add_task("batches", total=None, info="")
+        self.every, self.last_epoch, self.best = 1, 0, float("inf")
+
+    def __enter__(self):
+        self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self.bar.__exit__(*exc)
+
+    def on_event(self, event: dict[str, Any]) -> None:
+        kind = event["event"]
+        if kind == "start":
+            self.last_epoch = event["epochs"]
+            self.every = max(1, event["epochs"] // 20)
+            self.bar.update(self.epochs, total=event["epochs"], completed=event["first_epoch"] - 1)
+            self.bar.update(self.batches, total=event["batches"], completed=0)
+            self.console.print(f"run {event['run_dir']}: {event['parameters']:,} parameters, "
+                               f"epochs {event['first_epoch']}–{event['epochs']}")
+        elif kind == "batch":
+            self.bar.update(self.batches, completed=event["batch"],
+                            info=f"loss {event['loss']:.4g}")
+        elif kind == "epoch":
+            self._epoch(event)
+        elif kind == "skip":
+            self.console.print(f"[yellow]epoch {event['epoch']} batch {event['batch']}: "
+                               f"update skipped ({event['reason']})")
+        elif kind == "restore":
+            self.console.print(f"[yellow]epoch {event['epoch']}: rolled back to the last "
+                               f"good epoch, lr now {event['lr']:.3g}")
+        elif kind == "test":
+            self.bar.update(self.batches, description="testing", completed=0)
+
+    def _epoch(self, row: dict[str, Any]) -> None:
+        from mpnode_cli.report.tables import fmt
+
+        epoch, val = row["epoch"], row["val_loss"]
+        self.best = min(self.best, val) if val is not None else self.best
+        info = f"val {fmt(val)} · best {fmt(self.best)} · lr {row['lr']:.2g}"
+        self.bar.update(self.epochs, completed=epoch, info=info)
+        self.bar.update(self.batches, completed=0)
+        if epoch % self.every == 0 or epoch == self.last_epoch:
+            self.console.print(f"epoch {epoch:>4}  train {fmt(row['train_loss']):>7}  "
+                               f"val {fmt(val):>7} (MSE {fmt(row['val_mse']):>7})  "
+                               f"lr {row['lr']:.2g}  {row['seconds']:.2f}s  "
+                               f"{row['rhs_evals']} evals")

@@ -1,0 +1,113 @@
+"""Rich tables of results. They are built here and printed by `cli/` (the library never prints).
+
+Every function takes plain dicts (`EvalResult.to_dict()`, `summary.json`), so tables can be
+drawn from files as well as from live results.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rich import box
+from rich.table import Table
+
+
+def fmt(value: Any, digits: int = 4) -> str:
+    """Numbers for a table: 4 significant digits, '—' for missing or non-finite."""
+    if value is None or (isinstance(value, float) and value != value):
+        return "—"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return f"{value:,}"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}"
+    return str(value)
+
+
+def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str) -> Table:
+    """One evaluation: errors, per-state RMSE, error at a few horizons."""
+    table = Table(title=title, show_header=False, title_justify="left")
+    table.add_column(style="bold")
+    table.add_column(justify="right")
+    table.add_row("trajectories", f"{result['trajectories']} ({result['failed']} failed)")
+    table.add_row("MSE (normalized)", fmt(result["mse"]))
+    table.add_row("Huber loss", fmt(result["huber"]))
+    for name, rmse in zip(state_names, result["rmse"], strict=False):
+        table.add_row(f"RMSE {name}", fmt(rmse))
+    curve = result["mse_vs_time"]
+    for frac in (0.25, 0.5, 1.0):
+        k = max(1, round(frac * (len(curve) - 1)))
+        table.add_row(f"MSE at sample {k}/{len(curve) - 1}", fmt(curve[k]))
+    table.add_row("RHS evaluations", fmt(result["n_f_evals"]))
+    table.add_row("seconds", fmt(result["seconds"], 3))
+    return table
+
+
+def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
+    """One row per dataset: where the trained node network ran, and how well.
+
+    RMSE is in physical units, averaged over the states (per state in `--json`).
+    """
+    table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD)
+    for name in ("dataset", "system", "N", "topology", "K", "failed", "MSE", "Huber",
+                 "RMSE"):
+        table.add_column(name, justify="left" if name in ("dataset", "system", "topology")
+                         else "right")
+    for row in rows:
+        r = row["result"]
+        rmse = [v for v in r["rmse"] if v is not None]
+        table.add_row(row["dataset"], row["system"], str(row["num_nodes"]),
+                      fmt(row["topology"]), str(r["trajectories"]), str(r["failed"]),
+                      fmt(r["mse"]), fmt(r["huber"]),
+                      fmt(sum(rmse) / len(rmse) if rmse else None))
+    return table
+
+
+def compare_table(summaries: Sequence[dict[str, Any]]) -> Table:
+    """Runs side by side. Table-2 is the paper's figure: best epoch × min validation loss."""
+    table = Table(title="runs (val: validation loss; MSE normalized)", title_justify="left",
+                  box=box.SIMPLE_HEAD)
+    columns = ("run", "model", "params", "epochs", "best", "min val", "Table-2", "test MSE",
+               "s/epoch")
+    for name in columns:
+        table.add_column(name, justify="left" if name in ("run", "model") else "right")
+    for s in summaries:
+        test = s.get("test") or {}
+        epochs = fmt(s.get("epochs")) + ("" if s.get("finished", True) else "…")
+        table.add_row(Path(s["run_dir"]).name, fmt(s.get("model")), fmt(s.get("parameters")),
+                      epochs, fmt(s.get("best_epoch")), fmt(s.get("min_val_loss")),
+                      fmt(s.get("table2")), fmt(test.get("mse")),
+                      fmt(s.get("seconds_per_epoch"), 3))
+    return table
+
+
+def train_table(summary: dict[str, Any]) -> Table:
+    """The end of a training run."""
+    table = Table(title=f"trained {summary['run_dir']}", show_header=False,
+                  title_justify="left")
+    table.add_column(style="bold")
+    table.add_column(justify="right")
+    test = summary.get("test") or {}
+    rows = [
+        ("model", f"{summary['model']} ({fmt(summary['parameters'])} parameters)"),
+        ("data", f"{summary['dataset']} ({summary['system']}, N={summary['num_nodes']})"),
+        ("epochs", fmt(summary["epochs"])),
+        ("best epoch", fmt(summary["best_epoch"])),
+        (f"min validation loss ({summary['loss']})", fmt(summary["min_val_loss"])),
+        ("min validation MSE", fmt(summary["min_val_mse"])),
+        ("Table-2 (best epoch × min val loss)", fmt(summary["table2"])),
+        ("test MSE (normalized)", fmt(test.get("mse"))),
+        ("test Huber", fmt(test.get("huber"))),
+        ("seconds per epoch", fmt(summary["seconds_per_epoch"], 3)),
+        ("wall seconds", fmt(summary["wall_seconds"], 3)),
+        ("skipped batches / restores", f"{summary['skipped_batches']} / {summary['restores']}"),
+    ]
+    if summary.get("parent_sha256"):
+        rows.append(("finetuned from", f"{summary['init_checkpoint']} "
+                                       f"(sha256 {summary['parent_sha256'][:12]})"))
+    for row in rows:
+        table.add_row(*row)
+    return table

@@ -1,0 +1,157 @@
+"""Checkpoint files, format "mpnode-checkpoint" version 1: everything to rebuild a model.
+
+A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
+dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
+It carries what made the weights (model kind and config, normalization, the resolved train
+config, the dataset's fingerprint) and what training needs to continue exactly (epoch,
+optimizer state, RNG states, the loop's counters), unlike the authors' weights-only JLD2
+files (mpnode-jl-notes §6.2).
+
+Fields of the dict:
+    format, format_version, mpnode_version: what this file is.
+    model_kind, model_config: `build_model(model_kind, model_config)` rebuilds the model.
+    state_dict: the model's weights.
+    normalizer: `Normalizer.to_dict()` of the training normalization.
+    train_config: the resolved `TrainConfig` (JSON form).
+    dataset: fingerprint, path, system, num_nodes, node_dim, control_dim, state_names,
+        control_names, topology of the training dataset.
+    epoch: epochs completed.
+    optimizer: `optimizer.state_dict()`.
+    rng: `torch` (the global CPU RNG state) and `shuffle` (the loop's generator), uint8.
+    loop: the loop's own state (best validation loss, epoch counters, lr history).
+    parent_sha256: sha256 of the checkpoint a finetune started from, else None.
+    metrics: the best epoch's validation metrics (and test metrics once known).
+
+Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
+leaves the previous checkpoint intact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpnode_cli import __version__
+
+FORMAT = "mpnode-checkpoint"
+FORMAT_VERSION = 1
+
+
+class CheckpointFormatError(ValueError):
+    """A file that is not an mpnode checkpoint this version of mpnode can read."""
+
+
+@dataclass
+class Checkpoint:
+    """One checkpoint in memory; field meanings as in the module docstring."""
+
+    model_kind: str
+    model_config: dict[str, Any]
+    state_dict: dict[str, torch.Tensor]
+    normalizer: dict[str, list[float]]
+    train_config: dict[str, Any]
+    dataset: dict[str, Any]
+    epoch: int
+    optimizer: dict[str, Any] | None = None
+    rng: dict[str, torch.Tensor] = field(default_factory=dict)
+    loop: dict[str, Any] = field(default_factory=dict)
+    parent_sha256: str | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)
+    mpnode_version: str = __version__
+    path: Path | None = None
+
+    def build_model(self) -> torch.nn.Module:
+        """The model with these weights (on the CPU)."""
+        from mpnode_cli.models.registry import build_model
+
+        model = build_model(self.model_kind, self.model_config)
+        model.load_state_dict(self.state_dict)
+        return model
+
+    def build_normalizer(self):
+        """The training normalization as a `Normalizer`."""
+        from mpnode_cli.data.dataset import Normalizer
+
+        return Normalizer.from_dict(self.normalizer)
+
+
+def save_checkpoint(path: str | Path, ckpt: Checkpoint) -> Path:
+    """Write `ckpt` to `path` atomically (its folder is created if missing)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "mpnode_version": ckpt.mpnode_version,
+        "model_kind": ckpt.model_kind,
+        "model_config": ckpt.model_config,
+        "state_dict": {k: v.detach().cpu() for k, v in ckpt.state_dict.items()},
+        "normalizer": ckpt.normalizer,
+        "train_config": ckpt.train_config,
+        "dataset": ckpt.dataset,
+        "epoch": int(ckpt.epoch),
+        "optimizer": ckpt.optimizer,
+        "rng": ckpt.rng,
+        "loop": ckpt.loop,
+        "parent_sha256": ckpt.parent_sha256,
+        "metrics": ckpt.metrics,
+    }
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    except BaseException:  # KeyboardInterrupt too: never leave a half-written temp behind
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint (tensors on the CPU).
+
+    Raises:
+        FileNotFoundError: no such file.
+        CheckpointFormatError: not an mpnode checkpoint, or a newer format version.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no checkpoint at {path}")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # pickle, zip and weights_only errors all mean "not ours"
+        raise CheckpointFormatError(
+            f"{path} is not an mpnode checkpoint ({type(exc).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointFormatError(f"{path} is not an mpnode checkpoint (no format '{FORMAT}')")
+    version = payload.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise CheckpointFormatError(
+            f"{path} is checkpoint format v{version}, newer than this mpnode reads "
+            f"(v{FORMAT_VERSION}); upgrade mpnode")
+    try:
+        return Checkpoint(
+            model_kind=payload["model_kind"], model_config=payload["model_config"],
+            state_dict=payload["state_dict"], normalizer=payload["normalizer"],
+            train_config=payload["train_config"], dataset=payload["dataset"],
+            epoch=payload["epoch"], optimizer=payload.get("optimizer"),
+            rng=payload.get("rng") or {}, loop=payload.get("loop") or {},
+            parent_sha256=payload.get("parent_sha256"), metrics=payload.get("metrics") or {},
+            mpnode_version=payload.get("mpnode_version", "?"), path=path,
+        )  # fmt: skip
+    except KeyError as exc:
+        raise CheckpointFormatError(f"{path} lacks the checkpoint field {exc}") from None
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes (a checkpoint's identity, recorded by finetunes)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

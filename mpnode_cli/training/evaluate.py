@@ -1,0 +1,233 @@
+"""Rollout errors of a model on a dataset split: the numbers `train`, `evaluate` and `zeroshot`
+report.
+
+Every trajectory is predicted open-loop from its first sample over the whole horizon (single
+shooting, as the model is trained) and compared with the data at every later sample time
+(t₀ is given, so it is excluded). Errors are taken in the training normalization — the
+paper's "test error" is an MSE in normalized units — and per state in physical units.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpnode_cli.data.dataset import Normalizer, TrajectoryData
+from mpnode_cli.training.losses import huber_loss
+
+
+@dataclass
+class EvalResult:
+    """Errors over the trajectories whose rollout succeeded.
+
+    Attributes:
+        trajectories: K evaluated. failed: rollouts the solver could not finish (excluded
+            from the errors below; their count says whether the numbers can be trusted).
+        mse: mean squared error in normalized units over all predicted samples.
+        huber: the training loss "Huber along time" (δ = 1, summed over time and
+            features, mean over trajectories × nodes), normalized units.
+        rmse: `[D]` root mean squared error per state in physical units.
+        mse_vs_time: `[T]` normalized MSE at each sample time (0 at t₀), over trajectories,
+            nodes and features.
+        n_f_evals: right-hand-side evaluations, summed over batches (max within a batch).
+        seconds: wall time of the rollouts.
+    """
+
+    trajectories: int
+    failed: int
+    mse: float
+    huber: float
+    rmse: list[float]
+    mse_vs_time: list[float]
+    n_f_evals: int
+    seconds: float
+
+    def loss(self, name: str) -> float:
+        """The error a training loss name selects ("huber" or "mse"); inf if any failed."""
+        if self.failed:
+            return math.inf
+        return {"huber": self.huber, "mse": self.mse}[name]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able, with non-finite numbers as None."""
+        return {k: _finite(v) for k, v in asdict(self).items()}
+
+
+@dataclass
+class Prediction:
+    """Physical-unit trajectories of a few samples, for plots.
+
+    Attributes:
+        time: `[T]` float64. true, pred: `[B, T, N, D]`. messages: `[B, T, N, M]` or None.
+        status: `[B]` solver status per trajectory.
+    """
+
+    time: torch.Tensor
+    true: torch.Tensor
+    pred: torch.Tensor
+    messages: torch.Tensor | None
+    status: torch.Tensor
+
+
+def evaluate(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalizer, *,
+             batch_size: int = 128, rtol: float = 1e-4, atol: float = 1e-4,
+             fixed_dt: float | None = None, device: str | torch.device = "cpu") -> EvalResult:
+    """Roll `model` out on every trajectory of `data` and measure its errors.
+
+    Args:
+        model: a model with `rollout` (see `mpnode_cli.models`), already on `device`.
+        data: the trajectories (one split, or all); physical units.
+        normalizer: the training normalization (the model works in its units).
+        batch_size: trajectories per rollout.
+        rtol, atol, fixed_dt: solver options, normally those the model was trained with.
+        device: where the rollouts run.
+
+    Returns:
+        An `EvalResult`; errors are NaN when every rollout failed (or `data` is empty).
+    """
+    start = time.perf_counter()
+    k, t, _, d = data.states.shape
+    ts = data.time.to(device)
+    sq_time = torch.zeros(t, dtype=torch.float64)  # Σ squared error per sample time
+    sq_phys = torch.zeros(d, dtype=torch.float64)  # Σ squared physical error per state
+    huber_sum, ok, failed, n_f_evals = 0.0, 0, 0, 0
+    was_training = model.training
+    model.eval()
+    with torch.no_grad():
+        for idx in torch.arange(k).split(batch_size):
+            batch = data.take(idx)
+            x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
+            out = model.rollout(x[:, 0], ts, batch.adjacency.to(device), u, rtol=rtol,
+                                atol=atol, fixed_dt=fixed_dt)
+            n_f_evals += out.n_f_evals
+            good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
+            failed += int((~good).sum())
+            if not good.any():
+                continue
+            pred, x = out.states[good.to(device)], x[good.to(device)]
+            ok += len(pred)
+            sq_time += (pred - x).pow(2).double().sum(dim=(0, 2, 3)).cpu()
+            huber_sum += float(huber_loss(pred, x).double()) * len(pred)
+            phys_err = normalizer.denorm_x(pred) - normalizer.denorm_x(x)
+            sq_phys += phys_err[:, 1:].pow(2).double().sum(dim=(0, 1, 2)).cpu()
+    model.train(was_training)
+    n = data.num_nodes
+    per_time = sq_time / max(ok * n * d, 1) if ok else torch.full((t,), math.nan)
+    predicted = max(ok * (t - 1) * n, 1)
+    return EvalResult(
+        trajectories=k, failed=failed,
+        mse=float(sq_time[1:].sum() / (predicted * d)) if ok and t > 1 else math.nan,
+        huber=huber_sum / ok if ok else math.nan,
+        rmse=(sq_phys / predicted).sqrt().tolist() if ok else [math.nan] * d,
+        mse_vs_time=per_time.tolist(), n_f_evals=n_f_evals,
+        seconds=time.perf_counter() - start,
+    )  # fmt: skip
+
+
+def predict(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalizer,
+            index: torch.Tensor, *, rtol: float = 1e-4, atol: float = 1e-4,
+            fixed_dt: float | None = None, device: str | torch.device = "cpu") -> Prediction:
+    """Roll out the trajectories at `index` (`[B]`) and return them in physical units."""
+    batch = data.take(index)
+    x, u = _normalized(batch, normalizer, device)
+    with torch.no_grad():
+        out = model.rollout(x[:, 0], data.time.to(device), batch.adjacency.to(device), u,
+                            rtol=rtol, atol=atol, fixed_dt=fixed_dt, return_messages=True)
+    messages = None if out.messages is None else out.messages.cpu()
+    return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
+                      messages=messages, status=out.status.cpu())
+
+
+def check_compatible(model_kind: str, model_config: dict[str, Any], trained_nodes: int,
+                     data: TrajectoryData, verb: str) -> None:
+    """Raise a one-line `ValueError` when a trained model cannot run on `data`.
+
+    Args:
+        model_kind, model_config: the checkpoint's model.
+        trained_nodes: N of the dataset the model was trained on.
+        data: the dataset to run on.
+        verb: what the user asked for ("finetune", "zeroshot", ...), for the message.
+    """
+    from mpnode_cli.models.registry import MODELS
+
+    name = data.path.name
+    for field, have in (("node_dim", data.node_dim), ("control_dim", data.control_dim)):
+        want = int(model_config.get(field, 0))
+        if have != want:
+            what = "state" if field == "node_dim" else "control"
+            raise ValueError(
+                f"{name} has {field} {have} but the checkpoint expects {want}: {verb} needs "
+                f"the same per-node {what} size")
+    cls = MODELS.get(model_kind)
+    if cls is not None and not cls.transferable and data.num_nodes != trained_nodes:
+        raise ValueError(
+            f"{name} has {data.num_nodes} nodes but model '{model_kind}' was trained on "
+            f"{trained_nodes} and only runs on graphs of that size")
+
+
+def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
+                        verb: str = "evaluate", batch_size: int = 128,
+                        device: str | torch.device = "cpu",
+                        plot_dir: Path | None = None) -> dict[str, Any]:
+    """A checkpoint's errors on one split of a dataset (evaluate, zeroshot).
+
+    The model rolls out with the checkpoint's training normalization and solver options.
+
+    Args:
+        ckpt: a `Checkpoint`. data: the dataset. split: "train", "validation", "test", "all".
+        verb: the command asking, for the compatibility message.
+        plot_dir: if given, draw the first trajectory (Fig. 2 style) and the error vs time
+            there as `<dataset>-<split>-rollout.png` and `-error.png`.
+
+    Returns:
+        JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`), plots.
+
+    Raises:
+        ValueError: incompatible per-node sizes, or an empty split.
+    """
+    check_compatible(ckpt.model_kind, ckpt.model_config, ckpt.dataset["num_nodes"], data, verb)
+    subset = data.subset(split)
+    if len(subset) == 0:
+        raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
+    model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
+    options = {"rtol": ckpt.train_config.get("rtol", 1e-4),
+               "atol": ckpt.train_config.get("atol", 1e-4),
+               "fixed_dt": ckpt.train_config.get("fixed_dt"), "device": device}
+    result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
+    plots: list[str] = []
+    if plot_dir is not None:
+        from mpnode_cli.report.plots import plot_error_vs_time, plot_rollout
+
+        stem = f"{data.path.stem}-{split}"
+        pred = predict(model, subset, normalizer, torch.arange(1), **options)
+        messages = None if pred.messages is None else pred.messages[0]
+        plots = [
+            str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
+                             Path(plot_dir) / f"{stem}-rollout.png",
+                             title=f"{data.path.name} ({split}), trajectory 0")),
+            str(plot_error_vs_time(data.time, result.mse_vs_time,
+                                   Path(plot_dir) / f"{stem}-error.png",
+                                   title=f"{data.path.name} ({split}): error vs time")),
+        ]
+    return {"dataset": str(data.path), "system": data.system, "num_nodes": data.num_nodes,
+            "topology": data.attrs.get("topology"), "split": split,
+            "result": result.to_dict(), "plots": plots}
+
+
+def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):
+    x = normalizer.norm_x(batch.states.to(device))
+    u = None if batch.controls is None else normalizer.norm_u(batch.controls.to(device))
+    return x, u
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value

@@ -1,0 +1,354 @@
+"""Training and finetuning, top to bottom: `train(config) -> TrainSummary`.
+
+The recipe is the authors' (mpnode-jl-notes §2): z-scored data, whole-horizon single
+shooting from x(t₀), Huber summed along time, Adam 1e-3 with global-norm clip 500, batches
+of 128 trajectories, lr halved after `patience` epochs without validation improvement,
+1e-4 Gaussian noise on the normalized training data, the best-validation weights kept.
+Departures: normalization is fitted on the train split only; the validation loss is a mean
+over trajectories (not over batches); a separate test split is reported at the end.
+
+Finetuning is this same function started from another point: `config.init_checkpoint`
+supplies the weights and the architecture (and, unless `renormalize`, the normalization);
+the optimizer is fresh. Resuming (`resume=True`) restores a run's `last.pt` — weights,
+optimizer, RNG states and the loop's counters — so 2 + 2 epochs equal 4.
+
+`progress`, if given, is called with one dict per event, `event` naming it:
+`start` (run_dir, first_epoch, epochs, batches), `batch` (epoch, batch, batches, loss),
+`skip` (epoch, batch, reason), `restore` (epoch, lr), `epoch` (the metrics row), `test`.
+"""
+
+from __future__ import annotations
+
+import copy
+import inspect
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpnode_cli.config import MODEL_OPTIONS, TrainConfig
+from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
+from mpnode_cli.models.registry import MODELS, build_model
+from mpnode_cli.solver import Status
+from mpnode_cli.training import run as runs
+from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint, save_checkpoint
+from mpnode_cli.training.evaluate import (
+    EvalResult,
+    check_compatible,
+    evaluate,
+    evaluate_checkpoint,
+)
+from mpnode_cli.training.losses import LOSSES
+
+Progress = Callable[[dict[str, Any]], None]
+
+
+class TrainingInterrupted(Exception):
+    """Ctrl-C: `last.pt` holds the last completed epoch; `--resume` continues from it."""
+
+    def __init__(self, run_dir: Path, epoch: int):
+        super().__init__(f"interrupted after epoch {epoch}")
+        self.run_dir, self.epoch = run_dir, epoch
+
+
+class TrainingDiverged(RuntimeError):
+    """Bad steps kept coming after the lr was halved down to `min_lr`."""
+
+
+@dataclass
+class LoopState:
+    """The loop's counters, saved in every checkpoint so that a resume continues exactly."""
+
+    epoch: int = 0
+    best_epoch: int = 0
+    best_val: float = math.inf
+    since_best: int = 0
+    bad_run: int = 0
+    skipped: int = 0
+    restores: int = 0
+    seconds: float = 0.0
+
+
+def train(config: TrainConfig, *, resume: bool = False,
+          progress: Progress | None = None) -> runs.TrainSummary:
+    """Train (or finetune, or resume) as `config` says; write the run folder.
+
+    Raises:
+        ValueError: unusable data, checkpoint or run folder (a one-line reason).
+        FileNotFoundError: missing dataset or checkpoint.
+        TrainingInterrupted: Ctrl-C (after saving `last.pt`).
+        TrainingDiverged: bad steps persisted down to `min_lr`.
+    """
+    emit = progress or (lambda event: None)
+    device = _device(config.device)
+    loss_fn = LOSSES[config.loss]
+
+    # 1. Data: the train split (optionally its first K trajectories) and the validation split.
+    data = TrajectoryData.load(config.dataset)
+    train_set, val_set = data.subset("train"), data.subset("validation")
+    if config.trajectories is not None:
+        train_set = train_set.take(torch.arange(min(config.trajectories, len(train_set))))
+    if len(train_set) == 0 or len(val_set) == 0:
+        raise ValueError(f"{data.path.name} needs trajectories in both its train and "
+                         "validation splits (regenerate with --split)")
+
+    # 2. The starting point: fresh weights, a parent checkpoint (finetune), or last.pt (resume).
+    if resume and config.run_dir is None:
+        raise ValueError("resume needs the run folder (run_dir)")
+    parent = None if resume or config.init_checkpoint is None else load_checkpoint(
+        config.init_checkpoint)
+    last = load_checkpoint(runs.checkpoint_path(config.run_dir, "last")) if resume else None
+    source = last or parent
+    if source is not None:
+        kind, model_config = source.model_kind, source.model_config
+        check_compatible(kind, model_config, source.dataset["num_nodes"], data,
+                         "finetune" if parent else "resume")
+    else:
+        kind, model_config = config.model, _model_config(config, data)
+    torch.manual_seed(config.seed)
+    model = build_model(kind, model_config)
+    # config.json tells the truth: the architecture is what was built.
+    model_config = model.config
+    config = config.model_copy(update={
+        "model": kind, **{k: v for k, v in model_config.items() if k in MODEL_OPTIONS}})
+    run_dir = Path(config.run_dir or runs.default_run_dir(config.dataset, kind))
+    config = config.model_copy(update={"run_dir": run_dir})
+    if last is not None and last.dataset["fingerprint"] != data.fingerprint:
+        raise ValueError(f"{data.path} changed since this run started (fingerprint "
+                         "differs): resume needs the same dataset")
+    if source is not None and not (parent and config.renormalize):
+        normalizer = source.build_normalizer()
+    else:
+        normalizer = Normalizer.fit(train_set.states, train_set.controls)
+    parent_sha = last.parent_sha256 if last else (
+        file_sha256(config.init_checkpoint) if parent else None)
+
+    if source is not None:
+        model.load_state_dict(source.state_dict)
+    model.to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
+    state = LoopState()
+    if last is not None:
+        optimizer.load_state_dict(last.optimizer)
+        torch.set_rng_state(last.rng["torch"])
+        shuffle.set_state(last.rng["shuffle"])
+        state = LoopState(**last.loop)
+        runs.truncate_metrics(run_dir, state.epoch)
+    else:
+        runs.create(run_dir)
+    runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
+
+    facts = {"fingerprint": data.fingerprint, "path": str(data.path), "system": data.system,
+             "num_nodes": data.num_nodes, "node_dim": data.node_dim,
+             "control_dim": data.control_dim, "state_names": list(data.state_names),
+             "control_names": list(data.control_names), "topology": data.attrs.get("topology")}
+
+    def checkpoint(metrics: dict[str, Any] | None = None) -> Checkpoint:
+        return Checkpoint(
+            model_kind=kind, model_config=model_config, state_dict=model.state_dict(),
+            normalizer=normalizer.to_dict(), train_config=config.model_dump(mode="json"),
+            dataset=facts, epoch=state.epoch, optimizer=optimizer.state_dict(),
+            rng={"torch": torch.get_rng_state(), "shuffle": shuffle.get_state()},
+            loop=asdict(state), parent_sha256=parent_sha, metrics=metrics or {},
+        )  # fmt: skip
+
+    def validate() -> EvalResult:
+        return evaluate(model, val_set, normalizer, batch_size=config.batch_size,
+                        rtol=config.rtol, atol=config.atol, fixed_dt=config.fixed_dt,
+                        device=device)
+
+    # 3. Epochs. The snapshot is the last completed epoch: what last.pt holds, what a run of
+    # bad steps rolls back to, and what Ctrl-C leaves behind.
+    snapshot = _snapshot(checkpoint())
+    batches = math.ceil(len(train_set) / config.batch_size)
+    emit({"event": "start", "run_dir": str(run_dir), "first_epoch": state.epoch + 1,
+          "epochs": config.epochs, "batches": batches, "parameters": _count(model)})
+    try:
+        if state.epoch == 0 and last is None:  # epoch 0: how good the starting weights are
+            val = validate()
+            row = _record(state, 0, val, config, None, optimizer, val.seconds)
+            runs.append_metrics(run_dir, row)
+            save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
+            snapshot = _snapshot(checkpoint())
+            save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+            emit({"event": "epoch", **row})
+        for epoch in range(state.epoch + 1, config.epochs + 1):
+            start = time.perf_counter()
+            steps = _train_epoch(model, optimizer, train_set, normalizer, loss_fn, config,
+                                 state, snapshot, shuffle, epoch, device, emit)
+            val = validate()
+            state.epoch = epoch
+            row = _record(state, epoch, val, config, steps, optimizer,
+                          time.perf_counter() - start)
+            if row["improved"]:
+                save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
+            runs.append_metrics(run_dir, row)
+            snapshot = _snapshot(checkpoint())
+            save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+            emit({"event": "epoch", **row})
+    except KeyboardInterrupt:
+        save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+        raise TrainingInterrupted(run_dir, snapshot.epoch) from None
+
+    # 4. The best weights on the test split (if the dataset has one), plots, summary.json.
+    best = load_checkpoint(runs.checkpoint_path(run_dir, "best"))
+    emit({"event": "test"})
+    test = None
+    if bool((data.split == SPLITS["test"]).any()):
+        test = evaluate_checkpoint(best, data, split="test", verb="test",
+                                   batch_size=config.batch_size, device=device,
+                                   plot_dir=run_dir / "plots" if config.plots else None)
+    summary = runs.TrainSummary(
+        run_dir=str(run_dir), model=kind, model_config=model_config, parameters=_count(model),
+        dataset=str(config.dataset), dataset_fingerprint=data.fingerprint, system=data.system,
+        num_nodes=data.num_nodes, loss=config.loss, epochs=state.epoch,
+        best_epoch=state.best_epoch, min_val_loss=state.best_val,
+        min_val_mse=best.metrics.get("val_mse"), table2=state.best_epoch * state.best_val,
+        test=test and test["result"], wall_seconds=state.seconds,
+        seconds_per_epoch=runs.seconds_per_epoch(run_dir), skipped_batches=state.skipped,
+        restores=state.restores,
+        init_checkpoint=None if config.init_checkpoint is None else str(config.init_checkpoint),
+        parent_sha256=parent_sha,
+    )  # fmt: skip
+    runs.write_json(run_dir / runs.SUMMARY, asdict(summary))
+    return summary
+
+
+def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normalizer,
+                 loss_fn, config: TrainConfig, state: LoopState, snapshot: Checkpoint,
+                 shuffle: torch.Generator, epoch: int, device, emit: Progress) -> dict:
+    """One pass over the shuffled train split; returns the epoch's step statistics."""
+    start = time.perf_counter()
+    horizon = _horizon(config, epoch, train_set.time.numel())
+    ts = train_set.time[:horizon].to(device)
+    order = torch.randperm(len(train_set), generator=shuffle)
+    loss_sum, count, grad_norms, n_f_evals, skipped = 0.0, 0, [], 0, []
+    batches = order.split(config.batch_size)
+    for b, idx in enumerate(batches, start=1):
+        batch = train_set.take(idx)
+        x = normalizer.norm_x(batch.states[:, :horizon])  # (B, H, N, D)
+        # Noise is drawn on the CPU from the loop's generator, so it is the same on any
+        # device and after a resume.
+        x = (x + config.noise * torch.randn(x.shape, generator=shuffle)).to(device)
+        u = None if batch.controls is None else normalizer.norm_u(
+            batch.controls[:, :horizon]).to(device)
+        loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
+                                               batch.adjacency.to(device), u, loss_fn, config)
+        n_f_evals += evals
+        if reason is None:
+            loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
+            grad_norms.append(grad_norm)
+            state.bad_run = 0
+            emit({"event": "batch", "epoch": epoch, "batch": b, "batches": len(batches),
+                  "loss": loss})
+            continue
+        skipped.append(f"batch {b}: {reason}")
+        state.skipped, state.bad_run = state.skipped + 1, state.bad_run + 1
+        emit({"event": "skip", "epoch": epoch, "batch": b, "reason": reason})
+        if state.bad_run >= config.max_bad_steps:
+            lr = optimizer.param_groups[0]["lr"] / 2
+            if lr < config.min_lr:
+                raise TrainingDiverged(
+                    f"{state.bad_run} bad steps in a row at lr {2 * lr:.3g} ({reason}); "
+                    "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
+            # Roll back to the last completed epoch's weights and moments at half the lr.
+            model.load_state_dict(snapshot.state_dict)
+            optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
+            _set_lr(optimizer, lr)
+            state.bad_run, state.restores = 0, state.restores + 1
+            emit({"event": "restore", "epoch": epoch, "lr": lr})
+    return {"train_loss": loss_sum / count if count else math.nan, "horizon": horizon,
+            "grad_norm": sum(grad_norms) / len(grad_norms) if grad_norms else math.nan,
+            "rhs_evals": n_f_evals, "skipped": len(skipped), "skip_reasons": skipped,
+            "train_seconds": time.perf_counter() - start}
+
+
+def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig):
+    """One update from `x: [B, H, N, D]`. Returns (loss, grad norm, RHS evals, skip reason)."""
+    optimizer.zero_grad(set_to_none=True)
+    out = model.rollout(x[:, 0], ts, adjacency, u, rtol=config.rtol, atol=config.atol,
+                        fixed_dt=config.fixed_dt)
+    failed = int((out.status != 0).sum())
+    if failed:
+        worst = Status(int(out.status.max())).name
+        return math.nan, math.nan, out.n_f_evals, f"solver {worst} on {failed} trajectories"
+    loss = loss_fn(out.states, x)
+    if not torch.isfinite(loss):
+        return math.nan, math.nan, out.n_f_evals, "non-finite loss"
+    loss.backward()
+    norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip))
+    if not math.isfinite(norm):
+        optimizer.zero_grad(set_to_none=True)
+        return math.nan, norm, out.n_f_evals, "non-finite gradient"
+    optimizer.step()
+    return loss.item(), norm, out.n_f_evals, None
+
+
+def _record(state: LoopState, epoch: int, val: EvalResult, config: TrainConfig,
+            steps: dict | None, optimizer, seconds: float) -> dict[str, Any]:
+    """Update best/plateau counters from the validation result; return the metrics row."""
+    val_loss = val.loss(config.loss)
+    improved = val_loss < state.best_val
+    lr = optimizer.param_groups[0]["lr"]
+    if improved:
+        state.best_val, state.best_epoch, state.since_best = val_loss, epoch, 0
+    elif epoch > 0:
+        state.since_best += 1
+        if state.since_best >= config.patience and lr / 2 >= config.min_lr:
+            _set_lr(optimizer, lr / 2)  # the next epoch runs at the halved rate
+            state.since_best = 0
+    state.seconds += seconds
+    steps = steps or {"train_loss": None, "horizon": None, "grad_norm": None,
+                      "rhs_evals": 0, "skipped": 0, "skip_reasons": [], "train_seconds": 0.0}
+    return {"epoch": epoch, **steps, "val_loss": val_loss, "val_mse": val.mse,
+            "val_failed": val.failed, "val_rhs_evals": val.n_f_evals, "lr": lr,
+            "seconds": seconds, "improved": improved}
+
+
+def _model_config(config: TrainConfig, data: TrajectoryData) -> dict[str, Any]:
+    """A new model's constructor arguments: sizes from the data, options from the config."""
+    if config.model not in MODELS:
+        raise ValueError(f"unknown model '{config.model}' (choose from: {', '.join(MODELS)})")
+    accepted = inspect.signature(MODELS[config.model].__init__).parameters
+    given = config.model_options()
+    foreign = [name for name in given if name not in accepted]
+    if foreign:
+        shown = ", ".join("--" + name.replace("_", "-") for name in foreign)
+        raise ValueError(f"model '{config.model}' has no option {shown}")
+    sizes = {"node_dim": data.node_dim, "control_dim": data.control_dim,
+             "num_nodes": data.num_nodes}
+    return {k: v for k, v in sizes.items() if k in accepted} | given
+
+
+def _horizon(config: TrainConfig, epoch: int, t: int) -> int:
+    """Samples per training trajectory this epoch: all, or the curriculum's growing prefix."""
+    if not config.horizon_curriculum:
+        return t
+    frac = min(1.0, (epoch - 1) / config.curriculum_epochs)
+    start = min(config.curriculum_start, t)
+    return max(2, min(t, round(start + frac * (t - start))))
+
+
+def _snapshot(ckpt: Checkpoint) -> Checkpoint:
+    """A deep copy: the optimizer and model update their tensors in place."""
+    return copy.deepcopy(ckpt)
+
+
+def _set_lr(optimizer, lr: float) -> None:
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+
+
+def _count(model) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def _device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+    return torch.device(name)

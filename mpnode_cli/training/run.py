@@ -1,0 +1,163 @@
+"""The run folder `runs/<name>/`: where a training run leaves everything it made.
+
+    config.json         the resolved `TrainConfig` (rebuilds the run: `TrainConfig(**json)`)
+    metrics.jsonl       one JSON object per epoch (epoch 0 = the starting weights, validated)
+    summary.json        written at the end: best epoch, minimum validation loss, test metrics,
+                        the paper's Table-2 figure, wall time, parameter count
+    checkpoints/        best.pt (lowest validation loss) and last.pt (latest epoch)
+    plots/              test-split plots of the best checkpoint
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from mpnode_cli.config import TrainConfig
+
+CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
+
+
+@dataclass
+class TrainSummary:
+    """What `summary.json` holds: `train`'s result.
+
+    `table2` is the paper's Table-2 figure, best epoch × minimum validation loss; `test`
+    holds `EvalResult.to_dict()` of the best checkpoint on the test split (None without one).
+    """
+
+    run_dir: str
+    model: str
+    model_config: dict[str, Any]
+    parameters: int
+    dataset: str
+    dataset_fingerprint: str
+    system: str
+    num_nodes: int
+    loss: str
+    epochs: int
+    best_epoch: int
+    min_val_loss: float
+    min_val_mse: float | None
+    table2: float
+    test: dict[str, Any] | None
+    wall_seconds: float
+    seconds_per_epoch: float | None
+    skipped_batches: int
+    restores: int
+    init_checkpoint: str | None
+    parent_sha256: str | None
+    finished: bool = True
+
+
+def default_run_dir(dataset: Path, model: str, root: Path = Path("runs")) -> Path:
+    """`runs/<dataset stem>-<model>-<YYYYmmdd-HHMMSS>`, with a suffix if that exists."""
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+    base = root / f"{Path(dataset).stem}-{model}-{stamp}"
+    path, n = base, 1
+    while path.exists():
+        n += 1
+        path = base.with_name(f"{base.name}-{n}")
+    return path
+
+
+def create(run_dir: Path) -> None:
+    """Make a new run folder; refuse to train over an existing run."""
+    if run_dir.exists() and any(run_dir.iterdir()):
+        raise ValueError(f"run folder {run_dir} already exists: continue it with "
+                         f"--resume {run_dir}, or choose another --run-dir")
+    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+
+
+def checkpoint_path(run_dir: Path, which: str) -> Path:
+    """`run_dir/checkpoints/{best,last}.pt`."""
+    return Path(run_dir) / "checkpoints" / f"{which}.pt"
+
+
+def read_config(run_dir: str | Path) -> TrainConfig:
+    """The resolved config of an existing run (for `--resume`).
+
+    Raises:
+        ValueError: no run there, or a config that no longer validates.
+    """
+    path = Path(run_dir) / CONFIG
+    if not path.is_file():
+        raise ValueError(f"{run_dir} is not a run folder (no {CONFIG})")
+    return TrainConfig(**json.loads(path.read_text()))
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Write JSON atomically (non-finite floats as null, so the file stays valid JSON)."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+def append_metrics(run_dir: Path, row: dict[str, Any]) -> None:
+    with open(Path(run_dir) / METRICS, "a") as f:
+        f.write(json.dumps(_jsonable(row)) + "\n")
+
+
+def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
+    path = Path(run_dir) / METRICS
+    if not path.is_file():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def truncate_metrics(run_dir: Path, last_epoch: int) -> None:
+    """Drop rows after `last_epoch`: an interrupt may land between a row and its checkpoint."""
+    rows = [r for r in read_metrics(run_dir) if r["epoch"] <= last_epoch]
+    tmp = Path(run_dir) / f".{METRICS}.tmp"
+    tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    os.replace(tmp, Path(run_dir) / METRICS)
+
+
+def seconds_per_epoch(run_dir: Path) -> float | None:
+    """Mean wall time of the trained epochs (epoch 0 only validates)."""
+    seconds = [r["seconds"] for r in read_metrics(run_dir) if r["epoch"] > 0]
+    return sum(seconds) / len(seconds) if seconds else None
+
+
+def read_summary(run_dir: str | Path) -> dict[str, Any]:
+    """A run's summary; for an unfinished run, what its metrics say so far.
+
+    Raises:
+        ValueError: not a run folder.
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / SUMMARY
+    if path.is_file():
+        return json.loads(path.read_text())
+    if not (run_dir / CONFIG).is_file():
+        raise ValueError(f"{run_dir} is not a run folder (no {CONFIG})")
+    config = json.loads((run_dir / CONFIG).read_text())
+    rows = [r for r in read_metrics(run_dir) if r.get("val_loss") is not None]
+    summary: dict[str, Any] = {"run_dir": str(run_dir), "model": config.get("model"),
+                               "finished": False, "test": None}
+    if rows:
+        best = min(rows, key=lambda r: r["val_loss"])
+        summary |= {
+            "best_epoch": best["epoch"], "min_val_loss": best["val_loss"],
+            "min_val_mse": best.get("val_mse"), "table2": best["epoch"] * best["val_loss"],
+            "epochs": rows[-1]["epoch"],
+            "seconds_per_epoch": seconds_per_epoch(run_dir),
+        }  # fmt: skip
+    return summary
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, Path):
+        return str(value)
+    return value

@@ -1,0 +1,151 @@
+"""`mpnode train / evaluate / zeroshot / finetune / compare` end to end, through `CliRunner`.
+
+One small story on coupled Lorenz: train on N=3, evaluate, zero-shot on N=7, finetune onto
+N=5, compare the runs — and the one-line refusals along the way.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from mpnode_cli.cli.app import app
+from mpnode_cli.config import GenerateConfig
+from mpnode_cli.data.generate import generate
+from mpnode_cli.training import loop
+from mpnode_cli.training.checkpoint import load_checkpoint
+
+runner = CliRunner()
+FAST = ["--batch-size", "8", "--lr", "1e-2", "--no-plots"]
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """Lorenz with 3, 5 and 7 nodes and a gene set (node_dim 1), 0.5 s at dt 0.05."""
+    root = tmp_path_factory.mktemp("data")
+    sizes = {"l3": (3, 40), "l5": (5, 20), "l7": (7, 10)}
+    paths = {}
+    for name, (nodes, k) in sizes.items():
+        paths[name] = generate(GenerateConfig(system="lorenz", nodes=nodes, trajectories=k,
+                                              t_end=0.5, dt=0.05, out=root / f"{name}.h5")).path
+    paths["gene"] = generate(GenerateConfig(system="gene", grid=2, trajectories=10, t_end=0.5,
+                                            dt=0.1, out=root / "gene.h5")).path
+    return paths
+
+
+@pytest.fixture(scope="module")
+def trained(data, tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "l3"
+    result = runner.invoke(app, ["train", str(data["l3"]), "--epochs", "3", "--run-dir",
+                                 str(run), *FAST])
+    assert result.exit_code == 0, result.output
+    assert "best epoch" in result.output
+    return run
+
+
+def invoke(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def one_line_error(result, code=2) -> str:
+    assert result.exit_code == code, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
+    assert len(lines) == 1, result.output
+    return lines[0]
+
+
+def test_train_writes_a_run_folder(trained):
+    assert {p.name for p in trained.iterdir()} >= {"config.json", "metrics.jsonl",
+                                                   "summary.json", "checkpoints"}
+    summary = json.loads((trained / "summary.json").read_text())
+    assert summary["epochs"] == 3 and summary["num_nodes"] == 3 and summary["test"]
+
+
+def test_evaluate_table_json_and_plots(trained, data, tmp_path):
+    best = trained / "checkpoints" / "best.pt"
+    result = invoke("evaluate", best, data["l3"])
+    assert result.exit_code == 0, result.output
+    assert "MSE (normalized)" in result.output and "RMSE z" in result.output
+    result = invoke("evaluate", best, data["l3"], "--split", "validation", "--json", "--plot",
+                    "--plot-dir", tmp_path)
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.output)
+    summary = json.loads((trained / "summary.json").read_text())
+    assert report["result"]["mse"] == pytest.approx(summary["min_val_mse"], rel=1e-6)
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        "l3-validation-error.png", "l3-validation-rollout.png"]
+
+
+def test_zeroshot_onto_seven_nodes(trained, data):
+    best = trained / "checkpoints" / "best.pt"
+    result = invoke("zeroshot", best, data["l5"], data["l7"], "--json")
+    assert result.exit_code == 0, result.output
+    rows = json.loads(result.output)["datasets"]
+    assert [r["num_nodes"] for r in rows] == [5, 7]
+    assert all(r["result"]["failed"] == 0 and r["result"]["mse"] > 0 for r in rows)
+    table = invoke("zeroshot", best, data["l7"])
+    assert table.exit_code == 0 and "l7.h5" in table.output
+
+
+def test_mismatched_node_dim_is_refused_in_one_line(trained, data):
+    best = trained / "checkpoints" / "best.pt"
+    line = one_line_error(invoke("zeroshot", best, data["l7"], data["gene"]))
+    assert "node_dim 1 but the checkpoint expects 3" in line
+    line = one_line_error(invoke("finetune", best, data["gene"], "--epochs", "1"))
+    assert "finetune needs the same per-node state size" in line
+    line = one_line_error(invoke("evaluate", best, data["gene"]))
+    assert "node_dim" in line
+
+
+def test_finetune_onto_five_nodes_then_compare(trained, data, tmp_path):
+    best = trained / "checkpoints" / "best.pt"
+    run = tmp_path / "ft"
+    result = invoke("finetune", best, data["l5"], "--epochs", "2", "--trajectories", "5",
+                    "--run-dir", run, *FAST)
+    assert result.exit_code == 0, result.output
+    assert "finetuned from" in result.output
+    child = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert child.dataset["num_nodes"] == 5 and child.parent_sha256
+    config = json.loads((run / "config.json").read_text())
+    assert config["init_checkpoint"] == str(best) and config["trajectories"] == 5
+
+    result = invoke("compare", trained, run)
+    assert result.exit_code == 0, result.output
+    assert "l3" in result.output and "ft" in result.output and "Table-2" in result.output
+    summaries = json.loads(invoke("compare", trained, run, "--json").output)
+    assert [s["num_nodes"] for s in summaries] == [3, 5]
+    assert summaries[1]["table2"] == pytest.approx(
+        summaries[1]["best_epoch"] * summaries[1]["min_val_loss"])
+
+
+def test_resume_and_its_refusals(data, tmp_path):
+    run = tmp_path / "run"
+    assert invoke("train", data["l3"], "--epochs", "1", "--run-dir", run, *FAST).exit_code == 0
+    assert "--resume" in one_line_error(invoke("train", data["l3"], "--run-dir", run))
+    assert "only --epochs" in one_line_error(invoke("train", "--resume", run, "--lr", "0.1"))
+    result = invoke("train", "--resume", run, "--epochs", "2")
+    assert result.exit_code == 0, result.output
+    assert json.loads((run / "summary.json").read_text())["epochs"] == 2
+    assert "DATASET" in one_line_error(invoke("train"))
+    assert "no such dataset" in one_line_error(invoke("train", tmp_path / "missing.h5"))
+    assert "graph" in one_line_error(invoke("train", data["l3"], "--graph", "ring"))
+    assert "not an mpnode checkpoint" in one_line_error(
+        invoke("evaluate", run / "config.json", data["l3"]))
+
+
+def test_ctrl_c_exits_130_after_saving_last(data, tmp_path, monkeypatch):
+    epoch = loop._train_epoch
+
+    def interrupted(*args):
+        if args[9] == 2:  # the epoch number
+            raise KeyboardInterrupt
+        return epoch(*args)
+
+    monkeypatch.setattr(loop, "_train_epoch", interrupted)
+    run = tmp_path / "run"
+    result = invoke("train", data["l3"], "--epochs", "5", "--run-dir", run, *FAST)
+    assert result.exit_code == 130, result.output
+    assert f"mpnode train --resume {run}" in result.output
+    assert load_checkpoint(run / "checkpoints" / "last.pt").epoch == 1

@@ -1,0 +1,234 @@
+"""Training: it learns, resumes exactly, survives bad steps; checkpoints and evaluation."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.data.dataset import TrajectoryData
+from mpnode_cli.data.generate import generate
+from mpnode_cli.models.mpnode import MPNODE
+from mpnode_cli.solver import Status
+from mpnode_cli.training import loop
+from mpnode_cli.training.checkpoint import (
+    FORMAT,
+    CheckpointFormatError,
+    file_sha256,
+    load_checkpoint,
+    save_checkpoint,
+)
+from mpnode_cli.training.evaluate import check_compatible, evaluate, predict
+from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
+from mpnode_cli.training.run import checkpoint_path, read_metrics
+
+
+@pytest.fixture(scope="module")
+def gene(tmp_path_factory):
+    """Gene dynamics on a 2×2 grid (ER graph): 48 trajectories × 21 samples."""
+    out = tmp_path_factory.mktemp("data") / "gene.h5"
+    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
+                            dt=0.1, out=out))
+    return out
+
+
+def config(dataset, run_dir, **kw) -> TrainConfig:
+    fields = {"dataset": dataset, "run_dir": run_dir, "batch_size": 16, "lr": 1e-2,
+              "epochs": 4, "plots": False}
+    return TrainConfig(**(fields | kw))
+
+
+def rows(run_dir):
+    """Metrics rows without their timings (which differ between identical runs)."""
+    return [{k: v for k, v in r.items() if not k.endswith("seconds")}
+            for r in read_metrics(run_dir)]
+
+
+def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
+    summary = train(config(gene, tmp_path / "run", epochs=30, plots=True))
+    metrics = read_metrics(tmp_path / "run")
+    assert [r["epoch"] for r in metrics] == list(range(31))  # epoch 0: the starting weights
+    after_one_epoch = metrics[1]["val_loss"]
+    assert summary.min_val_loss <= after_one_epoch / 10, (after_one_epoch, summary.min_val_loss)
+    assert summary.best_epoch == min(metrics, key=lambda r: r["val_loss"])["epoch"]
+    assert summary.table2 == pytest.approx(summary.best_epoch * summary.min_val_loss)
+    assert summary.test["mse"] < metrics[0]["val_mse"] / 10
+    assert summary.parameters == 1348  # 4→32→32→4, the authors' gene count (notes §1.1)
+    files = {p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*")}
+    assert {"config.json", "metrics.jsonl", "summary.json", "checkpoints/best.pt",
+            "checkpoints/last.pt", "plots/gene-test-rollout.png",
+            "plots/gene-test-error.png"} <= files
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["best_epoch"] == (
+        summary.best_epoch)
+    assert TrainConfig(**json.loads((tmp_path / "run" / "config.json").read_text())).epochs == 30
+
+
+def test_two_plus_two_epochs_equal_four(gene, tmp_path):
+    train(config(gene, tmp_path / "four"))
+    train(config(gene, tmp_path / "resumed", epochs=2))
+    train(config(gene, tmp_path / "resumed"), resume=True)
+    a = load_checkpoint(checkpoint_path(tmp_path / "four", "last"))
+    b = load_checkpoint(checkpoint_path(tmp_path / "resumed", "last"))
+    for name, value in a.state_dict.items():
+        assert torch.equal(value, b.state_dict[name]), name
+    for key, state in a.optimizer["state"].items():
+        for name, value in state.items():
+            assert torch.equal(value, b.optimizer["state"][key][name]), (key, name)
+    assert rows(tmp_path / "four") == rows(tmp_path / "resumed")
+
+
+def test_ctrl_c_saves_last_completed_epoch_and_resume_continues_it(gene, tmp_path):
+    def interrupt(event):
+        if event["event"] == "batch" and event["epoch"] == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(TrainingInterrupted) as info:
+        train(config(gene, tmp_path / "cut"), progress=interrupt)
+    assert info.value.epoch == 2
+    assert load_checkpoint(checkpoint_path(tmp_path / "cut", "last")).epoch == 2
+    train(config(gene, tmp_path / "cut"), resume=True)
+    train(config(gene, tmp_path / "whole"))
+    assert rows(tmp_path / "cut") == rows(tmp_path / "whole")
+
+
+def test_checkpoint_round_trip(gene, tmp_path):
+    train(config(gene, tmp_path / "run", epochs=1))
+    path = checkpoint_path(tmp_path / "run", "best")
+    raw = torch.load(path, weights_only=True)  # only tensors and plain data inside
+    assert raw["format"] == FORMAT and raw["format_version"] == 1
+    assert set(raw) >= {"model_kind", "model_config", "state_dict", "normalizer",
+                        "train_config", "dataset", "epoch", "optimizer", "rng", "loop"}
+    ckpt = load_checkpoint(path)
+    again = save_checkpoint(tmp_path / "copy.pt", ckpt)
+    assert [p.name for p in tmp_path.iterdir() if p.suffix == ".tmp"] == []
+    copy = load_checkpoint(again)
+    data = TrajectoryData.load(gene).subset("validation")
+    outs = [predict(c.build_model(), data, c.build_normalizer(), torch.arange(3)).pred
+            for c in (ckpt, copy)]
+    torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)
+    assert copy.dataset["fingerprint"] == TrajectoryData.load(gene).fingerprint
+    assert len(file_sha256(path)) == 64
+
+    torch.save({"format": FORMAT, "format_version": 99}, tmp_path / "newer.pt")
+    with pytest.raises(CheckpointFormatError, match="newer"):
+        load_checkpoint(tmp_path / "newer.pt")
+    (tmp_path / "junk.pt").write_text("not a checkpoint")
+    with pytest.raises(CheckpointFormatError, match="not an mpnode checkpoint"):
+        load_checkpoint(tmp_path / "junk.pt")
+
+
+def flaky_loss(fail_calls):
+    """The Huber loss, but NaN on the given (1-based) calls from training."""
+    calls = {"n": 0}
+    huber = loop.LOSSES["huber"]
+
+    def loss(pred, target):
+        calls["n"] += 1
+        value = huber(pred, target)
+        return value * math.nan if calls["n"] in fail_calls else value
+
+    return loss
+
+
+def test_bad_step_is_skipped_and_runs_of_them_roll_back(gene, tmp_path, monkeypatch):
+    # 34 train trajectories in batches of 16: 3 steps per epoch.
+    monkeypatch.setitem(loop.LOSSES, "huber", flaky_loss({2, 4, 5}))
+    summary = train(config(gene, tmp_path / "run", epochs=2, max_bad_steps=2))
+    metrics = read_metrics(tmp_path / "run")
+    assert [r["skipped"] for r in metrics[1:]] == [1, 2]
+    assert summary.skipped_batches == 3 and summary.restores == 1
+    assert metrics[1]["lr"] == 1e-2 and metrics[2]["lr"] == 5e-3  # halved by the rollback
+    weights = load_checkpoint(checkpoint_path(tmp_path / "run", "last")).state_dict
+    assert all(torch.isfinite(w).all() for w in weights.values())
+
+
+def test_solver_failure_in_a_batch_skips_it(gene, tmp_path, monkeypatch):
+    rollout = MPNODE.rollout
+    calls = {"n": 0}
+
+    def failing(self, *args, **kwargs):
+        out = rollout(self, *args, **kwargs)
+        if torch.is_grad_enabled():  # a training step, not validation
+            calls["n"] += 1
+            if calls["n"] == 1:
+                out.status[0] = Status.MAX_STEPS
+        return out
+
+    monkeypatch.setattr(MPNODE, "rollout", failing)
+    summary = train(config(gene, tmp_path / "run", epochs=1))
+    assert summary.skipped_batches == 1 and summary.restores == 0
+
+
+def test_persistent_bad_steps_stop_with_a_reason(gene, tmp_path, monkeypatch):
+    monkeypatch.setitem(loop.LOSSES, "huber", flaky_loss(set(range(1, 100))))
+    with pytest.raises(TrainingDiverged, match="non-finite loss"):
+        train(config(gene, tmp_path / "run", epochs=3, max_bad_steps=1, min_lr=4e-3))
+
+
+def test_horizon_curriculum_grows_to_the_whole_trajectory(gene, tmp_path):
+    cfg = config(gene, tmp_path / "run", epochs=4, horizon_curriculum=True,
+                 curriculum_start=5, curriculum_epochs=2)
+    assert [loop._horizon(cfg, e, 21) for e in (1, 2, 3, 4)] == [5, 13, 21, 21]
+    train(cfg)
+    assert [r["horizon"] for r in read_metrics(tmp_path / "run")[1:]] == [5, 13, 21, 21]
+
+
+def test_finetune_starts_from_the_checkpoint_with_its_normalization(gene, tmp_path):
+    train(config(gene, tmp_path / "base", epochs=3))
+    parent = checkpoint_path(tmp_path / "base", "best")
+    summary = train(config(gene, tmp_path / "ft", epochs=1, init_checkpoint=parent,
+                           trajectories=10, hidden=7))
+    ckpt, child = load_checkpoint(parent), load_checkpoint(checkpoint_path(tmp_path / "ft", "last"))
+    assert child.parent_sha256 == file_sha256(parent) == summary.parent_sha256
+    assert child.model_config == ckpt.model_config  # architecture from the checkpoint
+    assert child.normalizer == ckpt.normalizer
+    assert child.optimizer["state"][0]["step"] == 1  # fresh Adam: one step of 10 trajectories
+    # Epoch 0 of the finetune is the parent's own validation loss.
+    assert read_metrics(tmp_path / "ft")[0]["val_loss"] == pytest.approx(
+        ckpt.metrics["val_loss"], rel=1e-6)
+    renorm = train(config(gene, tmp_path / "renorm", epochs=0, init_checkpoint=parent,
+                          renormalize=True, trajectories=5))
+    assert renorm.parent_sha256 == summary.parent_sha256
+    assert load_checkpoint(checkpoint_path(tmp_path / "renorm", "last")).normalizer != (
+        ckpt.normalizer)
+
+
+def test_evaluate_matches_a_direct_computation(gene, tmp_path):
+    train(config(gene, tmp_path / "run", epochs=2))
+    ckpt = load_checkpoint(checkpoint_path(tmp_path / "run", "best"))
+    model, norm = ckpt.build_model(), ckpt.build_normalizer()
+    data = TrajectoryData.load(gene).subset("all")
+    result = evaluate(model, data, norm, batch_size=5)  # batches of unequal size
+    pred = predict(model, data, norm, torch.arange(len(data)))
+    err = (norm.norm_x(pred.pred) - norm.norm_x(pred.true))[:, 1:].double()
+    assert result.mse == pytest.approx(float(err.pow(2).mean()), rel=1e-5)
+    phys = (pred.pred - pred.true)[:, 1:].double()
+    assert result.rmse == pytest.approx(phys.pow(2).mean(dim=(0, 1, 2)).sqrt().tolist(), rel=1e-5)
+    curve = torch.tensor(result.mse_vs_time)
+    assert curve[0] == 0 and float(curve[1:].mean()) == pytest.approx(result.mse, rel=1e-6)
+    huber = torch.nn.functional.huber_loss(err, torch.zeros_like(err), reduction="none")
+    assert result.huber == pytest.approx(float(huber.sum(dim=(1, 3)).mean()), rel=1e-5)
+
+
+def test_a_model_that_is_not_transferable_refuses_another_size(gene):
+    data = TrajectoryData.load(gene)  # N = 4, node_dim 1
+    node = {"node_dim": 1, "num_nodes": 4}
+    check_compatible("node", node, 4, data, "zeroshot")  # the monolithic NODE, same N: fine
+    with pytest.raises(ValueError, match="trained on 3 and only runs on graphs of that size"):
+        check_compatible("node", node | {"num_nodes": 3}, 3, data, "zeroshot")
+    with pytest.raises(ValueError, match="node_dim 1 but the checkpoint expects 3"):
+        check_compatible("mpnode", {"node_dim": 3}, 4, data, "zeroshot")
+
+
+def test_model_options_come_from_the_model_unless_given(gene, tmp_path):
+    train(config(gene, tmp_path / "mp", epochs=0))
+    resolved = json.loads((tmp_path / "mp" / "config.json").read_text())
+    assert (resolved["hidden"], resolved["layers"], resolved["message_dim"]) == (32, 2, 3)
+    train(config(gene, tmp_path / "gnode", epochs=0, model="gnode", hidden=8, graph="full"))
+    ckpt = load_checkpoint(checkpoint_path(tmp_path / "gnode", "last"))
+    assert ckpt.model_kind == "gnode" and ckpt.model_config["hidden"] == 8
+    with pytest.raises(ValueError, match="model 'gnode' has no option --message-dim"):
+        train(config(gene, tmp_path / "bad", epochs=0, model="gnode", message_dim=2))
