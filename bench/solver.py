@@ -107,15 +107,11 @@ def bench_ours(f, y0, ts, rtol, atol, repeats):
 
 def bench_ours_compiled(f, y0, ts, rtol, atol, repeats):
     """The same solver with its step function compiled by torch.compile (inductor)."""
-    solve_module = sys.modules["mpnode_cli.solver.solve"]
-    solve_module._COMPILE = True
-    try:
-        start = time.perf_counter()
-        solve(f, y0, ts, rtol=rtol, atol=atol)  # compiles (first call for this f/shape)
-        compile_s = time.perf_counter() - start
-        wall, sol = median_time(lambda: solve(f, y0, ts, rtol=rtol, atol=atol), repeats)
-    finally:
-        solve_module._COMPILE = False
+    start = time.perf_counter()
+    solve(f, y0, ts, rtol=rtol, atol=atol, compile=True)  # compiles (first call, this f/shape)
+    compile_s = time.perf_counter() - start
+    wall, sol = median_time(lambda: solve(f, y0, ts, rtol=rtol, atol=atol, compile=True),
+                            repeats)
     return (wall, sol.ys.double().numpy(), int(sol.stats["n_f_evals"].max()),
             int(sol.stats["n_steps"].max()), None, compile_s)
 

@@ -134,7 +134,7 @@ class GenerateConfig(BaseModel):
 
 # TrainConfig fields that are keyword arguments of a model's constructor.
 MODEL_OPTIONS = ("hidden", "layers", "activation", "message_dim", "graph", "messages",
-                 "aggregation")
+                 "aggregation", "latent", "steps", "depth", "history")
 
 
 class TrainConfig(BaseModel):
@@ -153,6 +153,10 @@ class TrainConfig(BaseModel):
             the authors' config ran).
         messages: False clamps incoming messages to zero (the §4.1 ablation).
         aggregation: "auto", "dense" or "scatter" neighbour mean.
+        latent, steps, history: L2S's latent size, message-passing steps and input states.
+        depth: GNN-ODE message-passing steps per evaluation.
+        step_noise: L2S: std of the random-walk noise on its one-step inputs (normalized
+            units; L2S trains one step ahead, the others on whole rollouts).
             The model options above left None take the model's own defaults (MP-NODE: the
             authors' hidden 32, two tanh layers, M = 3; graph "sys"); the resolved config
             written to a run holds the values used. A model that lacks an option given
@@ -194,6 +198,11 @@ class TrainConfig(BaseModel):
     graph: Literal["sys", "full"] | None = None
     messages: bool | None = None
     aggregation: Literal["auto", "dense", "scatter"] | None = None
+    latent: int | None = Field(None, ge=1)
+    steps: int | None = Field(None, ge=1)
+    depth: int | None = Field(None, ge=1)
+    history: int | None = Field(None, ge=1)
+    step_noise: float = Field(3e-3, ge=0)
     loss: Literal["huber", "mse"] = "huber"
     lr: float = Field(1e-3, gt=0)
     min_lr: float = Field(1e-6, ge=0)

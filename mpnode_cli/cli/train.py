@@ -55,6 +55,13 @@ def train_command(
     messages: bool | None = typer.Option(
         None, "--messages/--no-messages", help="--no-messages: the no-communication ablation."),
     aggregation: str | None = typer.Option(None, help="auto (default), dense or scatter."),
+    latent: int | None = typer.Option(None, help="l2s: latent size (default 128)."),
+    steps: int | None = typer.Option(None, help="l2s: message-passing steps (default 10)."),
+    history: int | None = typer.Option(
+        None, help="l2s: input states C (default 1; C > 1 starts rollouts from C data states)."),
+    depth: int | None = typer.Option(None, help="gnode: message-passing steps (default 1)."),
+    step_noise: float | None = typer.Option(
+        None, help="l2s: random-walk noise on one-step inputs (default 3e-3)."),
     config_file: Path | None = _CONFIG, loss: str | None = _LOSS, lr: float | None = _LR,
     min_lr: float | None = _MIN_LR, batch_size: int | None = _BATCH,
     clip: float | None = _CLIP, patience: int | None = _PATIENCE,

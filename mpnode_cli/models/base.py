@@ -74,3 +74,15 @@ def zoh_controls(controls: torch.Tensor, ts: torch.Tensor):
         return controls[rows, k]
 
     return u
+
+
+def rollout_from_data(model, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                      controls: torch.Tensor | None = None, **options) -> Rollout:
+    """Roll `model` out from the start of the data trajectories `x: [B, T, N, D]`.
+
+    Every model starts from x(t₀); one with an input history of C > 1 states (L2S
+    `history`) is given the data's first C states.
+    """
+    history = getattr(model, "history", 1)
+    extra = {"history": x[:, :history]} if history > 1 else {}
+    return model.rollout(x[:, 0], ts, adjacency, controls, **options, **extra)

@@ -34,7 +34,7 @@ class L2S(nn.Module):
 
     Args:
         node_dim: D. control_dim: U.
-        latent: node/edge latent size; hidden, mlp_layers: the MLPs (128, 2).
+        latent: node/edge latent size; hidden, layers: the MLPs (128, 2).
         steps: message-passing steps (unshared weights).
         history: C, states in the input window (C − 1 differences are fed).
         graph: "sys" or "full" (complete graph with self-loops).
@@ -45,7 +45,7 @@ class L2S(nn.Module):
     one_step: ClassVar[bool] = True
 
     def __init__(self, node_dim: int, control_dim: int = 0, latent: int = 128,
-                 hidden: int = 128, mlp_layers: int = 2, steps: int = 10, history: int = 1,
+                 hidden: int = 128, layers: int = 2, steps: int = 10, history: int = 1,
                  graph: str = "sys"):
         super().__init__()
         if history < 1 or steps < 1:
@@ -53,17 +53,17 @@ class L2S(nn.Module):
         if graph not in ("sys", "full"):
             raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
         self.config = {"node_dim": node_dim, "control_dim": control_dim, "latent": latent,
-                       "hidden": hidden, "mlp_layers": mlp_layers, "steps": steps,
+                       "hidden": hidden, "layers": layers, "steps": steps,
                        "history": history, "graph": graph}
         self.node_dim, self.control_dim, self.history, self.graph = (
             node_dim, control_dim, history, graph)
         in_dim = node_dim * history + control_dim
-        self.encoder = _mlp_ln(in_dim, hidden, mlp_layers, latent)
+        self.encoder = _mlp_ln(in_dim, hidden, layers, latent)
         self.edge_fns = nn.ModuleList(
-            _mlp_ln(2 * latent, hidden, mlp_layers, latent) for _ in range(steps))
+            _mlp_ln(2 * latent, hidden, layers, latent) for _ in range(steps))
         self.node_fns = nn.ModuleList(
-            _mlp_ln(2 * latent, hidden, mlp_layers, latent) for _ in range(steps))
-        self.decoder = mlp(latent, hidden, mlp_layers, node_dim, "relu")
+            _mlp_ln(2 * latent, hidden, layers, latent) for _ in range(steps))
+        self.decoder = mlp(latent, hidden, layers, node_dim, "relu")
         # Statistics of the normalized one-step differences, set by `fit_statistics`.
         self.register_buffer("delta_mean", torch.zeros(node_dim))
         self.register_buffer("delta_std", torch.ones(node_dim))

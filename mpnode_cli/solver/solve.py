@@ -115,6 +115,7 @@ def solve(
     max_steps: int = 100_000,
     fixed_dt: float | None = None,
     tstops: torch.Tensor | Sequence[float] | None = None,
+    compile: bool = False,
 ) -> Solution:
     """Integrate `dy/dt = f(t, y)` for a batch of initial states with Tsit5.
 
@@ -134,6 +135,10 @@ def solve(
         fixed_dt: if given, take fixed steps (no error control) of at most this size, aligned
             so that every output time and every tstop is hit exactly.
         tstops: times that no step may cross (e.g. where a zero-order-hold control changes).
+        compile: run the adaptive step through `torch.compile` (inductor). The first solve
+            with a new `f`, shape or dtype compiles for ~10 s; later ones run about 2× faster
+            on CPU (bench/results/solver.md). Worth it for long or repeated solves; ignored
+            with `fixed_dt`.
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
@@ -171,7 +176,8 @@ def solve(
     if fixed_dt is not None:
         ys, status, stats = _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps)
     else:
-        ys, status, stats = _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps)
+        ys, status, stats = _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps,
+                                            compile)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
 
 
@@ -311,7 +317,7 @@ def _initial_step(fun, t0, y, k1, rtol, atol, span):
         return torch.where(torch.isfinite(h) & (h > 0), h, span * 1e-6)
 
 
-def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps):
+def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps, compile=False):
     batch, feat = y.shape
     dev, f64 = y.device, torch.float64
     tab = _Tableau(y.dtype, dev)
@@ -349,7 +355,7 @@ def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps):
     consts = (tab, stages, ts, stops_pad, n_stops, rtol, atol, max_steps)
     state = (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
              out_idx)
-    step = _compiled_step() if _COMPILE else _step
+    step = _compiled_step() if compile else _step
     while True:
         state, flags, extra = step(fun, consts, state)
         any_running, width, any_jumped, any_failed = flags.tolist()  # the step's one sync
@@ -379,10 +385,8 @@ def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps):
     return ys[:, :n_out], status, stats
 
 
-_COMPILE = False  # set by bench/solver.py to measure torch.compile of the step
-
-
 def _compiled_step():
+    """The step compiled once per process (torch.compile caches a graph per f and shape)."""
     global _STEP_COMPILED
     if _STEP_COMPILED is None:
         _STEP_COMPILED = torch.compile(_step, dynamic=False)

@@ -18,6 +18,7 @@ from typing import Any
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
+from mpnode_cli.models.base import rollout_from_data
 from mpnode_cli.training.losses import huber_loss
 
 
@@ -102,8 +103,8 @@ def evaluate(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalize
         for idx in torch.arange(k).split(batch_size):
             batch = data.take(idx)
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
-            out = model.rollout(x[:, 0], ts, batch.adjacency.to(device), u, rtol=rtol,
-                                atol=atol, fixed_dt=fixed_dt)
+            out = rollout_from_data(model, x, ts, batch.adjacency.to(device), u, rtol=rtol,
+                                    atol=atol, fixed_dt=fixed_dt)
             n_f_evals += out.n_f_evals
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
             failed += int((~good).sum())
@@ -136,8 +137,8 @@ def predict(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalizer
     batch = data.take(index)
     x, u = _normalized(batch, normalizer, device)
     with torch.no_grad():
-        out = model.rollout(x[:, 0], data.time.to(device), batch.adjacency.to(device), u,
-                            rtol=rtol, atol=atol, fixed_dt=fixed_dt, return_messages=True)
+        out = rollout_from_data(model, x, data.time.to(device), batch.adjacency.to(device), u,
+                                rtol=rtol, atol=atol, fixed_dt=fixed_dt, return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
                       messages=messages, status=out.status.cpu())

@@ -32,6 +32,7 @@ import torch
 
 from mpnode_cli.config import MODEL_OPTIONS, TrainConfig
 from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
+from mpnode_cli.models.base import rollout_from_data
 from mpnode_cli.models.registry import MODELS, build_model
 from mpnode_cli.solver import Status
 from mpnode_cli.training import run as runs
@@ -129,6 +130,10 @@ def train(config: TrainConfig, *, resume: bool = False,
 
     if source is not None:
         model.load_state_dict(source.state_dict)
+    if hasattr(model, "fit_statistics") and (source is None or (parent and config.renormalize)):
+        # L2S's one-step differences are normalized with statistics of this train split.
+        model.fit_statistics(normalizer.norm_x(train_set.states),
+                             float(train_set.time[1] - train_set.time[0]))
     model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
@@ -271,22 +276,27 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
 def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig):
     """One update from `x: [B, H, N, D]`. Returns (loss, grad norm, RHS evals, skip reason)."""
     optimizer.zero_grad(set_to_none=True)
-    out = model.rollout(x[:, 0], ts, adjacency, u, rtol=config.rtol, atol=config.atol,
-                        fixed_dt=config.fixed_dt)
-    failed = int((out.status != 0).sum())
-    if failed:
-        worst = Status(int(out.status.max())).name
-        return math.nan, math.nan, out.n_f_evals, f"solver {worst} on {failed} trajectories"
-    loss = loss_fn(out.states, x)
+    if getattr(model, "one_step", False):
+        # L2S learns one step ahead (with its own input noise) and is rolled out only to
+        # validate; the others learn from whole-horizon rollouts.
+        loss, evals = model.one_step_loss(x, adjacency, u, noise_std=config.step_noise), 0
+    else:
+        out = rollout_from_data(model, x, ts, adjacency, u, rtol=config.rtol,
+                                atol=config.atol, fixed_dt=config.fixed_dt)
+        failed, evals = int((out.status != 0).sum()), out.n_f_evals
+        if failed:
+            worst = Status(int(out.status.max())).name
+            return math.nan, math.nan, evals, f"solver {worst} on {failed} trajectories"
+        loss = loss_fn(out.states, x)
     if not torch.isfinite(loss):
-        return math.nan, math.nan, out.n_f_evals, "non-finite loss"
+        return math.nan, math.nan, evals, "non-finite loss"
     loss.backward()
     norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip))
     if not math.isfinite(norm):
         optimizer.zero_grad(set_to_none=True)
-        return math.nan, norm, out.n_f_evals, "non-finite gradient"
+        return math.nan, norm, evals, "non-finite gradient"
     optimizer.step()
-    return loss.item(), norm, out.n_f_evals, None
+    return loss.item(), norm, evals, None
 
 
 def _record(state: LoopState, epoch: int, val: EvalResult, config: TrainConfig,
