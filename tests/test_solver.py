@@ -391,3 +391,14 @@ def test_a_non_contiguous_initial_state_is_accepted(fixed_dt):
     a = solve(lambda t, y: -y, y0, [0.0, 0.5], fixed_dt=fixed_dt)
     b = solve(lambda t, y: -y, y0.contiguous(), [0.0, 0.5], fixed_dt=fixed_dt)
     torch.testing.assert_close(a.ys, b.ys, rtol=0, atol=0)
+
+
+@pytest.mark.slow
+def test_compiled_step_gives_the_eager_result():
+    """torch.compile of the step (~10 s to compile): same steps, same answer to rounding."""
+    y0 = torch.tensor([[1.0, 1.0, 1.0], [-2.0, 3.0, 20.0]], dtype=torch.float64)
+    ts = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    eager = solve(lorenz, y0, ts, rtol=1e-8, atol=1e-10)
+    compiled = solve(lorenz, y0, ts, rtol=1e-8, atol=1e-10, compile=True)
+    assert torch.equal(eager.stats["n_steps"], compiled.stats["n_steps"])
+    torch.testing.assert_close(compiled.ys, eager.ys, rtol=1e-9, atol=1e-9)
