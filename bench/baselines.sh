@@ -9,7 +9,7 @@ MPNODE=${MPNODE:-.venv/bin/mpnode}
 EPOCHS=${EPOCHS:-40}
 OUT=runs/baselines
 DATA=datasets/gene-ba-4x4.h5
-mkdir -p "$OUT"
+rm -rf "$OUT" && mkdir -p "$OUT"
 $MPNODE generate --preset gene-ba-4x4 --out "$DATA" --force
 common=(--epochs "$EPOCHS" --seed 0 --no-plots)
 $MPNODE train "$DATA" --model mpnode "${common[@]}" --run-dir "$OUT/mpnode"

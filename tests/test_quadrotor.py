@@ -281,7 +281,18 @@ def test_presets_and_limits():
                         rtol=1e-8, atol=1e-10)  # fmt: skip
 
 
-@pytest.mark.skip(reason="needs `mpnode train` with controls (the training issue), not done yet")
-def test_mpnode_trains_on_a_small_quad3_set():
+def test_mpnode_trains_on_a_small_quad3_set(quad3, tmp_path):
     """MP-NODE with ZOH controls (the solver's `tstops` at control changes) on a few quad3
     flights: its validation loss falls."""
+    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.training.loop import train
+    from mpnode_cli.training.run import read_metrics
+
+    _, summary = quad3
+    config = TrainConfig(dataset=summary.path, epochs=8, batch_size=4, lr=1e-2, plots=False,
+                         run_dir=tmp_path / "run", hidden=16)
+    result = train(config)
+    rows = read_metrics(tmp_path / "run")
+    assert result.best_epoch > 0
+    assert rows[-1]["val_loss"] < 0.7 * rows[0]["val_loss"]
+
