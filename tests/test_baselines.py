@@ -7,13 +7,7 @@ import torch
 
 from mpnode_cli.models.registry import build_model
 
-
-@pytest.fixture(autouse=True)
-def float64_default():
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def random_graph(batch: int, nodes: int, seed: int) -> torch.Tensor:

@@ -18,14 +18,7 @@ from mpnode_cli.models.base import zoh_controls
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.training.losses import huber_loss, mse_loss
 
-
-@pytest.fixture(autouse=True)
-def float64_default():
-    """These tests compare rollouts to ~1e-9: run them in float64, then restore."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def random_graph(batch: int, nodes: int, p: float, seed: int) -> torch.Tensor:
