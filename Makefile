@@ -25,9 +25,13 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m ruff check mpnode_cli tests bench examples
 
+# Benchmarks print tables and write bench/results/*.md (minutes; run on a quiet machine).
+# The baselines comparison is separate: `bash bench/baselines.sh` (about 10 minutes).
 bench: $(STAMP)
 	$(PY) -m pip install -q -e '.[dev,bench]'
 	$(PY) bench/solver.py
+	$(PY) bench/generate.py
+	$(PY) bench/train.py
 
 clean:
 	rm -rf .venv build *.egg-info .pytest_cache .ruff_cache
