@@ -134,7 +134,7 @@ class GenerateConfig(BaseModel):
 
 # TrainConfig fields that are keyword arguments of a model's constructor.
 MODEL_OPTIONS = ("hidden", "layers", "activation", "message_dim", "graph", "messages",
-                 "aggregation", "latent", "steps", "depth", "history")
+                 "aggregate", "backend", "latent", "steps", "depth", "history")
 
 
 class TrainConfig(BaseModel):
@@ -152,7 +152,8 @@ class TrainConfig(BaseModel):
         graph: "sys" (the dataset's graph) or "full" (complete graph with self-loops, what
             the authors' config ran).
         messages: False clamps incoming messages to zero (the §4.1 ablation).
-        aggregation: "auto", "dense" or "scatter" neighbour mean.
+        aggregate: "mean" (the paper), "sum" or "pna" aggregation of neighbours.
+        backend: how it is computed: "auto", "dense" or "scatter".
         latent, steps, history: L2S's latent size, message-passing steps and input states.
         depth: GNN-ODE message-passing steps per evaluation.
         step_noise: L2S: std of the random-walk noise on its one-step inputs (normalized
@@ -197,7 +198,8 @@ class TrainConfig(BaseModel):
     message_dim: int | None = Field(None, ge=0)
     graph: Literal["sys", "full"] | None = None
     messages: bool | None = None
-    aggregation: Literal["auto", "dense", "scatter"] | None = None
+    aggregate: Literal["mean", "sum", "pna"] | None = None
+    backend: Literal["auto", "dense", "scatter"] | None = None
     latent: int | None = Field(None, ge=1)
     steps: int | None = Field(None, ge=1)
     depth: int | None = Field(None, ge=1)

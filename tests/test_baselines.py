@@ -27,11 +27,14 @@ TS = torch.linspace(0.0, 0.5, 6, dtype=torch.float64)
 @pytest.mark.parametrize("kind, options", [
     ("l2s", {"latent": 16, "hidden": 16, "steps": 3}),
     ("gnode", {"hidden": 8}),
+    ("gnode", {"hidden": 8, "aggregate": "pna"}),
     ("mpnode", {"hidden": 8}),
 ])
 def test_graph_models_are_permutation_equivariant(kind, options):
     net = built(kind, **options)
     adj = random_graph(2, 5, seed=1)
+    if kind != "l2s":
+        net.fit_statistics(None, 0.1, adj)
     x0 = torch.randn(2, 5, 2)
     perm = torch.tensor([4, 2, 0, 3, 1])
     a = net.rollout(x0, TS, adj, rtol=1e-9, atol=1e-9).states

@@ -7,13 +7,6 @@ import torch
 import torch.nn.functional as F
 
 from mpnode_cli.data.dataset import Normalizer
-from mpnode_cli.models.aggregate import (
-    EdgeIndex,
-    dense_mean,
-    mean_matrix,
-    scatter_mean,
-    scatter_sum,
-)
 from mpnode_cli.models.base import zoh_controls
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.training.losses import huber_loss, mse_loss
@@ -36,9 +29,11 @@ def model(**kw):
 TS = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
 
 
-def test_permutation_equivariance():
-    net = model()
+@pytest.mark.parametrize("aggregate", ["mean", "sum", "pna"])
+def test_permutation_equivariance(aggregate):
+    net = model(aggregate=aggregate)
     adj = random_graph(2, 6, 0.5, seed=1)
+    net.fit_statistics(None, 0.1, adj)
     x0 = torch.randn(2, 6, 3)
     perm = torch.tensor([3, 0, 5, 1, 4, 2])
     out = net.rollout(x0, TS, adj, rtol=1e-9, atol=1e-9, return_messages=True)
@@ -84,29 +79,15 @@ def test_full_graph_mode_couples_every_node():
     assert bool(((a - b).abs().amax(dim=(0, 1, 3)) > 1e-9).all())
 
 
-def test_dense_and_scatter_aggregation_agree_and_isolated_nodes_get_zero():
-    adj = random_graph(3, 7, 0.4, seed=2)
-    adj[1, 4, :] = 0.0  # node 4 of graph 1 hears nobody
-    m = torch.randn(3, 7, 5)
-    dense = dense_mean(mean_matrix(adj), m)
-    edges = EdgeIndex.from_adjacency(adj)
-    scatter = scatter_mean(edges, m)
-    torch.testing.assert_close(dense, scatter)
-    assert torch.equal(dense[1, 4], torch.zeros(5))
-    # Against a loop over nodes written from the definition.
-    for b in range(3):
-        for i in range(7):
-            nbrs = adj[b, i].nonzero().flatten()
-            want = m[b, nbrs].mean(0) if len(nbrs) else torch.zeros(5)
-            torch.testing.assert_close(dense[b, i], want)
-            torch.testing.assert_close(scatter_sum(edges, m)[b, i], m[b, nbrs].sum(0))
-
-
-def test_dense_and_scatter_models_give_the_same_rollout():
+@pytest.mark.parametrize("aggregate", ["mean", "sum", "pna"])
+def test_dense_and_scatter_models_give_the_same_rollout(aggregate):
     adj = random_graph(2, 6, 0.5, seed=3)
     x0 = torch.randn(2, 6, 3)
-    a = model(aggregation="dense").rollout(x0, TS, adj, fixed_dt=0.1).states
-    b = model(aggregation="scatter").rollout(x0, TS, adj, fixed_dt=0.1).states
+    nets = [model(aggregate=aggregate, backend=backend) for backend in ("dense", "scatter")]
+    for net in nets:
+        net.fit_statistics(x0, 0.1, adj)
+    a = nets[0].rollout(x0, TS, adj, fixed_dt=0.1).states
+    b = nets[1].rollout(x0, TS, adj, fixed_dt=0.1).states
     torch.testing.assert_close(a, b)
 
 

@@ -16,6 +16,7 @@ from mpnode_cli.solver import Status
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import (
     FORMAT,
+    FORMAT_VERSION,
     CheckpointFormatError,
     file_sha256,
     load_checkpoint,
@@ -98,7 +99,7 @@ def test_checkpoint_round_trip(gene, tmp_path):
     train(config(gene, tmp_path / "run", epochs=1))
     path = checkpoint_path(tmp_path / "run", "best")
     raw = torch.load(path, weights_only=True)  # only tensors and plain data inside
-    assert raw["format"] == FORMAT and raw["format_version"] == 1
+    assert raw["format"] == FORMAT and raw["format_version"] == FORMAT_VERSION
     assert set(raw) >= {"model_kind", "model_config", "state_dict", "normalizer",
                         "train_config", "dataset", "epoch", "optimizer", "rng", "loop"}
     ckpt = load_checkpoint(path)

@@ -54,7 +54,10 @@ def train_command(
     graph: str | None = typer.Option(None, help="sys (dataset's graph, default) or full."),
     messages: bool | None = typer.Option(
         None, "--messages/--no-messages", help="--no-messages: the no-communication ablation."),
-    aggregation: str | None = typer.Option(None, help="auto (default), dense or scatter."),
+    aggregate: str | None = typer.Option(
+        None, help="Neighbour aggregation: mean (the paper), sum or pna."),
+    backend: str | None = typer.Option(
+        None, help="How aggregation is computed: auto (default), dense or scatter."),
     latent: int | None = typer.Option(None, help="l2s: latent size (default 128)."),
     steps: int | None = typer.Option(None, help="l2s: message-passing steps (default 10)."),
     history: int | None = typer.Option(

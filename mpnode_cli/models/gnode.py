@@ -8,8 +8,9 @@ mpnode-jl-notes §5.1 / systems-notes §6b: a graph network used as a neural-ODE
 
 integrated with our Tsit5 over the whole horizon and trained on full rollouts (MSE). Unlike
 MP-NODE there are no persistent message states: messages are recomputed from the current
-states at every evaluation. Sum aggregation (an isolated node receives zero; the authors'
-learnable empty-bag default starts at zero and is dropped here).
+states at every evaluation. Sum aggregation by default, as the authors' (an isolated node
+receives zero; their learnable empty-bag default starts at zero and is dropped here);
+`aggregate="mean"` or `"pna"` swap in the other choices of `mpnode_cli.models.aggregate`.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import EdgeIndex, scatter_sum
+from mpnode_cli.models.aggregate import AGGREGATES, aggregator, channels, mean_log_degree
 from mpnode_cli.models.base import Rollout, zoh_controls
 from mpnode_cli.solver import solve
 
@@ -31,41 +32,54 @@ class GNODE(nn.Module):
         node_dim: D. control_dim: U. hidden: latent width (32 as shipped).
         depth: message-passing steps per evaluation (1 as shipped; weights shared).
         graph: "sys" (the dataset's graph) or "full" (complete with self-loops, as shipped).
+        aggregate: "sum" (as shipped), "mean" or "pna".
     """
 
     kind: ClassVar[str] = "gnode"
     transferable: ClassVar[bool] = True
 
     def __init__(self, node_dim: int, control_dim: int = 0, hidden: int = 32, depth: int = 1,
-                 graph: str = "sys"):
+                 graph: str = "sys", aggregate: str = "sum"):
         super().__init__()
         if graph not in ("sys", "full"):
             raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
+        if aggregate not in AGGREGATES:
+            raise ValueError(f"unknown aggregation '{aggregate}' (mean, sum, pna)")
         self.config = {"node_dim": node_dim, "control_dim": control_dim, "hidden": hidden,
-                       "depth": depth, "graph": graph}
+                       "depth": depth, "graph": graph, "aggregate": aggregate}
         self.node_dim, self.control_dim, self.depth, self.graph = (
             node_dim, control_dim, depth, graph)
+        self.aggregate = aggregate
         self.lift = nn.Linear(node_dim + control_dim, hidden)
         self.message = nn.Linear(hidden, hidden)
-        self.update = nn.Linear(hidden, hidden)
+        self.update = nn.Linear(channels(aggregate, hidden), hidden)
         self.decode = nn.Linear(hidden, node_dim)
         for layer in (self.lift, self.message, self.update, self.decode):
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
+        # PNA's δ (see `MPNODE.degree_delta`).
+        self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
+
+    def _graph(self, adjacency: torch.Tensor) -> torch.Tensor:
+        return torch.ones_like(adjacency) if self.graph == "full" else adjacency
+
+    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
+        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]`."""
+        if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
+            self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
 
     def vector_field(self, adjacency: torch.Tensor, u=None):
         """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`."""
-        if self.graph == "full":
-            adjacency = torch.ones_like(adjacency)
-        edges = EdgeIndex.from_adjacency(adjacency)
+        delta = float(self.degree_delta) if self.aggregate == "pna" else None
+        aggregate = aggregator(self._graph(adjacency), self.aggregate, "auto", delta)
 
         def f(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
             inputs = torch.cat([x, u(t).to(x.dtype)], dim=-1) if u is not None else x
             h0 = torch.tanh(self.lift(inputs))  # (B, N, H)
             h = h0
             for _ in range(self.depth):
-                summed = scatter_sum(edges, torch.tanh(self.message(h)))
-                h = torch.tanh(self.update(summed)) + h
+                pooled = aggregate(torch.tanh(self.message(h)))  # (B, N, H')
+                h = torch.tanh(self.update(pooled)) + h
             return self.decode(h + h0)
 
         return f

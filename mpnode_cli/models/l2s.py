@@ -100,7 +100,8 @@ class L2S(nn.Module):
         return self.decoder(h)
 
     @torch.no_grad()
-    def fit_statistics(self, states: torch.Tensor, dt: float) -> None:
+    def fit_statistics(self, states: torch.Tensor, dt: float,
+                       adjacency: torch.Tensor | None = None) -> None:
         """Fit the Δ normalization on normalized training states `[K, T, N, D]`."""
         diff = (states[:, 1:] - states[:, :-1]).reshape(-1, self.node_dim).double()
         std = diff.std(dim=0, correction=0)

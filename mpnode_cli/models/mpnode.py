@@ -2,13 +2,18 @@
 
 Gupta, Vemprala & Kapoor (2022), §3.2, eqs. (3)–(5). Node i carries the ODE state
 `[x_i (D); m_i (M)]`; messages start at zero. One MLP shared by all nodes maps
-`[x_i, u_i, m̄_i] → [ẋ_i, ṁ_i]`, where m̄_i is the mean of the *current* messages of i's
+`[x_i, u_i, m̄_i] → [ẋ_i, ṁ_i]`, where m̄_i aggregates the *current* messages of i's
 in-neighbours (zero for an isolated node), re-evaluated at every solver stage, so messages
 pass continuously in time. Only states are supervised; messages run free.
 
-Settled where the paper is vague (mpnode-jl-notes §1): input order `[x, u, m̄]` and the
-authors' widths (hidden 32, two tanh layers, M = 3); the whole horizon is integrated from
-x(t₀) in one adaptive solve (rtol = atol = 1e-4), with dense output at the sample times.
+The paper aggregates with the mean (§3.2); `aggregate="sum"` or `"pna"` (see
+`mpnode_cli.models.aggregate`) let a node sense its in-degree, which systems whose coupling
+is a sum over neighbours need (`docs/training-recipe.md`).
+
+Settled where the paper is vague (MPNODE.jl, exps/models.jl:92-95 and src/empde.jl): input
+order `[x, u, m̄]` and the authors' widths (hidden 32, two tanh layers, M = 3); the whole
+horizon is integrated from x(t₀) in one adaptive solve (rtol = atol = 1e-4), with dense
+output at the sample times.
 Departures: `graph="sys"` (default) passes messages over the dataset's own graph, the
 paper's idea; `graph="full"` reproduces what the authors' config actually ran (complete
 graph with self-loops, so every node sees the global mean). Each trajectory has its own
@@ -22,12 +27,17 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import EdgeIndex, dense_mean, mean_matrix, scatter_mean
+from mpnode_cli.models.aggregate import (
+    AGGREGATES,
+    BACKENDS,
+    aggregator,
+    channels,
+    mean_log_degree,
+)
 from mpnode_cli.models.base import Rollout, mlp, zoh_controls
 from mpnode_cli.solver import solve
 
 GRAPH_MODES = ("sys", "full")
-DENSE_MAX_NODES = 64  # above this, aggregate over an edge list (memory O(E), not O(B·N²))
 
 
 class MPNODE(nn.Module):
@@ -40,7 +50,8 @@ class MPNODE(nn.Module):
         hidden, layers, activation: the shared MLP.
         graph: "sys" (the dataset's graph) or "full" (complete graph with self-loops).
         messages: False clamps incoming messages to zero (the paper's §4.1 ablation).
-        aggregation: "auto", "dense" or "scatter".
+        aggregate: "mean" (the paper), "sum" or "pna".
+        backend: how the aggregation is computed: "auto", "dense" or "scatter".
     """
 
     kind: ClassVar[str] = "mpnode"
@@ -48,39 +59,46 @@ class MPNODE(nn.Module):
 
     def __init__(self, node_dim: int, control_dim: int = 0, message_dim: int = 3,
                  hidden: int = 32, layers: int = 2, activation: str = "tanh",
-                 graph: str = "sys", messages: bool = True, aggregation: str = "auto"):
+                 graph: str = "sys", messages: bool = True, aggregate: str = "mean",
+                 backend: str = "auto"):
         super().__init__()
         if graph not in GRAPH_MODES:
             raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
-        if aggregation not in ("auto", "dense", "scatter"):
-            raise ValueError(f"unknown aggregation '{aggregation}' (auto, dense, scatter)")
+        if aggregate not in AGGREGATES:
+            raise ValueError(f"unknown aggregation '{aggregate}' (mean, sum, pna)")
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown backend '{backend}' (auto, dense, scatter)")
         if node_dim < 1 or control_dim < 0 or message_dim < 0:
             raise ValueError("node_dim must be ≥ 1, control_dim and message_dim ≥ 0")
         self.config = {"node_dim": node_dim, "control_dim": control_dim,
                        "message_dim": message_dim, "hidden": hidden, "layers": layers,
                        "activation": activation, "graph": graph, "messages": messages,
-                       "aggregation": aggregation}
+                       "aggregate": aggregate, "backend": backend}
         self.node_dim, self.control_dim, self.message_dim = node_dim, control_dim, message_dim
-        self.graph, self.messages, self.aggregation = graph, messages, aggregation
-        self.net = mlp(node_dim + control_dim + message_dim, hidden, layers,
-                       node_dim + message_dim, activation)
+        self.graph, self.messages = graph, messages
+        self.aggregate, self.backend = aggregate, backend
+        self.net = mlp(node_dim + control_dim + channels(aggregate, message_dim), hidden,
+                       layers, node_dim + message_dim, activation)
+        # PNA's δ, the training graphs' mean log(in-degree + 1): fitted once by
+        # `fit_statistics`, saved with the weights, used unchanged on any other graph.
+        self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
+
+    def _graph(self, adjacency: torch.Tensor) -> torch.Tensor:
+        return torch.ones_like(adjacency) if self.graph == "full" else adjacency
+
+    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
+        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` (states, dt unused)."""
+        if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
+            self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
 
     def aggregator(self, adjacency: torch.Tensor):
-        """Mean over in-neighbours for this model's graph mode: `m [B, N, M] → [B, N, M]`.
+        """This model's aggregation over in-neighbours: `m [B, N, M] → [B, N, M']`.
 
         Args:
             adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff j sends to i.
         """
-        if self.graph == "full":
-            adjacency = torch.ones_like(adjacency)
-        nodes = adjacency.shape[1]
-        dense = self.aggregation == "dense" or (
-            self.aggregation == "auto" and nodes <= DENSE_MAX_NODES)
-        if dense:
-            mean_mat = mean_matrix(adjacency)
-            return lambda m: dense_mean(mean_mat, m)
-        edges = EdgeIndex.from_adjacency(adjacency)
-        return lambda m: scatter_mean(edges, m)
+        delta = float(self.degree_delta) if self.aggregate == "pna" else None
+        return aggregator(self._graph(adjacency), self.aggregate, self.backend, delta)
 
     def vector_field(self, adjacency: torch.Tensor, u=None):
         """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]` for `solve`.
@@ -94,7 +112,7 @@ class MPNODE(nn.Module):
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
-            m_bar = aggregate(m) if self.messages else torch.zeros_like(m)
+            m_bar = aggregate(m if self.messages else torch.zeros_like(m))
             parts = [x, u(t).to(z.dtype)] if u is not None else [x]
             return self.net(torch.cat([*parts, m_bar], dim=-1))
 

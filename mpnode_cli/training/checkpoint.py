@@ -1,4 +1,4 @@
-"""Checkpoint files, format "mpnode-checkpoint" version 1: everything to rebuild a model.
+"""Checkpoint files, format "mpnode-checkpoint" version 2: everything to rebuild a model.
 
 A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
 dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
@@ -22,6 +22,11 @@ Fields of the dict:
     parent_sha256: sha256 of the checkpoint a finetune started from, else None.
     metrics: the best epoch's validation metrics (and test metrics once known).
 
+Version 2 renamed MP-NODE's `aggregation` option (dense/scatter, how the mean is computed)
+to `backend`, added the `aggregate` choice (mean/sum/pna) and the PNA degree statistic
+`degree_delta` to MP-NODE's and GNN-ODE's weights; version 1 files are upgraded on reading
+(they aggregated with the mean, or GNN-ODE's sum, which the upgrade keeps).
+
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
 leaves the previous checkpoint intact.
 """
@@ -40,7 +45,7 @@ import torch
 from mpnode_cli import __version__
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class CheckpointFormatError(ValueError):
@@ -134,6 +139,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         raise CheckpointFormatError(
             f"{path} is checkpoint format v{version}, newer than this mpnode reads "
             f"(v{FORMAT_VERSION}); upgrade mpnode")
+    if version < 2:
+        _upgrade_v1(payload)
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],
@@ -146,6 +153,16 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         )  # fmt: skip
     except KeyError as exc:
         raise CheckpointFormatError(f"{path} lacks the checkpoint field {exc}") from None
+
+
+def _upgrade_v1(payload: dict[str, Any]) -> None:
+    """Version 1 → 2 in place: the renamed MP-NODE option and the new PNA buffer."""
+    kind, config = payload.get("model_kind"), payload.get("model_config")
+    if isinstance(config, dict) and kind == "mpnode" and "aggregation" in config:
+        config["backend"] = config.pop("aggregation")
+    state = payload.get("state_dict")
+    if kind in ("mpnode", "gnode") and isinstance(state, dict):
+        state.setdefault("degree_delta", torch.zeros((), dtype=torch.float64))
 
 
 def file_sha256(path: str | Path) -> str:

@@ -131,9 +131,9 @@ def train(config: TrainConfig, *, resume: bool = False,
     if source is not None:
         model.load_state_dict(source.state_dict)
     if hasattr(model, "fit_statistics") and (source is None or (parent and config.renormalize)):
-        # L2S's one-step differences are normalized with statistics of this train split.
+        # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
         model.fit_statistics(normalizer.norm_x(train_set.states),
-                             float(train_set.time[1] - train_set.time[0]))
+                             float(train_set.time[1] - train_set.time[0]), train_set.adjacency)
     model.to(device)
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
