@@ -135,7 +135,7 @@ def aggregator(adjacency: torch.Tensor, how: str = "mean", backend: str = "auto"
         base = lambda m: torch.bmm(a.to(m.dtype), m)  # noqa: E731
     else:
         edges = EdgeIndex.from_adjacency(adjacency)
-        base = (lambda m: scatter_sum(edges, m)) if how == "sum" else (  # noqa: E731
+        base = (lambda m: scatter_sum(edges, m)) if how == "sum" else (
             lambda m: scatter_mean(edges, m))
     if how != "pna":
         return base
