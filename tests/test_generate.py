@@ -108,7 +108,8 @@ def test_rejected_and_failed_trajectories_are_redrawn(tmp_path):
     summary = generate(config)
     ds = read_dataset(summary.path)
     assert summary.failed + summary.rejected > 0
-    assert ds.extra_attrs == {"n_rejected": summary.rejected, "n_failed": summary.failed}
+    assert ds.extra_attrs["n_rejected"] == summary.rejected
+    assert ds.extra_attrs["n_failed"] == summary.failed
     assert (ds.solver_status == 0).all() and np.isfinite(ds.states).all()
     assert not get_system("pendulum").reject(ds.states).any()
 

@@ -122,13 +122,13 @@ def test_checkpoint_round_trip(gene, tmp_path):
 
 
 def flaky_loss(fail_calls):
-    """The Huber loss, but NaN on the given (1-based) calls from training."""
+    """The MSE loss, but NaN on the given (1-based) calls from training."""
     calls = {"n": 0}
-    huber = loop.LOSSES["huber"]
+    mse = loop.LOSSES["mse"]
 
     def loss(pred, target):
         calls["n"] += 1
-        value = huber(pred, target)
+        value = mse(pred, target)
         return value * math.nan if calls["n"] in fail_calls else value
 
     return loss
@@ -136,7 +136,7 @@ def flaky_loss(fail_calls):
 
 def test_bad_step_is_skipped_and_runs_of_them_roll_back(gene, tmp_path, monkeypatch):
     # 34 train trajectories in batches of 16: 3 steps per epoch.
-    monkeypatch.setitem(loop.LOSSES, "huber", flaky_loss({2, 4, 5}))
+    monkeypatch.setitem(loop.LOSSES, "mse", flaky_loss({2, 4, 5}))
     summary = train(config(gene, tmp_path / "run", epochs=2, max_bad_steps=2))
     metrics = read_metrics(tmp_path / "run")
     assert [r["skipped"] for r in metrics[1:]] == [1, 2]
@@ -164,7 +164,7 @@ def test_solver_failure_in_a_batch_skips_it(gene, tmp_path, monkeypatch):
 
 
 def test_persistent_bad_steps_stop_with_a_reason(gene, tmp_path, monkeypatch):
-    monkeypatch.setitem(loop.LOSSES, "huber", flaky_loss(set(range(1, 100))))
+    monkeypatch.setitem(loop.LOSSES, "mse", flaky_loss(set(range(1, 100))))
     with pytest.raises(TrainingDiverged, match="non-finite loss"):
         train(config(gene, tmp_path / "run", epochs=3, max_bad_steps=1, min_lr=4e-3))
 

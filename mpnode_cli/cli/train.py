@@ -17,12 +17,23 @@ from mpnode_cli.cli.common import console, error_message, fail
 
 # Options shared by both commands, declared once (typer reads them as plain defaults).
 _CONFIG = typer.Option(None, "--config", help="TOML (or JSON) file of train config fields.")
-_LOSS = typer.Option(None, help="huber (default; δ=1, summed along time) or mse.")
+_RECIPE = typer.Option(
+    None, help="Where options left out come from: mpnode (default; measured, plus the "
+    "dataset's system recommendation) or paper (the paper's exact choices).")
+_LOSS = typer.Option(None, help="mse (recipe default) or huber (δ=1, summed along time).")
 _LR = typer.Option(None, help="Adam learning rate (default 1e-3).")
-_MIN_LR = typer.Option(None, help="Floor of the plateau halving (default 1e-6).")
-_BATCH = typer.Option(None, help="Trajectories per step (default 128).")
+_MIN_LR = typer.Option(None, help="Lowest lr any schedule reaches (default 1e-6).")
+_SCHEDULE = typer.Option(
+    None, help="lr schedule: plateau (default; halve after --patience epochs without "
+    "gain), cosine (to --min-lr over --epochs) or constant.")
+_BATCH = typer.Option(None, help="Trajectories per step (default 32; paper recipe 128).")
+_EVEN = typer.Option(
+    None, "--even-batches/--tail-batch",
+    help="Equal-size batches each epoch (default), or full ones and a partial last one.")
+_VAL_BATCH = typer.Option(None, help="Trajectories per validation rollout (default 1024).")
 _CLIP = typer.Option(None, help="Global gradient-norm clip (default 500).")
-_PATIENCE = typer.Option(None, help="Epochs without validation gain before lr halves (500).")
+_PATIENCE = typer.Option(
+    None, help="Plateau schedule: epochs without validation gain before the lr halves (50).")
 _NOISE = typer.Option(None, help="Gaussian noise std on normalized train data (1e-4).")
 _EPOCHS = typer.Option(None, help="Epochs to train (default 4000; on --resume, the total).")
 _SEED = typer.Option(None, help="Seed of initialization, shuffling and noise (default 0).")
@@ -33,7 +44,8 @@ _ATOL = typer.Option(None, help="Solver absolute tolerance (default 1e-4).")
 _FIXED_DT = typer.Option(None, help="Fixed-step Tsit5 with this step instead of adaptive.")
 _CURRICULUM = typer.Option(
     None, "--horizon-curriculum/--no-horizon-curriculum",
-    help="Train on growing prefixes of the trajectories.")
+    help="Train on growing prefixes of the trajectories (default: on for more than 60 "
+    "samples per trajectory).")
 _CURR_START = typer.Option(None, help="Curriculum: samples in the first epoch (default 5).")
 _CURR_EPOCHS = typer.Option(None, help="Curriculum: epochs to reach the full horizon (100).")
 _BAD_STEPS = typer.Option(None, help="Bad batches in a row before a rollback (default 5).")
@@ -65,8 +77,11 @@ def train_command(
     depth: int | None = typer.Option(None, help="gnode: message-passing steps (default 1)."),
     step_noise: float | None = typer.Option(
         None, help="l2s: random-walk noise on one-step inputs (default 3e-3)."),
-    config_file: Path | None = _CONFIG, loss: str | None = _LOSS, lr: float | None = _LR,
-    min_lr: float | None = _MIN_LR, batch_size: int | None = _BATCH,
+    config_file: Path | None = _CONFIG, recipe: str | None = _RECIPE,
+    loss: str | None = _LOSS, lr: float | None = _LR,
+    min_lr: float | None = _MIN_LR, schedule: str | None = _SCHEDULE,
+    batch_size: int | None = _BATCH, even_batches: bool | None = _EVEN,
+    val_batch_size: int | None = _VAL_BATCH,
     clip: float | None = _CLIP, patience: int | None = _PATIENCE,
     noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
     device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
@@ -95,8 +110,11 @@ def finetune_command(
     dataset: Path = typer.Argument(..., help="The dataset to finetune on (.h5)."),
     renormalize: bool = typer.Option(
         False, "--renormalize", help="Fit the normalization on the new data."),
-    config_file: Path | None = _CONFIG, loss: str | None = _LOSS, lr: float | None = _LR,
-    min_lr: float | None = _MIN_LR, batch_size: int | None = _BATCH,
+    config_file: Path | None = _CONFIG, recipe: str | None = _RECIPE,
+    loss: str | None = _LOSS, lr: float | None = _LR,
+    min_lr: float | None = _MIN_LR, schedule: str | None = _SCHEDULE,
+    batch_size: int | None = _BATCH, even_batches: bool | None = _EVEN,
+    val_batch_size: int | None = _VAL_BATCH,
     clip: float | None = _CLIP, patience: int | None = _PATIENCE,
     noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
     device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,

@@ -10,6 +10,7 @@ mean and std per node feature, pooled over nodes, time and trajectories — but 
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -65,6 +66,17 @@ class Normalizer:
         return (u - self.u_mean.to(u)) / self.u_std.to(u)
 
 
+def _recipe(raw: Any) -> dict[str, Any] | None:
+    """A dataset's recommended training recipe (optional JSON attribute), or None."""
+    if raw is None:
+        return None
+    try:
+        recipe = json.loads(raw)
+    except (TypeError, ValueError):
+        return None
+    return recipe if isinstance(recipe, dict) else None
+
+
 def _moments(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     flat = v.reshape(-1, v.shape[-1]).double()  # (K·T·N, F)
     mean, std = flat.mean(dim=0), flat.std(dim=0, correction=0)
@@ -118,7 +130,8 @@ class TrajectoryData:
             system=ds.system, state_names=tuple(ds.state_names),
             control_names=tuple(ds.control_names), path=Path(path),
             fingerprint=digest.hexdigest(),
-            attrs={"topology": topology, "config": ds.config, "dt": ds.dt})
+            attrs={"topology": topology, "config": ds.config, "dt": ds.dt,
+                   "recipe": _recipe(ds.extra_attrs.get("recipe"))})
 
     def __len__(self) -> int:
         return self.states.shape[0]

@@ -20,6 +20,7 @@ an optional callback.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
@@ -245,7 +246,8 @@ def generate(
         scalar_params=system.scalar_params(),
         solver_status=status,
         solver_n_f_evals=n_f_evals.astype(np.int32),
-        extra_attrs={"n_rejected": rejected, "n_failed": failed},
+        extra_attrs={"n_rejected": rejected, "n_failed": failed,
+                     "recipe": json.dumps(system.recipe(), sort_keys=True)},
     )
     write_dataset(out, dataset, overwrite=overwrite)
     counts = np.bincount(split, minlength=3)

@@ -77,6 +77,16 @@ class System(ABC):
     default_nodes: ClassVar[int]
     defaults: ClassVar[dict[str, float]]
     options: ClassVar[tuple[str, ...]] = ()
+    # How to learn this system (written into each dataset as its `recipe` attribute; see
+    # `mpnode_cli.training.recipe` and docs/training-recipe.md): the paper's training loss
+    # for it, and train-config fields mpnode's own recipe sets for it.
+    paper_loss: ClassVar[str] = "mse"
+    recommended: ClassVar[dict[str, object]] = {}
+
+    @classmethod
+    def recipe(cls) -> dict[str, dict[str, object]]:
+        """`{"paper": {...}, "mpnode": {...}}`: train-config fields this system recommends."""
+        return {"paper": {"loss": cls.paper_loss}, "mpnode": dict(cls.recommended)}
 
     def __init__(self, **params: float) -> None:
         """Set the scalar parameters, each defaulting to `defaults`.

@@ -40,6 +40,8 @@ class Gene(System):
     default_nodes: ClassVar[int] = 16
     defaults: ClassVar[dict[str, float]] = {"b": 1.0, "f": 1.0, "h": 2.0}
     options: ClassVar[tuple[str, ...]] = ("init",)
+    # Regulation sums over in-neighbours: a node must sense its in-degree.
+    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
 
     def __init__(self, *, init: str = "uniform", **params: float) -> None:
         """Create the system.

@@ -33,6 +33,9 @@ class Kuramoto(System):
     default_topology: ClassVar[str] = "ba"
     default_nodes: ClassVar[int] = 10
     defaults: ClassVar[dict[str, float]] = {"K": 1.0 / 3.0}
+    paper_loss: ClassVar[str] = "huber"  # the paper's App. A.4
+    # The coupling sums over neighbours.
+    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """Mean degree ≈ 5 for each topology."""

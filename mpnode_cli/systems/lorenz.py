@@ -34,6 +34,7 @@ class Lorenz(System):
     default_nodes: ClassVar[int] = 3
     defaults: ClassVar[dict[str, float]] = {"sigma": 10.0, "rho": 28.0, "beta": 8.0 / 3.0}
     options: ClassVar[tuple[str, ...]] = ("coupling",)
+    paper_loss: ClassVar[str] = "huber"  # the paper's App. A.2
 
     def __init__(self, *, coupling: float = 0.01, **params: float) -> None:
         """Create the system.

@@ -50,6 +50,8 @@ class Pendulum(System):
     default_nodes: ClassVar[int] = 2
     defaults: ClassVar[dict[str, float]] = {"m": 1.0, "l": 1.5, "k": 2.0, "g": 9.81}
     options: ClassVar[tuple[str, ...]] = ("ic_range",)
+    # The springs' pull sums over neighbours.
+    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
 
     def __init__(self, *, ic_range: str = "small", **params: float) -> None:
         """Create the system.

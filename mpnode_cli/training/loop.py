@@ -1,11 +1,13 @@
 """Training and finetuning, top to bottom: `train(config) -> TrainSummary`.
 
-The recipe is the authors' (mpnode-jl-notes §2): z-scored data, whole-horizon single
-shooting from x(t₀), Huber summed along time, Adam 1e-3 with global-norm clip 500, batches
-of 128 trajectories, lr halved after `patience` epochs without validation improvement,
-1e-4 Gaussian noise on the normalized training data, the best-validation weights kept.
-Departures: normalization is fitted on the train split only; the validation loss is a mean
-over trajectories (not over batches); a separate test split is reported at the end.
+The loop is the authors' (MPNODE.jl, exps/train_pipeline.jl and src/learn.jl): z-scored
+data, whole-horizon single shooting from x(t₀), Adam with global-norm clipping, 1e-4
+Gaussian noise on the normalized training data, the best-validation weights kept. Its
+choices (loss, batches, lr schedule, curriculum, aggregation) come from a recipe
+(`mpnode_cli.training.recipe`): mpnode's measured one by default, the paper's exact one on
+request. Departures from the authors in every recipe: normalization is fitted on the train
+split only; the validation loss is a mean over trajectories (not over batches); a separate
+test split is reported at the end.
 
 Finetuning is this same function started from another point: `config.init_checkpoint`
 supplies the weights and the architecture (and, unless `renormalize`, the normalization);
@@ -44,6 +46,7 @@ from mpnode_cli.training.evaluate import (
     evaluate_checkpoint,
 )
 from mpnode_cli.training.losses import LOSSES
+from mpnode_cli.training.recipe import resolve_recipe
 
 Progress = Callable[[dict[str, Any]], None]
 
@@ -72,6 +75,7 @@ class LoopState:
     skipped: int = 0
     restores: int = 0
     seconds: float = 0.0
+    lr_scale: float = 1.0
 
 
 def train(config: TrainConfig, *, resume: bool = False,
@@ -86,7 +90,6 @@ def train(config: TrainConfig, *, resume: bool = False,
     """
     emit = progress or (lambda event: None)
     device = _device(config.device)
-    loss_fn = LOSSES[config.loss]
 
     # 1. Data: the train split (optionally its first K trajectories) and the validation split.
     data = TrajectoryData.load(config.dataset)
@@ -109,7 +112,15 @@ def train(config: TrainConfig, *, resume: bool = False,
         check_compatible(kind, model_config, source.dataset["num_nodes"], data,
                          "finetune" if parent else "resume")
     else:
-        kind, model_config = config.model, _model_config(config, data)
+        kind = config.model
+    if kind not in MODELS:
+        raise ValueError(f"unknown model '{kind}' (choose from: {', '.join(MODELS)})")
+    accepted = inspect.signature(MODELS[kind].__init__).parameters
+    config = resolve_recipe(config, data.system, data.attrs.get("recipe"),
+                            data.time.numel(), lambda name: name in accepted)
+    loss_fn = LOSSES[config.loss]
+    if source is None:
+        model_config = _model_config(config, data)
     torch.manual_seed(config.seed)
     model = build_model(kind, model_config)
     # config.json tells the truth: the architecture is what was built.
@@ -163,7 +174,7 @@ def train(config: TrainConfig, *, resume: bool = False,
         )  # fmt: skip
 
     def validate() -> EvalResult:
-        return evaluate(model, val_set, normalizer, batch_size=config.batch_size,
+        return evaluate(model, val_set, normalizer, batch_size=config.val_batch_size,
                         rtol=config.rtol, atol=config.atol, fixed_dt=config.fixed_dt,
                         device=device)
 
@@ -171,6 +182,8 @@ def train(config: TrainConfig, *, resume: bool = False,
     # bad steps rolls back to, and what Ctrl-C leaves behind.
     snapshot = _snapshot(checkpoint())
     batches = math.ceil(len(train_set) / config.batch_size)
+    if config.schedule == "cosine" and last is None:
+        _set_lr(optimizer, _cosine_lr(config, 1))
     emit({"event": "start", "run_dir": str(run_dir), "first_epoch": state.epoch + 1,
           "epochs": config.epochs, "batches": batches, "parameters": _count(model)})
     try:
@@ -206,7 +219,7 @@ def train(config: TrainConfig, *, resume: bool = False,
     test = None
     if bool((data.split == SPLITS["test"]).any()):
         test = evaluate_checkpoint(best, data, split="test", verb="test",
-                                   batch_size=config.batch_size, device=device,
+                                   batch_size=config.val_batch_size, device=device,
                                    plot_dir=run_dir / "plots" if config.plots else None)
     summary = runs.TrainSummary(
         run_dir=str(run_dir), model=kind, model_config=model_config, parameters=_count(model),
@@ -233,7 +246,10 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
     ts = train_set.time[:horizon].to(device)
     order = torch.randperm(len(train_set), generator=shuffle)
     loss_sum, count, grad_norms, n_f_evals, skipped = 0.0, 0, [], 0, []
-    batches = order.split(config.batch_size)
+    if config.even_batches:  # ⌈K/B⌉ batches whose sizes differ by at most one
+        batches = order.tensor_split(math.ceil(len(order) / config.batch_size))
+    else:  # full batches and a partial last one, as the authors' DataLoader
+        batches = order.split(config.batch_size)
     for b, idx in enumerate(batches, start=1):
         batch = train_set.take(idx)
         x = normalizer.norm_x(batch.states[:, :horizon])  # (B, H, N, D)
@@ -266,6 +282,7 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
             optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
             _set_lr(optimizer, lr)
             state.bad_run, state.restores = 0, state.restores + 1
+            state.lr_scale /= 2
             emit({"event": "restore", "epoch": epoch, "lr": lr})
     return {"train_loss": loss_sum / count if count else math.nan, "horizon": horizon,
             "grad_norm": sum(grad_norms) / len(grad_norms) if grad_norms else math.nan,
@@ -309,9 +326,13 @@ def _record(state: LoopState, epoch: int, val: EvalResult, config: TrainConfig,
         state.best_val, state.best_epoch, state.since_best = val_loss, epoch, 0
     elif epoch > 0:
         state.since_best += 1
-        if state.since_best >= config.patience and lr / 2 >= config.min_lr:
+        if (config.schedule == "plateau" and state.since_best >= config.patience
+                and lr / 2 >= config.min_lr):
             _set_lr(optimizer, lr / 2)  # the next epoch runs at the halved rate
             state.since_best = 0
+    if config.schedule == "cosine" and epoch > 0:
+        # The next epoch's rate; rollbacks after bad steps halve the whole curve.
+        _set_lr(optimizer, _cosine_lr(config, epoch + 1) * state.lr_scale)
     state.seconds += seconds
     steps = steps or {"train_loss": None, "horizon": None, "grad_norm": None,
                       "rhs_evals": 0, "skipped": 0, "skip_reasons": [], "train_seconds": 0.0}
@@ -347,6 +368,12 @@ def _horizon(config: TrainConfig, epoch: int, t: int) -> int:
 def _snapshot(ckpt: Checkpoint) -> Checkpoint:
     """A deep copy: the optimizer and model update their tensors in place."""
     return copy.deepcopy(ckpt)
+
+
+def _cosine_lr(config: TrainConfig, epoch: int) -> float:
+    """Cosine decay from `lr` (epoch 1) to `min_lr` (after the last epoch)."""
+    frac = min(1.0, (epoch - 1) / max(config.epochs, 1))
+    return config.min_lr + 0.5 * (config.lr - config.min_lr) * (1 + math.cos(math.pi * frac))
 
 
 def _set_lr(optimizer, lr: float) -> None:

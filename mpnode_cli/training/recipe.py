@@ -1,0 +1,99 @@
+"""Training recipes: the defaults a run starts from, beneath a config file and options.
+
+A run's config is resolved in this order (later wins):
+1. `TrainConfig`'s own field defaults;
+2. the recipe named by `config.recipe`:
+   - `mpnode` (the default): the choices measured in `bench/results/quality.md` and
+     explained in `docs/training-recipe.md`, plus what the dataset's system recommends (a
+     dataset carries it as its `recipe` attribute; files without one fall back to the
+     system's declaration by name, then to nothing);
+   - `paper`: the paper's and its authors' exact choices (MPNODE.jl,
+     configs/empode_sys_32_3.toml and src/learn.jl:117-129): the paper's loss for the system,
+     batches of 128 with the last partial batch kept, constant lr 1e-3 halved after 500
+     epochs without improvement, mean aggregation, no curriculum, 4000 epochs;
+3. a `--config` file; 4. command-line options.
+Fields given at steps 3–4 are those in `TrainConfig.model_fields_set`; the resolved config
+(every field explicit) is what a run folder's `config.json` keeps, so a resume never
+re-applies a recipe.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from mpnode_cli.config import TrainConfig
+
+RECIPES = ("mpnode", "paper")
+
+# Trajectories with more samples than this are learned through the horizon curriculum by
+# default: single shooting from x(t₀) over the pendulum's 101 samples learns nothing without
+# it (docs/training-recipe.md).
+CURRICULUM_MIN_SAMPLES = 61
+
+_MPNODE: dict[str, Any] = {
+    "loss": "mse",
+    "batch_size": 32,
+    "even_batches": True,
+    "schedule": "plateau",
+    "patience": 50,
+    "val_batch_size": 1024,
+}
+
+_PAPER: dict[str, Any] = {
+    "loss": "huber",  # replaced by the system's paper loss where it has one
+    "batch_size": 128,
+    "even_batches": False,
+    "schedule": "plateau",
+    "patience": 500,
+    "val_batch_size": None,  # the training batch size, as the authors' loader
+    "horizon_curriculum": False,
+    "epochs": 4000,
+    "model_options": {"aggregate": "mean"},
+}
+
+
+def system_recipe(system: str, stored: dict[str, Any] | None) -> dict[str, dict[str, Any]]:
+    """What a dataset's system recommends: its stored attribute, else its declaration."""
+    if stored:
+        return stored
+    from mpnode_cli.systems.registry import SYSTEMS
+
+    return SYSTEMS[system].recipe() if system in SYSTEMS else {}
+
+
+def recipe_values(name: str, system: dict[str, dict[str, Any]], samples: int) -> dict[str, Any]:
+    """The train-config fields recipe `name` sets for data of `samples` samples per
+    trajectory whose system recommends `system` (`{"paper": ..., "mpnode": ...}`)."""
+    if name not in RECIPES:
+        raise ValueError(f"unknown recipe '{name}' (choose from: {', '.join(RECIPES)})")
+    if name == "paper":
+        values = {**_PAPER, **system.get("paper", {})}
+    else:
+        values = {**_MPNODE, "horizon_curriculum": samples >= CURRICULUM_MIN_SAMPLES,
+                  **system.get("mpnode", {})}
+    values["model_options"] = dict(values.get("model_options", {}))
+    return values
+
+
+def resolve_recipe(config: TrainConfig, system: str, stored: dict[str, Any] | None,
+                   samples: int, accepts: Callable[[str], bool]) -> TrainConfig:
+    """`config` with every field it was not given taken from its recipe.
+
+    Args:
+        config: as built from a config file and options.
+        system, stored: the training dataset's system name and `recipe` attribute.
+        samples: T, samples per trajectory.
+        accepts: whether the model being trained declares a model option of this name
+            (a recipe's model options apply only to models that have them).
+    """
+    values = recipe_values(config.recipe, system_recipe(system, stored), samples)
+    model_options = values.pop("model_options")
+    given = config.model_fields_set
+    update = {k: v for k, v in values.items() if k not in given}
+    if "val_batch_size" in update and update["val_batch_size"] is None:
+        update["val_batch_size"] = config.batch_size if "batch_size" in given else values[
+            "batch_size"]
+    update |= {k: v for k, v in model_options.items()
+               if accepts(k) and k not in given and getattr(config, k, None) is None}
+    return config.model_copy(update=update)
