@@ -1,10 +1,19 @@
-"""The thread policy: `--threads` beats `MPNODE_THREADS` beats one."""
+"""The thread policy: `--threads` beats `MPNODE_THREADS` beats one; the CLI applies it."""
 
 from __future__ import annotations
 
-import pytest
+import subprocess
+import sys
 
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from mpnode_cli.cli.app import app
 from mpnode_cli.threads import ENV_VAR, ThreadChoice, choose_threads
+
+runner = CliRunner()
+TINY = ["lorenz", "--nodes", "2", "--trajectories", "2", "--t-end", "0.1", "--dt", "0.05"]
 
 
 def test_flag_beats_variable_beats_default():
@@ -29,3 +38,49 @@ def test_describe_says_how_to_change_the_default():
         "1 (default: one per process; --threads or MPNODE_THREADS to change)")
     assert ThreadChoice(2, ENV_VAR).describe() == "2 (from MPNODE_THREADS)"
 
+
+@pytest.fixture
+def restore_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(("args", "env", "expected"), [
+    (["--threads", "2"], {ENV_VAR: "1"}, "2 (from --threads)"),
+    ([], {ENV_VAR: "2"}, "2 (from MPNODE_THREADS)"),
+    ([], {ENV_VAR: None}, "1 (default: one per process"),
+])
+def test_generate_sets_torch_threads(tmp_path, restore_threads, args, env, expected):
+    torch.set_num_threads(3 - int(expected[0]))  # the other count, so a change shows
+    result = runner.invoke(app, [*args, "generate", *TINY, "--out", str(tmp_path / "d.h5")],
+                           env=env)
+    assert result.exit_code == 0, result.output
+    assert torch.get_num_threads() == int(expected[0])
+    assert expected in result.stdout
+
+
+@pytest.mark.parametrize(("args", "env", "named"), [
+    (["--threads", "0"], {}, "--threads"),
+    ([], {ENV_VAR: "all"}, ENV_VAR),
+])
+def test_cli_refuses_a_bad_count_in_one_line(tmp_path, args, env, named):
+    out = tmp_path / "d.h5"
+    result = runner.invoke(app, [*args, "generate", *TINY, "--out", str(out)], env=env)
+    assert result.exit_code == 2, result.output
+    assert result.stderr.strip().splitlines() == [
+        f"Error: {named} must be a whole number ≥ 1, got {env.get(ENV_VAR, '0')!r}"]
+    assert not out.exists()
+
+
+def test_help_of_a_verb_ignores_a_bad_setting():
+    result = runner.invoke(app, ["--threads", "0", "generate", "--help"])
+    assert result.exit_code == 0 and "--preset" in result.output
+
+
+def test_a_verbs_help_still_imports_no_torch():
+    code = ("import sys\nfrom mpnode_cli.cli.app import app\n"
+            "try:\n    app(['--threads', '2', 'train', '--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted({'torch', 'h5py'} & set(sys.modules)))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "[]"
