@@ -41,7 +41,7 @@ def trained(data, tmp_path_factory):
     result = runner.invoke(app, ["train", str(data["l3"]), "--epochs", "3", "--run-dir",
                                  str(run), *FAST])
     assert result.exit_code == 0, result.output
-    assert "best epoch" in result.output
+    assert "best epoch" in result.output and "threads: " in result.stderr
     return run
 
 
@@ -61,6 +61,7 @@ def test_train_writes_a_run_folder(trained):
                                                    "summary.json", "checkpoints"}
     summary = json.loads((trained / "summary.json").read_text())
     assert summary["epochs"] == 3 and summary["num_nodes"] == 3 and summary["test"]
+    assert summary["threads"] >= 1  # the CPU threads torch used, recorded by the CLI
 
 
 def test_evaluate_table_json_and_plots(trained, data, tmp_path):

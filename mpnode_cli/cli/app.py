@@ -2,17 +2,26 @@
 
 `mpnode --help` must stay instant, so nothing at module level here imports torch, h5py or
 matplotlib; each command function imports what it needs when it runs.
+
+Thread count is a property of the process, not of a verb, so it is one root option
+(`mpnode --threads N VERB ...`) beside `MPNODE_THREADS`. Each computing verb decides and
+applies it (a bad value is a one-line usage error) after parsing its options, before it runs.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import typer
+from typer.core import TyperCommand
 
 from mpnode_cli import __version__
+from mpnode_cli.cli.common import fail
 from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
 from mpnode_cli.cli.generate import generate_command
 from mpnode_cli.cli.info import info_command
 from mpnode_cli.cli.train import finetune_command, train_command
+from mpnode_cli.threads import ENV_VAR, apply_threads, choose_threads
 
 app = typer.Typer(
     name="mpnode",
@@ -25,6 +34,7 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
+_THREADS = "mpnode.threads"  # where the root leaves `--threads` for the verb in click's context
 
 
 def _version_callback(value: bool) -> None:
@@ -35,20 +45,40 @@ def _version_callback(value: bool) -> None:
 
 @app.callback()
 def _root(
+    ctx: typer.Context,
     version: bool = typer.Option(
         False, "--version", callback=_version_callback, is_eager=True, help="Show the version."
     ),
+    threads: str | None = typer.Option(
+        None, "--threads", metavar="N", show_default=False,
+        help=f"CPU threads torch may use (default 1; or set {ENV_VAR}).",
+    ),
 ) -> None:
     """mpnode: message-passing neural ODEs for homogeneous networked systems."""
+    ctx.meta[_THREADS] = threads
+
+
+class _Computing(TyperCommand):
+    """A verb that runs torch: its thread pools are sized once its options have parsed (so
+    `VERB --help` imports no torch, whatever the setting) and before its function runs."""
+
+    def invoke(self, ctx: typer.Context) -> Any:
+        try:
+            choice = choose_threads(ctx.meta.get(_THREADS))
+        except ValueError as exc:
+            fail(str(exc))
+        apply_threads(choice)
+        return super().invoke(ctx)
 
 
 # Each verb's module imports only typer at load time; heavy imports live in its function.
-app.command("generate", no_args_is_help=True)(generate_command)
+# compare only reads JSON, so it has no threads to size.
+app.command("generate", no_args_is_help=True, cls=_Computing)(generate_command)
 app.command("info")(info_command)
-app.command("train")(train_command)
-app.command("finetune", no_args_is_help=True)(finetune_command)
-app.command("evaluate", no_args_is_help=True)(evaluate_command)
-app.command("zeroshot", no_args_is_help=True)(zeroshot_command)
+app.command("train", cls=_Computing)(train_command)
+app.command("finetune", no_args_is_help=True, cls=_Computing)(finetune_command)
+app.command("evaluate", no_args_is_help=True, cls=_Computing)(evaluate_command)
+app.command("zeroshot", no_args_is_help=True, cls=_Computing)(zeroshot_command)
 app.command("compare", no_args_is_help=True)(compare_command)
 
 

@@ -15,6 +15,7 @@ import typer
 
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
+from mpnode_cli.threads import applied_threads
 
 # Fields that exclude each other: one given by a later layer drops the other from earlier
 # layers, so `--preset gene-ba-4x4 --nodes 25` means 25 nodes rather than a conflict.
@@ -181,6 +182,8 @@ def _print_summary(config: Any, summary: Any) -> None:
     for row in rows:
         table.add_row(*row)
     Console().print(table)
+    if threads := applied_threads():
+        typer.echo(f"threads: {threads.describe()}")
 
 
 def _parse_params(items: list[str]) -> dict[str, float | str]:

@@ -14,6 +14,7 @@ from typing import Any
 import typer
 
 from mpnode_cli.cli.common import console, error_message, fail
+from mpnode_cli.threads import applied_threads
 
 # Options shared by both commands, declared once (typer reads them as plain defaults).
 _CONFIG = typer.Option(None, "--config", help="TOML (or JSON) file of train config fields.")
@@ -168,6 +169,7 @@ def _run(config: Any, resume: bool) -> None:
 
     from mpnode_cli.report.tables import train_table
     from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
+    from mpnode_cli.training.run import add_to_summary
 
     display_console = console(stderr=True)
     try:
@@ -184,6 +186,8 @@ def _run(config: Any, resume: bool) -> None:
     except KeyboardInterrupt:
         typer.echo("Interrupted before training started: nothing to resume", err=True)
         raise typer.Exit(code=130) from None
+    if threads := applied_threads():  # beside wall_seconds, which it explains
+        add_to_summary(summary.run_dir, {"threads": threads.count})
     console().print(train_table(asdict(summary)))
 
 
@@ -226,6 +230,8 @@ class _Display:
             self.bar.update(self.batches, total=event["batches"], completed=0)
             self.console.print(f"run {event['run_dir']}: {event['parameters']:,} parameters, "
                                f"epochs {event['first_epoch']}–{event['epochs']}")
+            if threads := applied_threads():
+                self.console.print(f"threads: {threads.describe()}")
         elif kind == "batch":
             self.bar.update(self.batches, completed=event["batch"],
                             info=f"loss {event['loss']:.4g}")

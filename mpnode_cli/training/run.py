@@ -3,7 +3,8 @@
     config.json         the resolved `TrainConfig` (rebuilds the run: `TrainConfig(**json)`)
     metrics.jsonl       one JSON object per epoch (epoch 0 = the starting weights, validated)
     summary.json        written at the end: best epoch, minimum validation loss, test metrics,
-                        the paper's Table-2 figure, wall time, parameter count
+                        the paper's Table-2 figure, wall time, parameter count (and, from
+                        the CLI, the CPU threads torch used)
     checkpoints/        best.pt (lowest validation loss) and last.pt (latest epoch)
     plots/              test-split plots of the best checkpoint
 """
@@ -96,6 +97,12 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(json.dumps(_jsonable(data), indent=2) + "\n")
     os.replace(tmp, path)
+
+
+def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:
+    """Add facts that the caller knows and the loop does not to a finished run's summary."""
+    path = Path(run_dir) / SUMMARY
+    write_json(path, {**json.loads(path.read_text()), **fields})
 
 
 def append_metrics(run_dir: Path, row: dict[str, Any]) -> None:
