@@ -34,7 +34,7 @@ def test_paper_recipe_is_the_authors_configuration():
 
 def test_options_beat_the_recipe_and_the_system_recommendation():
     ours = resolved()
-    assert (ours.loss, ours.aggregate, ours.batch_size) == ("mse", "sum", 32)
+    assert (ours.loss, ours.aggregate, ours.batch_size) == ("mse", "pna", 32)
     mine = resolved(loss="huber", aggregate="pna", batch_size=7)
     assert (mine.loss, mine.aggregate, mine.batch_size) == ("huber", "pna", 7)
     assert resolved(recipe="paper", batch_size=64).val_batch_size == 64
@@ -71,7 +71,7 @@ def test_generate_stores_the_system_recipe_and_train_applies_it(gene, tmp_path):
     assert data.attrs["recipe"] == SYSTEMS["gene"].recipe()
     train(TrainConfig(dataset=gene, run_dir=tmp_path / "r", epochs=1, plots=False))
     written = read_config(tmp_path / "r")
-    assert written.aggregate == "sum" and written.loss == "mse"
+    assert written.aggregate == "pna" and written.loss == "mse"
     assert "recipe" in written.model_fields_set  # every field explicit: resume re-applies none
 
 

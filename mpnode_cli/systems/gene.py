@@ -40,8 +40,9 @@ class Gene(System):
     default_nodes: ClassVar[int] = 16
     defaults: ClassVar[dict[str, float]] = {"b": 1.0, "f": 1.0, "h": 2.0}
     options: ClassVar[tuple[str, ...]] = ("init",)
-    # Regulation sums over in-neighbours: a node must sense its in-degree.
-    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
+    # Regulation sums over in-neighbours, so a node must sense its in-degree; PNA does, and
+    # transfers to unseen topologies far better than a plain sum (docs/training-recipe.md).
+    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
 
     def __init__(self, *, init: str = "uniform", **params: float) -> None:
         """Create the system.

@@ -34,8 +34,8 @@ class Kuramoto(System):
     default_nodes: ClassVar[int] = 10
     defaults: ClassVar[dict[str, float]] = {"K": 1.0 / 3.0}
     paper_loss: ClassVar[str] = "huber"  # the paper's App. A.4
-    # The coupling sums over neighbours.
-    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
+    # The coupling sums over neighbours: as for gene, PNA lets a node sense its in-degree.
+    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """Mean degree ≈ 5 for each topology."""
