@@ -132,11 +132,6 @@ class GenerateConfig(BaseModel):
         return round(self.t_end / self.dt)
 
 
-# TrainConfig fields that are keyword arguments of a model's constructor.
-MODEL_OPTIONS = ("hidden", "layers", "activation", "message_dim", "graph", "messages",
-                 "aggregate", "backend", "latent", "steps", "depth", "history")
-
-
 class TrainConfig(BaseModel):
     """What `mpnode train` (and `mpnode finetune`) does: one model, one dataset, one run folder.
 
@@ -146,22 +141,13 @@ class TrainConfig(BaseModel):
     Attributes:
         dataset: the training dataset (an mpnode `.h5` file); its train split is fitted,
             its validation split selects the best epoch, its test split is reported.
-        model: registry name of the model (`mpnode`).
-        hidden, layers, activation: the node MLP (width, hidden layers, nonlinearity).
-        message_dim: M, message states per node.
-        graph: "sys" (the dataset's graph) or "full" (complete graph with self-loops, what
-            the authors' config ran).
-        messages: False clamps incoming messages to zero (the §4.1 ablation).
-        aggregate: "mean" (the paper), "sum" or "pna" aggregation of neighbours.
-        backend: how it is computed: "auto", "dense" or "scatter".
-        latent, steps, history: L2S's latent size, message-passing steps and input states.
-        depth: GNN-ODE message-passing steps per evaluation.
-        step_noise: L2S: std of the random-walk noise on its one-step inputs (normalized
-            units; L2S trains one step ahead, the others on whole rollouts).
-            The model options above left None take the model's own defaults (MP-NODE: the
-            authors' hidden 32, two tanh layers, M = 3; graph "sys"); the resolved config
-            written to a run holds the values used. A model that lacks an option given
-            refuses it.
+        model: registry name of the model (`mpnode`, `l2s`, `gnode`, `node`).
+        model_options: options of that model, by name (a `[model_options]` table in a TOML
+            file); each model declares its own, with their defaults, in
+            `mpnode_cli.models.options`. Options left out take the model's defaults; the
+            training layer validates them against the model
+            (`mpnode_cli.training.loop.resolve_config`), and the resolved config written to
+            a run holds every option of the model that was built.
         recipe: where fields not given come from: "mpnode" (default; measured choices and
             the dataset system's recommendation) or "paper" (the paper's and its authors'
             exact choices). See `mpnode_cli.training.recipe`.
@@ -192,7 +178,7 @@ class TrainConfig(BaseModel):
             failure) before the last good state is restored with a halved lr.
         plots: draw the test-split plots into `run_dir/plots` at the end.
         init_checkpoint: finetune: start from this checkpoint's weights and architecture
-            (the model options above are then ignored), with a fresh optimizer.
+            (`model` and `model_options` are then ignored), with a fresh optimizer.
         trajectories: use only the first K trajectories of the train split.
         renormalize: finetune: fit the normalization on the new train split instead of
             reusing the checkpoint's.
@@ -202,19 +188,7 @@ class TrainConfig(BaseModel):
 
     dataset: Path
     model: str = "mpnode"
-    hidden: int | None = Field(None, ge=1)
-    layers: int | None = Field(None, ge=1)
-    activation: str | None = None
-    message_dim: int | None = Field(None, ge=0)
-    graph: Literal["sys", "full"] | None = None
-    messages: bool | None = None
-    aggregate: Literal["mean", "sum", "pna"] | None = None
-    backend: Literal["auto", "dense", "scatter"] | None = None
-    latent: int | None = Field(None, ge=1)
-    steps: int | None = Field(None, ge=1)
-    depth: int | None = Field(None, ge=1)
-    history: int | None = Field(None, ge=1)
-    step_noise: float = Field(3e-3, ge=0)
+    model_options: dict[str, Any] = Field(default_factory=dict)
     recipe: Literal["mpnode", "paper"] = "mpnode"
     loss: Literal["huber", "mse"] = "mse"
     lr: float = Field(1e-3, gt=0)
@@ -242,10 +216,39 @@ class TrainConfig(BaseModel):
     trajectories: int | None = Field(None, ge=1)
     renormalize: bool = False
 
-    def model_options(self) -> dict[str, Any]:
-        """The model options given (not None): keyword arguments of the model's constructor."""
-        return {name: getattr(self, name) for name in MODEL_OPTIONS
-                if getattr(self, name) is not None}
+
+# TrainConfig fields that held model options before each model declared its own (written
+# into run folders' config.json and checkpoints' train_config by earlier versions);
+# `aggregation` is MP-NODE's `backend` under its first name.
+_FLAT_MODEL_FIELDS = ("hidden", "layers", "activation", "message_dim", "graph", "messages",
+                      "aggregate", "backend", "aggregation", "latent", "steps", "depth",
+                      "history", "step_noise")
+
+
+def upgrade_train_fields(fields: dict[str, Any]) -> dict[str, Any]:
+    """Map a train config written before `model_options` onto today's fields.
+
+    The flat model fields set (not None) move into `model_options`, `aggregation`
+    becoming `backend`; `step_noise`, then a field of every config, is kept for L2S
+    only, the one model that used it. A config that has `model_options` is returned as
+    it is.
+
+    Args:
+        fields: a resolved train config as JSON fields (e.g. a run's `config.json`).
+
+    Returns:
+        New fields that `TrainConfig(**fields)` accepts (if the rest is valid).
+    """
+    if "model_options" in fields or not any(k in fields for k in _FLAT_MODEL_FIELDS):
+        return fields
+    fields = dict(fields)
+    options = {k: fields.pop(k) for k in _FLAT_MODEL_FIELDS if k in fields}
+    if "aggregation" in options:
+        options["backend"] = options.pop("aggregation")
+    if fields.get("model", "mpnode") != "l2s":
+        options.pop("step_noise", None)
+    fields["model_options"] = {k: v for k, v in options.items() if v is not None}
+    return fields
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

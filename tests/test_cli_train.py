@@ -9,11 +9,13 @@ from __future__ import annotations
 import json
 
 import pytest
+import typer
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate
+from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import load_checkpoint
 
@@ -150,3 +152,34 @@ def test_ctrl_c_exits_130_after_saving_last(data, tmp_path, monkeypatch):
     assert result.exit_code == 130, result.output
     assert f"mpnode train --resume {run}" in result.output
     assert load_checkpoint(run / "checkpoints" / "last.pt").epoch == 1
+
+
+def test_model_options_of_the_cli_are_the_ones_the_models_declare():
+    command = typer.main.get_command(app).commands["train"]
+    panel = {p.name for p in command.params if getattr(p, "rich_help_panel", None)}
+    declared = {name for options in OPTIONS.values() for name in options.model_fields}
+    assert panel == declared
+    finetune = typer.main.get_command(app).commands["finetune"]
+    assert not declared & {p.name for p in finetune.params}  # the checkpoint decides
+    help_text = invoke("train", "--help").output
+    assert "--message-dim" in help_text and "--no-messages" in help_text
+    assert "--step-noise" in help_text and "l2s (128)" in help_text
+
+
+def test_model_options_from_the_command_line_and_a_config_file(data, tmp_path):
+    line = one_line_error(invoke("train", data["l3"], "--model", "gnode", "--message-dim", 2))
+    assert "model 'gnode' has no option 'message_dim'" in line
+    (tmp_path / "c.toml").write_text('model = "gnode"\n[model_options]\nhidden = 8\n'
+                                     'depth = 2\n')
+    run = tmp_path / "run"
+    result = invoke("train", data["l3"], "--config", tmp_path / "c.toml", "--depth", 3,
+                    "--epochs", 0, "--run-dir", run, *FAST)
+    assert result.exit_code == 0, result.output
+    config = json.loads((run / "config.json").read_text())
+    assert config["model"] == "gnode"
+    assert config["model_options"] == {"hidden": 8, "depth": 3, "graph": "sys",
+                                       "aggregate": "sum"}
+    (tmp_path / "bad.toml").write_text("[model_options]\nlatent = 8\n")
+    line = one_line_error(invoke("train", data["l3"], "--config", tmp_path / "bad.toml"))
+    assert "model 'mpnode' has no option 'latent'" in line
+    assert "only --epochs" in one_line_error(invoke("train", "--resume", run, "--hidden", 4))

@@ -290,7 +290,7 @@ def test_mpnode_trains_on_a_small_quad3_set(quad3, tmp_path):
 
     _, summary = quad3
     config = TrainConfig(dataset=summary.path, epochs=8, batch_size=4, lr=1e-2, plots=False,
-                         run_dir=tmp_path / "run", hidden=16)
+                         run_dir=tmp_path / "run", model_options={"hidden": 16})
     result = train(config)
     rows = read_metrics(tmp_path / "run")
     assert result.best_epoch > 0

@@ -17,7 +17,10 @@ from mpnode_cli.training.recipe import CURRICULUM_MIN_SAMPLES, resolve_recipe
 from mpnode_cli.training.run import read_config, read_metrics
 
 
-def resolved(recipe_stored=None, system="gene", samples=51, accepts=("aggregate",), **given):
+def resolved(recipe_stored=None, system="gene", samples=51, accepts=("aggregate",),
+             aggregate=None, **given):
+    if aggregate is not None:
+        given["model_options"] = {"aggregate": aggregate}
     config = TrainConfig(dataset="x.h5", **given)
     return resolve_recipe(config, system, recipe_stored, samples, lambda k: k in accepts)
 
@@ -26,22 +29,22 @@ def test_paper_recipe_is_the_authors_configuration():
     lorenz = resolved(system="lorenz", recipe="paper")
     assert (lorenz.loss, lorenz.batch_size, lorenz.patience, lorenz.epochs) == (
         "huber", 128, 500, 4000)
-    assert (lorenz.even_batches, lorenz.horizon_curriculum, lorenz.aggregate) == (
-        False, False, "mean")
+    assert (lorenz.even_batches, lorenz.horizon_curriculum) == (False, False)
+    assert lorenz.model_options["aggregate"] == "mean"
     assert lorenz.val_batch_size == 128  # the authors validate with the training batch size
     assert resolved(system="gene", recipe="paper").loss == "mse"  # the paper's App. A.3
 
 
 def test_options_beat_the_recipe_and_the_system_recommendation():
     ours = resolved()
-    assert (ours.loss, ours.aggregate, ours.batch_size) == ("mse", "pna", 32)
+    assert (ours.loss, ours.model_options["aggregate"], ours.batch_size) == ("mse", "pna", 32)
     mine = resolved(loss="huber", aggregate="pna", batch_size=7)
-    assert (mine.loss, mine.aggregate, mine.batch_size) == ("huber", "pna", 7)
+    assert (mine.loss, mine.model_options["aggregate"], mine.batch_size) == ("huber", "pna", 7)
     assert resolved(recipe="paper", batch_size=64).val_batch_size == 64
 
 
 def test_a_recommended_model_option_applies_only_to_models_that_have_it():
-    assert resolved(accepts=()).aggregate is None
+    assert "aggregate" not in resolved(accepts=()).model_options
 
 
 def test_curriculum_by_default_only_for_long_trajectories():
@@ -53,7 +56,7 @@ def test_curriculum_by_default_only_for_long_trajectories():
 def test_a_stored_recipe_wins_over_the_system_declaration():
     stored = {"mpnode": {"batch_size": 5}, "paper": {"loss": "huber"}}
     assert resolved(recipe_stored=stored).batch_size == 5
-    assert resolved(recipe_stored=stored).aggregate is None
+    assert "aggregate" not in resolved(recipe_stored=stored).model_options
     assert resolved(recipe_stored=stored, recipe="paper").loss == "huber"
 
 
@@ -71,7 +74,7 @@ def test_generate_stores_the_system_recipe_and_train_applies_it(gene, tmp_path):
     assert data.attrs["recipe"] == SYSTEMS["gene"].recipe()
     train(TrainConfig(dataset=gene, run_dir=tmp_path / "r", epochs=1, plots=False))
     written = read_config(tmp_path / "r")
-    assert written.aggregate == "pna" and written.loss == "mse"
+    assert written.model_options["aggregate"] == "pna" and written.loss == "mse"
     assert "recipe" in written.model_fields_set  # every field explicit: resume re-applies none
 
 

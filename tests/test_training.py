@@ -8,10 +8,11 @@ import math
 import pytest
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config import GenerateConfig, TrainConfig, upgrade_train_fields
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.mpnode import MPNODE
+from mpnode_cli.models.options import L2SOptions
 from mpnode_cli.solver import Status
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import (
@@ -24,7 +25,7 @@ from mpnode_cli.training.checkpoint import (
 )
 from mpnode_cli.training.evaluate import check_compatible, evaluate, predict
 from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
-from mpnode_cli.training.run import checkpoint_path, read_metrics
+from mpnode_cli.training.run import checkpoint_path, read_config, read_metrics
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +58,9 @@ def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
     assert summary.best_epoch == min(metrics, key=lambda r: r["val_loss"])["epoch"]
     assert summary.table2 == pytest.approx(summary.best_epoch * summary.min_val_loss)
     assert summary.test["mse"] < metrics[0]["val_mse"] / 10
-    assert summary.parameters == 1348  # 4→32→32→4, the authors' gene count (notes §1.1)
+    # Gene's recipe aggregates with PNA: [x, 3 × 3 message channels] = 10 → 32 → 32 → 4.
+    # (The authors' mean gives 4 → 32 → 32 → 4 = 1348: MPNODE.jl exps/models.jl:92-95.)
+    assert summary.parameters == 10 * 32 + 32 + 32 * 32 + 32 + 32 * 4 + 4
     files = {p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*")}
     assert {"config.json", "metrics.jsonl", "summary.json", "checkpoints/best.pt",
             "checkpoints/last.pt", "plots/gene-test-rollout.png",
@@ -181,7 +184,7 @@ def test_finetune_starts_from_the_checkpoint_with_its_normalization(gene, tmp_pa
     train(config(gene, tmp_path / "base", epochs=3))
     parent = checkpoint_path(tmp_path / "base", "best")
     summary = train(config(gene, tmp_path / "ft", epochs=1, init_checkpoint=parent,
-                           trajectories=10, hidden=7))
+                           trajectories=10, model_options={"hidden": 7}))
     ckpt, child = load_checkpoint(parent), load_checkpoint(checkpoint_path(tmp_path / "ft", "last"))
     assert child.parent_sha256 == file_sha256(parent) == summary.parent_sha256
     assert child.model_config == ckpt.model_config  # architecture from the checkpoint
@@ -226,10 +229,69 @@ def test_a_model_that_is_not_transferable_refuses_another_size(gene):
 
 def test_model_options_come_from_the_model_unless_given(gene, tmp_path):
     train(config(gene, tmp_path / "mp", epochs=0))
-    resolved = json.loads((tmp_path / "mp" / "config.json").read_text())
+    resolved = json.loads((tmp_path / "mp" / "config.json").read_text())["model_options"]
     assert (resolved["hidden"], resolved["layers"], resolved["message_dim"]) == (32, 2, 3)
-    train(config(gene, tmp_path / "gnode", epochs=0, model="gnode", hidden=8, graph="full"))
+    train(config(gene, tmp_path / "gnode", epochs=0, model="gnode",
+                 model_options={"hidden": 8, "graph": "full"}))
     ckpt = load_checkpoint(checkpoint_path(tmp_path / "gnode", "last"))
     assert ckpt.model_kind == "gnode" and ckpt.model_config["hidden"] == 8
-    with pytest.raises(ValueError, match="model 'gnode' has no option --message-dim"):
-        train(config(gene, tmp_path / "bad", epochs=0, model="gnode", message_dim=2))
+    with pytest.raises(ValueError, match="model 'gnode' has no option 'message_dim'"):
+        train(config(gene, tmp_path / "bad", epochs=0, model="gnode",
+                     model_options={"message_dim": 2}))
+    with pytest.raises(ValueError, match=r"model 'mpnode' option hidden: .*greater than or"):
+        train(config(gene, tmp_path / "bad", epochs=0, model_options={"hidden": 0}))
+    assert not (tmp_path / "bad").exists()  # refused before anything was written
+
+
+def test_model_options_round_trip_through_config_json_and_checkpoint(gene, tmp_path):
+    given = {"latent": 8, "hidden": 8, "steps": 2, "history": 2, "step_noise": 0.01}
+    train(config(gene, tmp_path / "l2s", epochs=1, model="l2s", model_options=given))
+    written = json.loads((tmp_path / "l2s" / "config.json").read_text())
+    expected = L2SOptions(**given).model_dump()  # every option, defaults filled in
+    assert written["model"] == "l2s" and written["model_options"] == expected
+    assert TrainConfig(**written).model_options == expected
+    ckpt = load_checkpoint(checkpoint_path(tmp_path / "l2s", "last"))
+    assert ckpt.model_config == {"node_dim": 1, "control_dim": 0} | expected
+    assert ckpt.train_config["model_options"] == expected
+    assert ckpt.build_model().config == ckpt.model_config
+
+
+def downgrade_to_flat(run_dir, fields):
+    """Rewrite a run as the version before `model_options` left it: flat model fields in
+    config.json and checkpoints' train_config, checkpoint format 2 (no L2S step_noise)."""
+    path = run_dir / "config.json"
+    config = json.loads(path.read_text())
+    options = config.pop("model_options")
+    config |= fields
+    path.write_text(json.dumps(config))
+    for which in ("best", "last"):
+        raw = torch.load(checkpoint_path(run_dir, which), weights_only=True)
+        raw["format_version"] = 2
+        raw["model_config"] = {k: v for k, v in raw["model_config"].items()
+                               if k != "step_noise"}
+        raw["train_config"] = {k: v for k, v in raw["train_config"].items()
+                               if k != "model_options"} | fields
+        torch.save(raw, checkpoint_path(run_dir, which))
+    return options
+
+
+def test_a_run_written_with_flat_model_fields_resumes(gene, tmp_path):
+    run = tmp_path / "old"
+    given = {"latent": 8, "hidden": 8, "steps": 2, "step_noise": 0.02}
+    train(config(gene, run, epochs=1, model="l2s", model_options=given))
+    options = downgrade_to_flat(run, {
+        "latent": 8, "hidden": 8, "steps": 2, "history": 1, "graph": "sys", "layers": 2,
+        "message_dim": None, "aggregation": None, "depth": None, "step_noise": 0.02})
+    assert load_checkpoint(checkpoint_path(run, "last")).model_config["step_noise"] == 0.02
+    train(read_config(run).model_copy(update={"epochs": 2}), resume=True)
+    assert json.loads((run / "config.json").read_text())["model_options"] == options
+    assert [r["epoch"] for r in read_metrics(run)] == [0, 1, 2]
+
+
+def test_flat_fields_of_mpnode_map_onto_its_options():
+    old = {"dataset": "d.h5", "model": "mpnode", "hidden": 16, "message_dim": 2,
+           "aggregation": "dense", "latent": None, "step_noise": 0.003}
+    fields = upgrade_train_fields(old)
+    assert fields["model_options"] == {"hidden": 16, "message_dim": 2, "backend": "dense"}
+    assert TrainConfig(**fields).model == "mpnode"
+    assert upgrade_train_fields(fields) == fields

@@ -1,19 +1,25 @@
 """`mpnode train DATASET` and `mpnode finetune CHECKPOINT DATASET`: one training loop, two doors.
 
-The commands only parse: options left out stay out, so `TrainConfig` holds the only
-defaults; a `--config` TOML file sits beneath the options. `--resume RUN_DIR` rebuilds the
+The commands only parse: options left out stay out, so `TrainConfig` and the models'
+declared options hold the only defaults; a `--config` TOML file sits beneath the options.
+The model options (`--hidden`, `--message-dim`, ...) are built from the registry's
+declarations (`mpnode_cli.models.options`), one per option any model declares; the chosen
+model refuses the ones it does not declare. `--resume RUN_DIR` rebuilds the
 run's own config (only `--epochs`, `--device` and `--plots` may change). Exit codes: 2 for
 usage errors, 1 when training diverged, 130 for Ctrl-C (after saving `last.pt`).
 """
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args, get_origin
 
 import typer
+from pydantic.fields import FieldInfo
 
 from mpnode_cli.cli.common import console, error_message, fail
+from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.threads import applied_threads
 
 # Options shared by both commands, declared once (typer reads them as plain defaults).
@@ -59,25 +65,7 @@ def train_command(
         None, help="An mpnode dataset (.h5); optional with --resume.", show_default=False),
     resume: Path | None = typer.Option(None, help="Continue the run in this folder."),
     model: str | None = typer.Option(
-        None, help="mpnode (default) or a baseline: l2s, gnode, node."),
-    hidden: int | None = typer.Option(None, help="Hidden width of the node MLP (default 32)."),
-    layers: int | None = typer.Option(None, help="Hidden layers of the node MLP (default 2)."),
-    activation: str | None = typer.Option(None, help="tanh (default), relu, elu, silu, ..."),
-    message_dim: int | None = typer.Option(None, help="Message states per node (default 3)."),
-    graph: str | None = typer.Option(None, help="sys (dataset's graph, default) or full."),
-    messages: bool | None = typer.Option(
-        None, "--messages/--no-messages", help="--no-messages: the no-communication ablation."),
-    aggregate: str | None = typer.Option(
-        None, help="Neighbour aggregation: mean (the paper), sum or pna."),
-    backend: str | None = typer.Option(
-        None, help="How aggregation is computed: auto (default), dense or scatter."),
-    latent: int | None = typer.Option(None, help="l2s: latent size (default 128)."),
-    steps: int | None = typer.Option(None, help="l2s: message-passing steps (default 10)."),
-    history: int | None = typer.Option(
-        None, help="l2s: input states C (default 1; C > 1 starts rollouts from C data states)."),
-    depth: int | None = typer.Option(None, help="gnode: message-passing steps (default 1)."),
-    step_noise: float | None = typer.Option(
-        None, help="l2s: random-walk noise on one-step inputs (default 3e-3)."),
+        None, help=f"The model: {', '.join(OPTIONS)} (default mpnode)."),
     config_file: Path | None = _CONFIG, recipe: str | None = _RECIPE,
     loss: str | None = _LOSS, lr: float | None = _LR,
     min_lr: float | None = _MIN_LR, schedule: str | None = _SCHEDULE,
@@ -91,19 +79,75 @@ def train_command(
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
     trajectories: int | None = _TRAJECTORIES,
+    **model_options: Any,
 ) -> None:
     """Train a model on a dataset's train split; results go to runs/<name>/."""
-    options = _given(locals(), exclude=("dataset", "resume", "config_file"))
+    options = _given(locals(), exclude=("dataset", "resume", "config_file", "model_options"))
+    chosen = _given(model_options, exclude=())  # model options given
     try:
         if resume is not None:
-            config = _resume_config(resume, dataset, options)
+            config = _resume_config(resume, dataset, options | chosen)
         else:
             if dataset is None:
                 raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")
-            config = _config(config_file, {**options, "dataset": dataset})
+            config = _config(config_file, {**options, "dataset": dataset}, chosen)
     except ValueError as exc:
         fail(error_message(exc))
     _run(config, resume=resume is not None)
+
+
+def _model_option_parameters() -> list[inspect.Parameter]:
+    """One CLI option per model option the registry's models declare.
+
+    An option that several models declare appears once; its help is the first model's
+    description, the choices of a `Literal`, and the models that take it with their
+    defaults. Models must agree on an option's type.
+    """
+    fields: dict[str, tuple[FieldInfo, list[str]]] = {}
+    for kind, declared in OPTIONS.items():
+        for name, field in declared.model_fields.items():
+            first, takers = fields.setdefault(name, (field, []))
+            if field.annotation != first.annotation:
+                raise TypeError(f"model option '{name}' has two types: {first.annotation} "
+                                f"and {field.annotation} ({kind})")
+            takers.append(f"{kind} ({_shown(field.default)})")
+    params = []
+    for name, (field, takers) in fields.items():
+        # Choices are checked with the rest of the options, so that a bad one is refused
+        # in the same one line (click would draw its own error box).
+        choices = get_args(field.annotation) if get_origin(field.annotation) is Literal else ()
+        value_type = str if choices else field.annotation
+        if value_type not in (bool, int, float, str):
+            raise TypeError(f"model option '{name}' has a type the CLI cannot take: "
+                            f"{field.annotation}")
+        flag = "--" + name.replace("_", "-")
+        decls = [f"{flag}/--no-{flag[2:]}"] if value_type is bool else [flag]
+        help_text = " ".join(part for part in (
+            field.description,
+            f"Choices: {', '.join(choices)}." if choices else None,
+            f"Models (default): {', '.join(takers)}.",
+        ) if part)
+        option = typer.Option(None, *decls, help=help_text, rich_help_panel="Model options")
+        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
+                                        annotation=value_type | None))
+    return params
+
+
+def _shown(value: Any) -> str:
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+def _with_model_options(command):
+    """Give `command` (whose `**model_options` collects them) the model options' parameters."""
+    signature = inspect.signature(command)
+    fixed = [p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    command.__signature__ = signature.replace(parameters=fixed + _model_option_parameters())
+    return command
+
+
+train_command = _with_model_options(train_command)
 
 
 def finetune_command(
@@ -139,10 +183,16 @@ def _given(values: dict[str, Any], exclude: tuple[str, ...]) -> dict[str, Any]:
     return {k: v for k, v in values.items() if v is not None and k not in exclude}
 
 
-def _config(config_file: Path | None, options: dict[str, Any]):
+def _config(config_file: Path | None, options: dict[str, Any],
+            model_options: dict[str, Any] | None = None):
+    """The train config: the file's fields, beneath the options given (model options merged
+    into the file's `[model_options]` table one by one)."""
     from mpnode_cli.config import TrainConfig, read_config_file
 
     fields = read_config_file(config_file) if config_file else {}
+    in_file = fields.get("model_options", {})
+    if model_options and isinstance(in_file, dict):  # else TrainConfig says what is wrong
+        fields["model_options"] = in_file | model_options
     return TrainConfig(**{**fields, **options})
 
 

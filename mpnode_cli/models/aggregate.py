@@ -31,11 +31,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import get_args
 
 import torch
 
-AGGREGATES = ("mean", "sum", "pna")
-BACKENDS = ("auto", "dense", "scatter")
+from mpnode_cli.models.options import Aggregate, Backend
+
+AGGREGATES: tuple[str, ...] = get_args(Aggregate)
+BACKENDS: tuple[str, ...] = get_args(Backend)
 DENSE_MAX_NODES = 64  # above this, aggregate over an edge list (memory O(E), not O(B·N²))
 
 

@@ -1,12 +1,21 @@
-"""What every model shares: the rollout result and the MLP builder."""
+"""What every model shares: the declared contract (`NeuralModel`), its results, the MLP.
+
+Training and evaluation call only what `NeuralModel` declares, so a model is used the same
+way whatever it is: built from the data's sizes and its typed options, statistics fitted
+on the train split, a batch's training loss, and a rollout from the data's first states.
+"""
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any, ClassVar, Self
 
 import torch
 from torch import nn
+
+from mpnode_cli.models.options import ModelOptions
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
@@ -33,6 +42,140 @@ class Rollout:
     messages: torch.Tensor | None
     status: torch.Tensor
     n_f_evals: int
+
+
+@dataclass
+class BatchLoss:
+    """The training loss of one batch.
+
+    Attributes:
+        loss: scalar to minimize, or None when a rollout failed (nothing to learn from).
+        status: `[B]` int64 `mpnode_cli.solver.Status` per trajectory (all 0 without a solver).
+        n_f_evals: vector-field evaluations (max over the batch; 0 without a solver).
+    """
+
+    loss: torch.Tensor | None
+    status: torch.Tensor
+    n_f_evals: int
+
+
+class NeuralModel(nn.Module):
+    """The contract every model implements.
+
+    A model is built from the data's sizes and an instance of its `Options`; `config`
+    (sizes and options in one flat dict) is what checkpoints store as `model_config`, and
+    `build_model(kind, config)` rebuilds the same model from it. Its defaults train like
+    the neural ODEs (MP-NODE, GNN-ODE, NODE): whole-horizon rollouts from x(t₀).
+
+    Class attributes:
+        kind: registry name (`--model`, checkpoints' `model_kind`).
+        transferable: runs on graphs of any node count. A model that is not is built for
+            one N, which its `config` then records as `num_nodes`.
+        Options: its declared options (`mpnode_cli.models.options`).
+
+    Args:
+        node_dim: D, per-node state size.
+        control_dim: U, per-node control size (0 if none).
+        num_nodes: N, needed only by a model that is not transferable.
+        options: an instance of `Options` (default: every option at its default).
+    """
+
+    kind: ClassVar[str]
+    transferable: ClassVar[bool] = True
+    Options: ClassVar[type[ModelOptions]]
+
+    def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
+                 options: ModelOptions | None = None):
+        super().__init__()
+        options = self.Options() if options is None else options
+        if not isinstance(options, self.Options):
+            raise TypeError(f"model '{self.kind}' takes {self.Options.__name__}, "
+                            f"not {type(options).__name__}")
+        if node_dim < 1 or control_dim < 0:
+            raise ValueError("node_dim must be ≥ 1 and control_dim ≥ 0")
+        if not self.transferable and (num_nodes is None or num_nodes < 1):
+            raise ValueError(f"model '{self.kind}' is built for one node count: give num_nodes")
+        self.node_dim, self.control_dim, self.options = node_dim, control_dim, options
+        self.num_nodes = None if self.transferable else num_nodes
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """Sizes and options in one flat dict: what `from_config` takes back."""
+        sizes = {"node_dim": self.node_dim, "control_dim": self.control_dim}
+        if not self.transferable:
+            sizes["num_nodes"] = self.num_nodes
+        return sizes | self.options.model_dump()
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> Self:
+        """The model of a `config` dict (sizes and options; options left out: defaults).
+
+        Raises:
+            ValueError: no `node_dim`, or an option this model refuses.
+        """
+        sizes = {k: config[k] for k in ("node_dim", "control_dim", "num_nodes") if k in config}
+        if "node_dim" not in sizes:
+            raise ValueError(f"model '{cls.kind}' config lacks node_dim")
+        given = {k: v for k, v in config.items() if k not in sizes}
+        return cls(**sizes, options=cls.Options.parse(given, cls.kind))
+
+    @property
+    def initial_states(self) -> int:
+        """C, the data states a rollout starts from (1: x(t₀) alone)."""
+        return 1
+
+    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
+        """Fit statistics of the training data that are not learned by gradient (none here).
+
+        Called once on a fresh model (and on a finetune that renormalizes), before training.
+
+        Args:
+            states: `[K, T, N, D]` normalized train-split states.
+            dt: sample spacing.
+            adjacency: `[K, N, N]` the train split's graphs.
+        """
+
+    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                controls: torch.Tensor | None = None, **options: Any) -> Rollout:
+        """Predict trajectories from x(t₀).
+
+        Args:
+            x0: `[B, N, D]` normalized states at `ts[0]`.
+            ts: `[T]` sample times.
+            adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff node j sends to node i.
+            controls: `[B, T, N, U]` normalized (zero-order hold), or None.
+            **options: the solver's `rtol`, `atol`, `fixed_dt` and `return_messages`
+                (models without a solver accept and ignore them); a model with
+                `initial_states` C > 1 also takes `history: [B, C, N, D]`.
+        """
+        raise NotImplementedError
+
+    def rollout_from_data(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                          controls: torch.Tensor | None = None, **options: Any) -> Rollout:
+        """Roll out from the start of the data trajectories `x: [B, T, N, D]`.
+
+        Every model starts from x(t₀); one that needs C = `initial_states` > 1 states is
+        given the data's first C.
+        """
+        c = self.initial_states
+        extra = {"history": x[:, :c]} if c > 1 else {}
+        return self.rollout(x[:, 0], ts, adjacency, controls, **options, **extra)
+
+    def training_loss(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                      controls: torch.Tensor | None,
+                      loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                      **solver: Any) -> BatchLoss:
+        """The loss of one training batch: `loss_fn` of the whole-horizon rollout.
+
+        Args:
+            x: `[B, H, N, D]` normalized (noisy) training states; ts: `[H]` their times.
+            adjacency: `[B, N, N]`. controls: `[B, H, N, U]` or None.
+            loss_fn: `loss_fn(pred, target)` on `[B, H, N, D]` states.
+            **solver: `rtol`, `atol`, `fixed_dt` of the rollout.
+        """
+        out = self.rollout_from_data(x, ts, adjacency, controls, **solver)
+        loss = loss_fn(out.states, x) if bool((out.status == 0).all()) else None
+        return BatchLoss(loss, out.status, out.n_f_evals)
 
 
 def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) -> nn.Sequential:
@@ -74,15 +217,3 @@ def zoh_controls(controls: torch.Tensor, ts: torch.Tensor):
         return controls[rows, k]
 
     return u
-
-
-def rollout_from_data(model, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
-                      controls: torch.Tensor | None = None, **options) -> Rollout:
-    """Roll `model` out from the start of the data trajectories `x: [B, T, N, D]`.
-
-    Every model starts from x(t₀); one with an input history of C > 1 states (L2S
-    `history`) is given the data's first C states.
-    """
-    history = getattr(model, "history", 1)
-    extra = {"history": x[:, :history]} if history > 1 else {}
-    return model.rollout(x[:, 0], ts, adjacency, controls, **options, **extra)

@@ -20,39 +20,36 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import AGGREGATES, aggregator, channels, mean_log_degree
-from mpnode_cli.models.base import Rollout, zoh_controls
+from mpnode_cli.models.aggregate import aggregator, channels, mean_log_degree
+from mpnode_cli.models.base import NeuralModel, Rollout, zoh_controls
+from mpnode_cli.models.options import GNODEOptions
 from mpnode_cli.solver import solve
 
 
-class GNODE(nn.Module):
+class GNODE(NeuralModel):
     """Graph neural ODE with sum aggregation and skip connections.
 
     Args:
-        node_dim: D. control_dim: U. hidden: latent width (32 as shipped).
-        depth: message-passing steps per evaluation (1 as shipped; weights shared).
-        graph: "sys" (the dataset's graph) or "full" (complete with self-loops, as shipped).
-        aggregate: "sum" (as shipped), "mean" or "pna".
+        node_dim: D. control_dim: U. num_nodes: unused (the model runs on any graph).
+        options: `GNODEOptions` — hidden, the latent width (32 as shipped); depth,
+            message-passing steps per evaluation (1 as shipped; weights shared); graph
+            ("sys", the dataset's graph, or "full", complete with self-loops, as shipped);
+            aggregate ("sum" as shipped, "mean" or "pna").
     """
 
     kind: ClassVar[str] = "gnode"
     transferable: ClassVar[bool] = True
+    Options: ClassVar[type[GNODEOptions]] = GNODEOptions
 
-    def __init__(self, node_dim: int, control_dim: int = 0, hidden: int = 32, depth: int = 1,
-                 graph: str = "sys", aggregate: str = "sum"):
-        super().__init__()
-        if graph not in ("sys", "full"):
-            raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
-        if aggregate not in AGGREGATES:
-            raise ValueError(f"unknown aggregation '{aggregate}' (mean, sum, pna)")
-        self.config = {"node_dim": node_dim, "control_dim": control_dim, "hidden": hidden,
-                       "depth": depth, "graph": graph, "aggregate": aggregate}
-        self.node_dim, self.control_dim, self.depth, self.graph = (
-            node_dim, control_dim, depth, graph)
-        self.aggregate = aggregate
+    def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
+                 options: GNODEOptions | None = None):
+        super().__init__(node_dim, control_dim, num_nodes, options)
+        o = self.options
+        self.depth, self.graph, self.aggregate = o.depth, o.graph, o.aggregate
+        hidden = o.hidden
         self.lift = nn.Linear(node_dim + control_dim, hidden)
         self.message = nn.Linear(hidden, hidden)
-        self.update = nn.Linear(channels(aggregate, hidden), hidden)
+        self.update = nn.Linear(channels(o.aggregate, hidden), hidden)
         self.decode = nn.Linear(hidden, node_dim)
         for layer in (self.lift, self.message, self.update, self.decode):
             nn.init.xavier_uniform_(layer.weight)

@@ -16,58 +16,58 @@ a first-order Δ instead of an acceleration with semi-implicit Euler.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
 
 from mpnode_cli.models.aggregate import EdgeIndex
-from mpnode_cli.models.base import Rollout, mlp
+from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout, mlp
+from mpnode_cli.models.options import L2SOptions
 
 
 def _mlp_ln(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
     return nn.Sequential(*mlp(in_dim, hidden, layers, out_dim, "relu"), nn.LayerNorm(out_dim))
 
 
-class L2S(nn.Module):
+class L2S(NeuralModel):
     """Encode–process–decode GNN simulator, one step of the dataset's dt at a time.
 
     Args:
-        node_dim: D. control_dim: U.
-        latent: node/edge latent size; hidden, layers: the MLPs (128, 2).
-        steps: message-passing steps (unshared weights).
-        history: C, states in the input window (C − 1 differences are fed).
-        graph: "sys" or "full" (complete graph with self-loops).
+        node_dim: D. control_dim: U. num_nodes: unused (the model runs on any graph).
+        options: `L2SOptions` — latent, the node/edge latent size; hidden, layers of the
+            MLPs (128, 2); steps, message-passing steps (unshared weights); history, C
+            states in the input window (C − 1 differences are fed); graph ("sys" or
+            "full", complete with self-loops); step_noise, the training input noise.
     """
 
     kind: ClassVar[str] = "l2s"
     transferable: ClassVar[bool] = True
-    one_step: ClassVar[bool] = True
+    Options: ClassVar[type[L2SOptions]] = L2SOptions
 
-    def __init__(self, node_dim: int, control_dim: int = 0, latent: int = 128,
-                 hidden: int = 128, layers: int = 2, steps: int = 10, history: int = 1,
-                 graph: str = "sys"):
-        super().__init__()
-        if history < 1 or steps < 1:
-            raise ValueError("history and steps must be ≥ 1")
-        if graph not in ("sys", "full"):
-            raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
-        self.config = {"node_dim": node_dim, "control_dim": control_dim, "latent": latent,
-                       "hidden": hidden, "layers": layers, "steps": steps,
-                       "history": history, "graph": graph}
-        self.node_dim, self.control_dim, self.history, self.graph = (
-            node_dim, control_dim, history, graph)
-        in_dim = node_dim * history + control_dim
+    def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
+                 options: L2SOptions | None = None):
+        super().__init__(node_dim, control_dim, num_nodes, options)
+        o = self.options
+        self.history, self.graph = o.history, o.graph
+        latent, hidden, layers = o.latent, o.hidden, o.layers
+        in_dim = node_dim * o.history + control_dim
         self.encoder = _mlp_ln(in_dim, hidden, layers, latent)
         self.edge_fns = nn.ModuleList(
-            _mlp_ln(2 * latent, hidden, layers, latent) for _ in range(steps))
+            _mlp_ln(2 * latent, hidden, layers, latent) for _ in range(o.steps))
         self.node_fns = nn.ModuleList(
-            _mlp_ln(2 * latent, hidden, layers, latent) for _ in range(steps))
+            _mlp_ln(2 * latent, hidden, layers, latent) for _ in range(o.steps))
         self.decoder = mlp(latent, hidden, layers, node_dim, "relu")
         # Statistics of the normalized one-step differences, set by `fit_statistics`.
         self.register_buffer("delta_mean", torch.zeros(node_dim))
         self.register_buffer("delta_std", torch.ones(node_dim))
         self.register_buffer("step_dt", torch.zeros((), dtype=torch.float64))
+
+    @property
+    def initial_states(self) -> int:
+        """C = `history`: a rollout starts from the data's first C states."""
+        return self.history
 
     # -------------------------------------------------------------- one step
     def _edges(self, adjacency: torch.Tensor) -> EdgeIndex:
@@ -137,6 +137,15 @@ class L2S(nn.Module):
             u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
         pred = self.delta(windows, self._edges(adj), u)
         return ((pred - (target - self.delta_mean) / self.delta_std) ** 2).mean()
+
+    def training_loss(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+                      controls: torch.Tensor | None,
+                      loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                      **solver: Any) -> BatchLoss:
+        """One step ahead: `one_step_loss` with `step_noise` (`loss_fn` and the solver
+        options are unused); the model is rolled out only to validate."""
+        loss = self.one_step_loss(x, adjacency, controls, noise_std=self.options.step_noise)
+        return BatchLoss(loss, torch.zeros(x.shape[0], dtype=torch.long, device=x.device), 0)
 
     # -------------------------------------------------------------- rollout
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,

@@ -25,60 +25,38 @@ from __future__ import annotations
 from typing import ClassVar
 
 import torch
-from torch import nn
 
-from mpnode_cli.models.aggregate import (
-    AGGREGATES,
-    BACKENDS,
-    aggregator,
-    channels,
-    mean_log_degree,
-)
-from mpnode_cli.models.base import Rollout, mlp, zoh_controls
+from mpnode_cli.models.aggregate import aggregator, channels, mean_log_degree
+from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
+from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
 
-GRAPH_MODES = ("sys", "full")
 
-
-class MPNODE(nn.Module):
+class MPNODE(NeuralModel):
     """Message-passing neural ODE over a batch of graphs.
 
     Args:
         node_dim: D, per-node state size.
         control_dim: U, per-node control size (0 if none).
-        message_dim: M, message state size (≥ 0).
-        hidden, layers, activation: the shared MLP.
-        graph: "sys" (the dataset's graph) or "full" (complete graph with self-loops).
-        messages: False clamps incoming messages to zero (the paper's §4.1 ablation).
-        aggregate: "mean" (the paper), "sum" or "pna".
-        backend: how the aggregation is computed: "auto", "dense" or "scatter".
+        num_nodes: unused (the model runs on any graph).
+        options: `MPNODEOptions` — message_dim M; hidden, layers, activation of the shared
+            MLP; graph ("sys" or "full"); messages (False clamps incoming messages to zero,
+            the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
+            backend ("auto", "dense" or "scatter").
     """
 
     kind: ClassVar[str] = "mpnode"
     transferable: ClassVar[bool] = True
+    Options: ClassVar[type[MPNODEOptions]] = MPNODEOptions
 
-    def __init__(self, node_dim: int, control_dim: int = 0, message_dim: int = 3,
-                 hidden: int = 32, layers: int = 2, activation: str = "tanh",
-                 graph: str = "sys", messages: bool = True, aggregate: str = "mean",
-                 backend: str = "auto"):
-        super().__init__()
-        if graph not in GRAPH_MODES:
-            raise ValueError(f"unknown graph mode '{graph}' (choose from: sys, full)")
-        if aggregate not in AGGREGATES:
-            raise ValueError(f"unknown aggregation '{aggregate}' (mean, sum, pna)")
-        if backend not in BACKENDS:
-            raise ValueError(f"unknown backend '{backend}' (auto, dense, scatter)")
-        if node_dim < 1 or control_dim < 0 or message_dim < 0:
-            raise ValueError("node_dim must be ≥ 1, control_dim and message_dim ≥ 0")
-        self.config = {"node_dim": node_dim, "control_dim": control_dim,
-                       "message_dim": message_dim, "hidden": hidden, "layers": layers,
-                       "activation": activation, "graph": graph, "messages": messages,
-                       "aggregate": aggregate, "backend": backend}
-        self.node_dim, self.control_dim, self.message_dim = node_dim, control_dim, message_dim
-        self.graph, self.messages = graph, messages
-        self.aggregate, self.backend = aggregate, backend
-        self.net = mlp(node_dim + control_dim + channels(aggregate, message_dim), hidden,
-                       layers, node_dim + message_dim, activation)
+    def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
+                 options: MPNODEOptions | None = None):
+        super().__init__(node_dim, control_dim, num_nodes, options)
+        o = self.options
+        self.message_dim, self.graph, self.messages = o.message_dim, o.graph, o.messages
+        self.aggregate, self.backend = o.aggregate, o.backend
+        self.net = mlp(node_dim + control_dim + channels(o.aggregate, o.message_dim), o.hidden,
+                       o.layers, node_dim + o.message_dim, o.activation)
         # PNA's δ, the training graphs' mean log(in-degree + 1): fitted once by
         # `fit_statistics`, saved with the weights, used unchanged on any other graph.
         self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))

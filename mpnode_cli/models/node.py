@@ -13,34 +13,34 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.base import ACTIVATIONS, Rollout, zoh_controls
+from mpnode_cli.models.base import ACTIVATIONS, NeuralModel, Rollout, zoh_controls
+from mpnode_cli.models.options import NODEOptions
 from mpnode_cli.solver import solve
 
 
-class NODE(nn.Module):
+class NODE(NeuralModel):
     """Neural ODE on the flattened state `[N·D]` of the whole system.
 
     Args:
-        node_dim: D. control_dim: U. num_nodes: N (fixed for this model).
-        hidden, layers, activation: the MLP (each hidden layer Linear → LayerNorm → act).
+        node_dim: D. control_dim: U. num_nodes: N (required: the model is built for it).
+        options: `NODEOptions` — hidden, layers, activation of the MLP (each hidden layer
+            Linear → LayerNorm → activation).
     """
 
     kind: ClassVar[str] = "node"
     transferable: ClassVar[bool] = False
+    Options: ClassVar[type[NODEOptions]] = NODEOptions
 
-    def __init__(self, node_dim: int, num_nodes: int, control_dim: int = 0, hidden: int = 32,
-                 layers: int = 2, activation: str = "tanh"):
-        super().__init__()
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"unknown activation '{activation}'")
-        self.config = {"node_dim": node_dim, "num_nodes": num_nodes, "control_dim": control_dim,
-                       "hidden": hidden, "layers": layers, "activation": activation}
-        self.node_dim, self.num_nodes, self.control_dim = node_dim, num_nodes, control_dim
+    def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
+                 options: NODEOptions | None = None):
+        super().__init__(node_dim, control_dim, num_nodes, options)
+        o = self.options
         width = num_nodes * (node_dim + control_dim)
         modules: list[nn.Module] = []
-        for _ in range(layers):
-            modules += [nn.Linear(width, hidden), nn.LayerNorm(hidden), ACTIVATIONS[activation]()]
-            width = hidden
+        for _ in range(o.layers):
+            modules += [nn.Linear(width, o.hidden), nn.LayerNorm(o.hidden),
+                        ACTIVATIONS[o.activation]()]
+            width = o.hidden
         modules.append(nn.Linear(width, num_nodes * node_dim))
         self.net = nn.Sequential(*modules)
 

@@ -1,28 +1,70 @@
-"""Models by name: what `--model` accepts and checkpoints record."""
+"""Models by name: what `--model` accepts, each model's declared options, and the classes
+that checkpoints' `model_kind` rebuilds.
+
+Importing this module does not import torch: `OPTIONS` (name → options class) feeds the
+CLI's options and help, and `model_class` imports a model's module only when asked.
+Adding a model is its module, its options class in `mpnode_cli.models.options`, and one
+line in each table below.
+"""
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
 
-from torch import nn
+from mpnode_cli.models.options import (
+    GNODEOptions,
+    L2SOptions,
+    ModelOptions,
+    MPNODEOptions,
+    NODEOptions,
+)
 
-from mpnode_cli.models.gnode import GNODE
-from mpnode_cli.models.l2s import L2S
-from mpnode_cli.models.mpnode import MPNODE
-from mpnode_cli.models.node import NODE
+if TYPE_CHECKING:
+    from mpnode_cli.models.base import NeuralModel
 
-MODELS: dict[str, type[nn.Module]] = {"mpnode": MPNODE, "l2s": L2S, "gnode": GNODE, "node": NODE}
+OPTIONS: dict[str, type[ModelOptions]] = {
+    "mpnode": MPNODEOptions, "l2s": L2SOptions, "gnode": GNODEOptions, "node": NODEOptions,
+}
+_CLASSES = {"mpnode": "mpnode_cli.models.mpnode:MPNODE", "l2s": "mpnode_cli.models.l2s:L2S",
+            "gnode": "mpnode_cli.models.gnode:GNODE", "node": "mpnode_cli.models.node:NODE"}
 
 
-def build_model(kind: str, config: dict[str, Any]) -> nn.Module:
-    """Rebuild a model from its kind and `model.config`.
+def _check_kind(kind: str) -> None:
+    if kind not in OPTIONS:
+        raise ValueError(f"unknown model '{kind}' (choose from: {', '.join(OPTIONS)})")
+
+
+def model_class(kind: str) -> type[NeuralModel]:
+    """The model class registered as `kind` (imports its module, and so torch).
 
     Raises:
-        ValueError: unknown kind or configuration.
+        ValueError: unknown kind.
     """
-    if kind not in MODELS:
-        raise ValueError(f"unknown model '{kind}' (choose from: {', '.join(MODELS)})")
-    try:
-        return MODELS[kind](**config)
-    except TypeError as exc:
-        raise ValueError(f"bad configuration for model '{kind}': {exc}") from None
+    _check_kind(kind)
+    module, name = _CLASSES[kind].split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def resolve_options(kind: str, given: Mapping[str, Any]) -> ModelOptions:
+    """Validate options given for model `kind`; those left out take the model's defaults.
+
+    Returns:
+        The model's options (`.model_dump()` holds every option, defaults filled in).
+
+    Raises:
+        ValueError: unknown kind, an option the model does not declare, or a bad value —
+            one line that names the model and the option.
+    """
+    _check_kind(kind)
+    return OPTIONS[kind].parse(given, kind)
+
+
+def build_model(kind: str, config: Mapping[str, Any]) -> NeuralModel:
+    """Build a model from its kind and `model.config` (data sizes and options, one flat dict).
+
+    Raises:
+        ValueError: unknown kind, missing sizes, or an option the model refuses.
+    """
+    return model_class(kind).from_config(config)

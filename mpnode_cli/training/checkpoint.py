@@ -1,4 +1,4 @@
-"""Checkpoint files, format "mpnode-checkpoint" version 2: everything to rebuild a model.
+"""Checkpoint files, format "mpnode-checkpoint" version 3: everything to rebuild a model.
 
 A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
 dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
@@ -26,6 +26,9 @@ Version 2 renamed MP-NODE's `aggregation` option (dense/scatter, how the mean is
 to `backend`, added the `aggregate` choice (mean/sum/pna) and the PNA degree statistic
 `degree_delta` to MP-NODE's and GNN-ODE's weights; version 1 files are upgraded on reading
 (they aggregated with the mean, or GNN-ODE's sum, which the upgrade keeps).
+Version 3 moved the model options of `train_config` into its `model_options`, and L2S's
+training input noise `step_noise` from there into its `model_config` (an L2S option);
+version 2 files are upgraded on reading.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
 leaves the previous checkpoint intact.
@@ -38,14 +41,18 @@ import os
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from mpnode_cli import __version__
+from mpnode_cli.config import upgrade_train_fields
+
+if TYPE_CHECKING:
+    from mpnode_cli.models.base import NeuralModel
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 
 
 class CheckpointFormatError(ValueError):
@@ -71,7 +78,7 @@ class Checkpoint:
     mpnode_version: str = __version__
     path: Path | None = None
 
-    def build_model(self) -> torch.nn.Module:
+    def build_model(self) -> NeuralModel:
         """The model with these weights (on the CPU)."""
         from mpnode_cli.models.registry import build_model
 
@@ -141,6 +148,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             f"(v{FORMAT_VERSION}); upgrade mpnode")
     if version < 2:
         _upgrade_v1(payload)
+    if version < 3:
+        _upgrade_v2(payload)
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],
@@ -163,6 +172,18 @@ def _upgrade_v1(payload: dict[str, Any]) -> None:
     state = payload.get("state_dict")
     if kind in ("mpnode", "gnode") and isinstance(state, dict):
         state.setdefault("degree_delta", torch.zeros((), dtype=torch.float64))
+
+
+def _upgrade_v2(payload: dict[str, Any]) -> None:
+    """Version 2 → 3 in place: model options out of the train config, and L2S's
+    `step_noise` (then a train config field) into its model config."""
+    train_config, config = payload.get("train_config"), payload.get("model_config")
+    if not isinstance(train_config, dict):
+        return
+    if payload.get("model_kind") == "l2s" and isinstance(config, dict) and (
+            "step_noise" in train_config):
+        config.setdefault("step_noise", train_config["step_noise"])
+    payload["train_config"] = upgrade_train_fields(train_config)
 
 
 def file_sha256(path: str | Path) -> str:

@@ -18,7 +18,8 @@ from typing import Any
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
-from mpnode_cli.models.base import rollout_from_data
+from mpnode_cli.models.base import NeuralModel
+from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.training.losses import huber_loss
 
 
@@ -75,13 +76,13 @@ class Prediction:
     status: torch.Tensor
 
 
-def evaluate(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalizer, *,
+def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *,
              batch_size: int = 128, rtol: float = 1e-4, atol: float = 1e-4,
              fixed_dt: float | None = None, device: str | torch.device = "cpu") -> EvalResult:
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
-        model: a model with `rollout` (see `mpnode_cli.models`), already on `device`.
+        model: the model, already on `device`.
         data: the trajectories (one split, or all); physical units.
         normalizer: the training normalization (the model works in its units).
         batch_size: trajectories per rollout.
@@ -103,8 +104,8 @@ def evaluate(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalize
         for idx in torch.arange(k).split(batch_size):
             batch = data.take(idx)
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
-            out = rollout_from_data(model, x, ts, batch.adjacency.to(device), u, rtol=rtol,
-                                    atol=atol, fixed_dt=fixed_dt)
+            out = model.rollout_from_data(x, ts, batch.adjacency.to(device), u, rtol=rtol,
+                                          atol=atol, fixed_dt=fixed_dt)
             n_f_evals += out.n_f_evals
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
             failed += int((~good).sum())
@@ -130,15 +131,16 @@ def evaluate(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalize
     )  # fmt: skip
 
 
-def predict(model: torch.nn.Module, data: TrajectoryData, normalizer: Normalizer,
+def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
             index: torch.Tensor, *, rtol: float = 1e-4, atol: float = 1e-4,
             fixed_dt: float | None = None, device: str | torch.device = "cpu") -> Prediction:
     """Roll out the trajectories at `index` (`[B]`) and return them in physical units."""
     batch = data.take(index)
     x, u = _normalized(batch, normalizer, device)
     with torch.no_grad():
-        out = rollout_from_data(model, x, data.time.to(device), batch.adjacency.to(device), u,
-                                rtol=rtol, atol=atol, fixed_dt=fixed_dt, return_messages=True)
+        out = model.rollout_from_data(x, data.time.to(device), batch.adjacency.to(device), u,
+                                      rtol=rtol, atol=atol, fixed_dt=fixed_dt,
+                                      return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
                       messages=messages, status=out.status.cpu())
@@ -154,8 +156,6 @@ def check_compatible(model_kind: str, model_config: dict[str, Any], trained_node
         data: the dataset to run on.
         verb: what the user asked for ("finetune", "zeroshot", ...), for the message.
     """
-    from mpnode_cli.models.registry import MODELS
-
     name = data.path.name
     for field, have in (("node_dim", data.node_dim), ("control_dim", data.control_dim)):
         want = int(model_config.get(field, 0))
@@ -164,8 +164,8 @@ def check_compatible(model_kind: str, model_config: dict[str, Any], trained_node
             raise ValueError(
                 f"{name} has {field} {have} but the checkpoint expects {want}: {verb} needs "
                 f"the same per-node {what} size")
-    cls = MODELS.get(model_kind)
-    if cls is not None and not cls.transferable and data.num_nodes != trained_nodes:
+    transferable = model_kind not in OPTIONS or model_class(model_kind).transferable
+    if not transferable and data.num_nodes != trained_nodes:
         raise ValueError(
             f"{name} has {data.num_nodes} nodes but model '{model_kind}' was trained on "
             f"{trained_nodes} and only runs on graphs of that size")

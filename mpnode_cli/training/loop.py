@@ -22,7 +22,6 @@ optimizer, RNG states and the loop's counters — so 2 + 2 epochs equal 4.
 from __future__ import annotations
 
 import copy
-import inspect
 import math
 import time
 from collections.abc import Callable
@@ -32,10 +31,9 @@ from typing import Any
 
 import torch
 
-from mpnode_cli.config import MODEL_OPTIONS, TrainConfig
+from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
-from mpnode_cli.models.base import rollout_from_data
-from mpnode_cli.models.registry import MODELS, build_model
+from mpnode_cli.models.registry import OPTIONS, build_model, resolve_options
 from mpnode_cli.solver import Status
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint, save_checkpoint
@@ -89,10 +87,13 @@ def train(config: TrainConfig, *, resume: bool = False,
         TrainingDiverged: bad steps persisted down to `min_lr`.
     """
     emit = progress or (lambda event: None)
-    device = _device(config.device)
 
     # 1. Data: the train split (optionally its first K trajectories) and the validation split.
     data = TrajectoryData.load(config.dataset)
+    if not resume:  # a resumed run's config.json is already resolved
+        config = resolve_config(config, data)
+    device = _device(config.device)
+    loss_fn = LOSSES[config.loss]
     train_set, val_set = data.subset("train"), data.subset("validation")
     if config.trajectories is not None:
         train_set = train_set.take(torch.arange(min(config.trajectories, len(train_set))))
@@ -111,22 +112,16 @@ def train(config: TrainConfig, *, resume: bool = False,
         kind, model_config = source.model_kind, source.model_config
         check_compatible(kind, model_config, source.dataset["num_nodes"], data,
                          "finetune" if parent else "resume")
-    else:
-        kind = config.model
-    if kind not in MODELS:
-        raise ValueError(f"unknown model '{kind}' (choose from: {', '.join(MODELS)})")
-    accepted = inspect.signature(MODELS[kind].__init__).parameters
-    config = resolve_recipe(config, data.system, data.attrs.get("recipe"),
-                            data.time.numel(), lambda name: name in accepted)
-    loss_fn = LOSSES[config.loss]
-    if source is None:
-        model_config = _model_config(config, data)
+    else:  # sizes from the data, options as resolved
+        kind, model_config = config.model, {
+            "node_dim": data.node_dim, "control_dim": data.control_dim,
+            "num_nodes": data.num_nodes, **config.model_options}
     torch.manual_seed(config.seed)
     model = build_model(kind, model_config)
     # config.json tells the truth: the architecture is what was built.
     model_config = model.config
-    config = config.model_copy(update={
-        "model": kind, **{k: v for k, v in model_config.items() if k in MODEL_OPTIONS}})
+    config = config.model_copy(update={"model": kind,
+                                       "model_options": model.options.model_dump()})
     run_dir = Path(config.run_dir or runs.default_run_dir(config.dataset, kind))
     config = config.model_copy(update={"run_dir": run_dir})
     if last is not None and last.dataset["fingerprint"] != data.fingerprint:
@@ -141,7 +136,7 @@ def train(config: TrainConfig, *, resume: bool = False,
 
     if source is not None:
         model.load_state_dict(source.state_dict)
-    if hasattr(model, "fit_statistics") and (source is None or (parent and config.renormalize)):
+    if source is None or (parent and config.renormalize):
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
         model.fit_statistics(normalizer.norm_x(train_set.states),
                              float(train_set.time[1] - train_set.time[0]), train_set.adjacency)
@@ -293,18 +288,13 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
 def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig):
     """One update from `x: [B, H, N, D]`. Returns (loss, grad norm, RHS evals, skip reason)."""
     optimizer.zero_grad(set_to_none=True)
-    if getattr(model, "one_step", False):
-        # L2S learns one step ahead (with its own input noise) and is rolled out only to
-        # validate; the others learn from whole-horizon rollouts.
-        loss, evals = model.one_step_loss(x, adjacency, u, noise_std=config.step_noise), 0
-    else:
-        out = rollout_from_data(model, x, ts, adjacency, u, rtol=config.rtol,
+    batch = model.training_loss(x, ts, adjacency, u, loss_fn, rtol=config.rtol,
                                 atol=config.atol, fixed_dt=config.fixed_dt)
-        failed, evals = int((out.status != 0).sum()), out.n_f_evals
-        if failed:
-            worst = Status(int(out.status.max())).name
-            return math.nan, math.nan, evals, f"solver {worst} on {failed} trajectories"
-        loss = loss_fn(out.states, x)
+    loss, evals = batch.loss, batch.n_f_evals
+    if loss is None:
+        failed = int((batch.status != 0).sum())
+        worst = Status(int(batch.status.max())).name
+        return math.nan, math.nan, evals, f"solver {worst} on {failed} trajectories"
     if not torch.isfinite(loss):
         return math.nan, math.nan, evals, "non-finite loss"
     loss.backward()
@@ -341,19 +331,24 @@ def _record(state: LoopState, epoch: int, val: EvalResult, config: TrainConfig,
             "seconds": seconds, "improved": improved}
 
 
-def _model_config(config: TrainConfig, data: TrajectoryData) -> dict[str, Any]:
-    """A new model's constructor arguments: sizes from the data, options from the config."""
-    if config.model not in MODELS:
-        raise ValueError(f"unknown model '{config.model}' (choose from: {', '.join(MODELS)})")
-    accepted = inspect.signature(MODELS[config.model].__init__).parameters
-    given = config.model_options()
-    foreign = [name for name in given if name not in accepted]
-    if foreign:
-        shown = ", ".join("--" + name.replace("_", "-") for name in foreign)
-        raise ValueError(f"model '{config.model}' has no option {shown}")
-    sizes = {"node_dim": data.node_dim, "control_dim": data.control_dim,
-             "num_nodes": data.num_nodes}
-    return {k: v for k, v in sizes.items() if k in accepted} | given
+def resolve_config(config: TrainConfig, data: TrajectoryData) -> TrainConfig:
+    """Fill what `config` was not given from its recipe (for `data`), then check the model
+    and its options and fill in the options' defaults.
+
+    A finetune's model comes from its checkpoint, so its model options are left as they are.
+
+    Raises:
+        ValueError: unknown model, or an option the model does not declare or refuses
+            (one line naming the model and the option).
+    """
+    finetune = config.init_checkpoint is not None
+    declared = () if finetune or config.model not in OPTIONS else OPTIONS[config.model].model_fields
+    config = resolve_recipe(config, data.system, data.attrs.get("recipe"), data.time.numel(),
+                            lambda name: name in declared)
+    if finetune:
+        return config
+    options = resolve_options(config.model, config.model_options)
+    return config.model_copy(update={"model_options": options.model_dump()})
 
 
 def _horizon(config: TrainConfig, epoch: int, t: int) -> int:

@@ -94,6 +94,9 @@ def resolve_recipe(config: TrainConfig, system: str, stored: dict[str, Any] | No
     if "val_batch_size" in update and update["val_batch_size"] is None:
         update["val_batch_size"] = config.batch_size if "batch_size" in given else values[
             "batch_size"]
-    update |= {k: v for k, v in model_options.items()
-               if accepts(k) and k not in given and getattr(config, k, None) is None}
+    chosen = dict(config.model_options)  # the options given win, key by key
+    for k, v in model_options.items():
+        if accepts(k):
+            chosen.setdefault(k, v)
+    update["model_options"] = chosen
     return config.model_copy(update=update)

@@ -19,7 +19,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config import TrainConfig, upgrade_train_fields
 
 CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
 
@@ -83,13 +83,15 @@ def checkpoint_path(run_dir: Path, which: str) -> Path:
 def read_config(run_dir: str | Path) -> TrainConfig:
     """The resolved config of an existing run (for `--resume`).
 
+    A config written before `model_options` existed (flat model fields) is upgraded.
+
     Raises:
         ValueError: no run there, or a config that no longer validates.
     """
     path = Path(run_dir) / CONFIG
     if not path.is_file():
         raise ValueError(f"{run_dir} is not a run folder (no {CONFIG})")
-    return TrainConfig(**json.loads(path.read_text()))
+    return TrainConfig(**upgrade_train_fields(json.loads(path.read_text())))
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:

@@ -1,0 +1,104 @@
+"""Each model's declared options: typed, defaulted, documented, and free of torch.
+
+A model class (`mpnode_cli.models.<name>`) names its options class as `Options`; the
+registry maps model names to them. They live here, apart from the models, because the CLI
+builds `mpnode train`'s options and their help from these declarations at import time, and
+`mpnode --help` must not import torch. Each field's `description` is its CLI help (the CLI
+adds a `Literal` field's choices and the models that take the option).
+
+The choices shared with the torch side are declared once, here, as `Literal` types:
+`mpnode_cli.models.aggregate` takes its `AGGREGATES` and `BACKENDS` from them and
+`mpnode_cli.models.base.ACTIVATIONS` is tested to cover `Activation`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+Activation = Literal["tanh", "relu", "elu", "silu", "softplus"]
+Aggregate = Literal["mean", "sum", "pna"]
+Backend = Literal["auto", "dense", "scatter"]
+GraphMode = Literal["sys", "full"]
+
+_GRAPH = "Graph messages pass over: sys is the dataset's, full is complete with self-loops."
+_AGGREGATE = "Neighbour aggregation: mean is the paper's; sum and pna sense the in-degree."
+
+
+class ModelOptions(BaseModel):
+    """Base of every model's options: unknown names are refused, and a built model's
+    options cannot change under it (they are its `config`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @classmethod
+    def parse(cls, given: Mapping[str, Any], model: str) -> Self:
+        """Validate options given for `model`; those left out take their defaults.
+
+        Raises:
+            ValueError: an option this model does not declare, or a bad value — one line
+                that names the model and the option.
+        """
+        foreign = [name for name in given if name not in cls.model_fields]
+        if foreign:
+            raise ValueError(f"model '{model}' has no option '{foreign[0]}' (its options: "
+                             f"{', '.join(cls.model_fields)})")
+        try:
+            return cls(**given)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            loc = ".".join(str(p) for p in err["loc"])
+            raise ValueError(f"model '{model}' option {loc}: {err['msg']} "
+                             f"(got {err['input']!r})") from None
+
+
+class MPNODEOptions(ModelOptions):
+    """MP-NODE (Gupta, Vemprala & Kapoor 2022, §3.2); defaults are the authors' shipped
+    widths (MPNODE.jl, exps/models.jl:92-95)."""
+
+    message_dim: int = Field(3, ge=0, description="Message states per node (M).")
+    hidden: int = Field(32, ge=1, description="Width of the hidden layers.")
+    layers: int = Field(2, ge=1, description="Hidden layers of the MLP.")
+    activation: Activation = Field("tanh", description="Nonlinearity of the hidden layers.")
+    graph: GraphMode = Field("sys", description=_GRAPH)
+    messages: bool = Field(True, description=(
+        "Pass messages between nodes; off clamps incoming messages to zero (the paper's "
+        "§4.1 ablation)."))
+    aggregate: Aggregate = Field("mean", description=_AGGREGATE)
+    backend: Backend = Field(
+        "auto", description="How aggregation is computed (auto picks by graph size).")
+
+
+class L2SOptions(ModelOptions):
+    """Learning to Simulate (Sanchez-Gonzalez et al. 2020) without edge features."""
+
+    latent: int = Field(128, ge=1, description="Node and edge latent size.")
+    hidden: int = Field(128, ge=1, description="Width of the hidden layers.")
+    layers: int = Field(2, ge=1, description="Hidden layers of the MLP.")
+    steps: int = Field(10, ge=1, description="Message-passing steps (unshared weights).")
+    history: int = Field(
+        1, ge=1, description="Input states C (C > 1 starts rollouts from C data states).")
+    graph: GraphMode = Field("sys", description=_GRAPH)
+    step_noise: float = Field(
+        3e-3, ge=0,
+        description="Std of the random-walk noise on one-step training inputs (normalized).")
+
+
+class GNODEOptions(ModelOptions):
+    """The authors' GNN-ODE baseline (`gnnsc_de0`); defaults as they shipped it."""
+
+    hidden: int = Field(32, ge=1, description="Width of the hidden layers.")
+    depth: int = Field(
+        1, ge=1, description="Message-passing steps per evaluation (shared weights).")
+    graph: GraphMode = Field("sys", description=_GRAPH)
+    aggregate: Aggregate = Field("sum", description=_AGGREGATE)
+
+
+class NODEOptions(ModelOptions):
+    """The authors' monolithic neural ODE (`ndeln4`)."""
+
+    hidden: int = Field(32, ge=1, description="Width of the hidden layers.")
+    layers: int = Field(2, ge=1, description="Hidden layers of the MLP.")
+    activation: Activation = Field("tanh", description="Nonlinearity of the hidden layers.")
