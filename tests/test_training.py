@@ -57,7 +57,8 @@ def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
     assert summary.best_epoch == min(metrics, key=lambda r: r["val_loss"])["epoch"]
     assert summary.table2 == pytest.approx(summary.best_epoch * summary.min_val_loss)
     assert summary.test["mse"] < metrics[0]["val_mse"] / 10
-    assert summary.parameters == 1348  # 4→32→32→4, the authors' gene count (notes §1.1)
+    # The authors' gene count, 4→32→32→4 (MPNODE.jl exps/models.jl:92-95; docs/authors-code.md).
+    assert summary.parameters == 1348
     files = {p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*")}
     assert {"config.json", "metrics.jsonl", "summary.json", "checkpoints/best.pt",
             "checkpoints/last.pt", "plots/gene-test-rollout.png",
