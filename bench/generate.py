@@ -13,8 +13,8 @@ Usage:
     .venv/bin/python bench/generate.py                    # every preset, 20 scipy trajectories
     .venv/bin/python bench/generate.py --presets lorenz10 gene-ba-8x8 --scipy-trajectories 50
 
-Writes `bench/results/generate.md`. Issue 3's target: ≥ 20× faster than the scipy loop on
-lorenz10 and gene-ba-8x8.
+Writes `bench/results/generate.md`. Target: ≥ 20× faster than the scipy loop on lorenz10
+and gene-ba-8x8.
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def markdown(rows: list[dict], n_scipy: int) -> str:
         "not measured.",
         "- speed-up = scipy (all, extrapolated) / ours. max abs diff = largest difference "
         "between the two solutions on the subset.",
-        "- target (issue 3): ≥ 20× on lorenz10 and gene-ba-8x8.",
+        "- target: ≥ 20× on lorenz10 and gene-ba-8x8.",
         "",
         *lines,
         "",

@@ -23,7 +23,7 @@ can look better than its model is).
 Usage:
     .venv/bin/python bench/train.py                         # 100 epochs per variant
     .venv/bin/python bench/train.py --epochs 3 --trajectories 200 --out /tmp/train.md  # smoke
-Writes `bench/results/train.md`. Issue 4's target: ≥ 2× faster per epoch than torchdiffeq
+Writes `bench/results/train.md`. Target: ≥ 2× faster per epoch than torchdiffeq
 and not slower than torchode, at equal loss.
 """
 

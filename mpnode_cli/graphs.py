@@ -7,7 +7,7 @@ node i, i.e. row i lists the senders of receiver i. All generated graphs are und
 
 Random graphs come from networkx with an explicit integer seed. The authors' graphs came
 from LightGraphs.jl (MersenneTwister streams) and cannot be reproduced from Python, which
-is why every dataset stores its adjacency (systems-notes §9.13).
+is why every dataset stores its adjacency (docs/systems.md).
 
 networkx is imported inside the functions that need it, so that importing this module (and
 the system registry, which imports it) stays cheap for the CLI.

@@ -2,9 +2,10 @@
 
 `TrajectoryData` holds a dataset file's trajectories as torch tensors with each trajectory's
 own adjacency (gathered from the file's `[G, N, N]` by `graph_index`), so a batch is just an
-index. `Normalizer` is the z-score of the authors' `ztransform` (mpnode-jl-notes §2.3): one
-mean and std per node feature, pooled over nodes, time and trajectories — but fitted on the
-**train split only** (the authors fitted on all data, validation included).
+index. `Normalizer` is the z-score of the authors' `ztransform` (MPNODE.jl
+`src/datatransform.jl:20-35`; docs/authors-code.md): one mean and std per node feature,
+pooled over nodes, time and trajectories — but fitted on the **train split only** (the
+authors fitted on all data, validation included).
 """
 
 from __future__ import annotations

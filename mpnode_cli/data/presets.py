@@ -3,18 +3,18 @@
 A preset is a partial `GenerateConfig` (field → value); `mpnode generate --preset NAME`
 starts from it and lets a config file and command-line options override any field.
 
-Sources, in order of authority: issue 3 (which settles paper vs. authors' code), the paper's
-appendix, then the authors' code (`../shared/reference/mpnode-jl-notes.md` §4). Where the
-issue is silent:
-- lorenz: 1000 trajectories × 51 samples (dt 0.05, 2.5 s), the authors' shipped configs
-  (notes §4.1); `lorenz10-long` stretches the horizon to 10 s (201 samples).
+Sources: the paper's appendix first, then the authors' code (MPNODE.jl); the choices and
+their reasons are in docs/systems.md.
+- lorenz: 1000 trajectories × 51 samples (dt 0.05, 2.5 s), the authors' shipped config
+  (`configs/empode_sys_32_3.toml`); `lorenz10-long` stretches the horizon to 10 s (201
+  samples), the paper's §4.2.
 - gene: the paper's 200 trajectories over 5 graphs, dt 0.1, 5 s, for every topology and
   size (the paper states it for BA; the other graphs are treated the same way).
 - kuramoto: the paper gives 500 trajectories at dt 0.05 but no horizon; we use the
-  authors' 50 steps (2.5 s, notes §4.5).
+  authors' 50 steps (2.5 s).
 - pendulum: the paper's 500 trajectories, dt 0.1, 10 s, with the authors' initial-state
-  box θ ∈ [−π/4, π/4], θ̇ ∈ [−0.5, 0.5] (issue 3's default); the appendix's wider box is
-  `--ic-range paper`.
+  box θ ∈ [−π/4, π/4], θ̇ ∈ [−0.5, 0.5] by default, because the appendix's wider box
+  reaches the cos θ = 0 singularity; that box is `--ic-range paper`.
 - quadrotor: the paper's 463 flights of 10 s sampled every 0.2 s (App. A.5) for three
   quads; the paper gives no count for six, so `quad6` has 463 as well.
 """
@@ -23,7 +23,8 @@ from __future__ import annotations
 
 from typing import Any
 
-# The authors' data defaults (notes §4.1), for a system without its own entry below.
+# The authors' data defaults (configs/empode_sys_32_3.toml), for a system without its own
+# entry below.
 DEFAULTS: dict[str, Any] = {"trajectories": 1000, "t_end": 2.5, "dt": 0.05}
 
 # Trajectories, horizon and spacing of `mpnode generate SYSTEM` without a preset.

@@ -1,6 +1,7 @@
 """GNN-ODE: the baseline the authors ran under the name "L2S" (`gnnsc_de0`).
 
-mpnode-jl-notes §5.1 / systems-notes §6b: a graph network used as a neural-ODE vector field,
+MPNODE.jl `exps/models.jl:62-75` and `src/gnnode.jl:39-58, 92-100` (docs/authors-code.md):
+a graph network used as a neural-ODE vector field,
 
     h⁰ = tanh(W_e [x; u] + b_e)
     h  ← tanh(W_b Σ_{j∈N(i)} tanh(W_m h_j + b_m) + b_b) + h      (`depth` times, shared weights)

@@ -10,8 +10,9 @@ The paper's Fig. 1 (right): encode → process → decode, one step ahead.
 - Decoder: MLP (no LayerNorm) → the normalized next-step state difference Δ.
 Trained one step ahead with random-walk input noise (`one_step_loss`); evaluated by
 autoregressive rollout over the whole horizon, x_{t+1} = x_t + Δ̂. Departures from DeepMind's
-simulator (systems-notes §6a): no positions, so no edge features and no connectivity radius;
-a first-order Δ instead of an acceleration with semi-implicit Euler.
+simulator (deepmind-research `learning_to_simulate/`; docs/authors-code.md): no positions, so
+no edge features and no connectivity radius; a first-order Δ instead of an acceleration with
+semi-implicit Euler.
 """
 
 from __future__ import annotations

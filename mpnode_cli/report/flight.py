@@ -16,8 +16,9 @@ matplotlib.use("Agg")  # before pyplot: servers and CI have no display
 import matplotlib.pyplot as plt
 import numpy as np
 
-# The doorway of the RA-L set-up (systems-notes §7), as `systems/quadrotor_flight.py` checks
-# it; repeated because reports sit below systems and do not import them.
+# The doorway of the RA-L set-up (TrajectoryOptimization.jl `examples/RA-L/problem.jl`;
+# docs/quadrotor.md), as `systems/quadrotor_flight.py` checks it; repeated because reports
+# sit below systems and do not import them.
 CYLINDERS = ((2.5, 1.0), (2.5, -1.0), (3.0, 1.0), (3.0, -1.0))
 CYLINDER_RADIUS = 0.5
 CEILING = 2.1

@@ -3,10 +3,10 @@
 One entry point, `solve(f, y0, t_eval, ...) -> Solution`. Each sample of the batch has its
 own time, step size, error control, controller history, counters and status, so a sample's
 result does not depend on what else is in the batch (torchdiffeq shares one step size across
-the batch; see `../shared/reference/solver-notes.md` §3), and a sample that fails is frozen
-and marked while the others go on.
+the batch; see docs/solver.md), and a sample that fails is frozen and marked while the others
+go on.
 
-Design points (solver-notes §7):
+Design points (docs/solver.md):
 - Stage sums are one fused `addmv` per stage over a stage-major `[7, B, F]` buffer of h·k_i
   (the per-sample step size is applied once, when a stage is stored), so a stage costs two
   tensor ops plus `f`.

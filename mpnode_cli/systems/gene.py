@@ -6,8 +6,9 @@ One scalar state per node:
 
 The n = side² nodes sit on a side×side grid (node i at row i // side, column i % side), but
 the grid is only a layout for plots and hot-spot initial states; the coupling is the random
-graph. Graphs as in the authors' code (systems-notes §1b): `er` G(n, p = 0.5), `ba`
-Barabási–Albert with m = n/2, `ws` Watts–Strogatz with k = n/2, p = 0.5 (n // 2 for odd n).
+graph. Graphs as in the authors' code (MPNODE.jl `src/systems/gene_evolution.jl:29-50`;
+docs/systems.md): `er` G(n, p = 0.5), `ba` Barabási–Albert with m = n/2, `ws`
+Watts–Strogatz with k = n/2, p = 0.5 (n // 2 for odd n).
 
 Initial states: `init="uniform"` draws x_i ~ U(0, 50) (the authors' default sampler);
 `init="hotspot"` is their `custom_init_state`: three rectangles with start U(0.1, 0.9) and

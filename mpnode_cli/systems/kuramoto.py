@@ -5,11 +5,14 @@ Each node carries 3 independent phases, coupled component-wise along the graph:
     θ̇_i = ω + K · Σ_j A_ij · sin(θ_j − θ_i),    K = 1/3, no degree normalisation,
 
 with one natural-frequency vector ω ~ N(0, I₃) per graph, shared by all its nodes
-(systems-notes §2a). Phases are not wrapped. Initial states U(−1, 1).
+(`src/systems/kuramoto.jl:25-54`). Phases are not wrapped. Initial states U(−1, 1).
 
-Graphs with mean degree ≈ 5 (issue 3): `ba` with m = 5 (needs N > 5), `er` G(n, M) with
-M = round(5n/2) edges (halves round up; capped at the complete graph), `ws` with k = 4,
-p = 0.5. The authors' ER graph had only 5 edges (systems-notes §9.3); we follow the issue.
+Graphs with mean degree ≈ 5, the paper's "each node connected to 5 other nodes" (App. A.4):
+`ba` with m = 5 (needs N > 5), `er` G(n, M) with M = round(5n/2) edges (halves round up;
+capped at the complete graph), `ws` with k = 4, p = 0.5. We follow the paper here, not the
+authors' code: their ER graph, LightGraphs' `erdos_renyi(10, 5)` (`kuramoto.jl:58`), takes
+the integer 5 as an edge count, so it has 5 edges and mostly isolated nodes, a nearly
+uncoupled system rather than another topology of the same one (docs/systems.md).
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ H is drawn once per graph as the authors did: entries U[0, 1), each node's own 3
 zero, then scaled to Frobenius norm c (`coupling`; 0.01 default, 1.0 the paper's "high").
 Departure: blocks (i, j) where the graph has no edge j → i are zeroed too, so a user's edge
 list means something; on the complete graph (the only built-in topology) this changes
-nothing. Initial states U(−1, 1) per component (systems-notes §4).
+nothing. Initial states U(−1, 1) per component (`lorenzsystem.jl:12`). More in
+docs/systems.md.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Coupled pendulums: the paper's eq. (6), generalised from 2 nodes to a chain.
 
 Each node is a pendulum (mass m, length l) with state [θ, θ̇]; a spring of stiffness k joins
-neighbours. As in MPNODE.jl `src/systems/pendulum.jl` (systems-notes §3), gravity enters as
-m·g, which equals the paper's form at m = 1:
+neighbours. As in MPNODE.jl `src/systems/pendulum.jl:43-52` (docs/systems.md), gravity
+enters as m·g, which equals the paper's form at m = 1:
 
     θ̈_i = [m·sin θ_i·(l·θ̇_i² − g) + k·l·Σ_j A_ij (sin θ_j − sin θ_i)] / (m·l·cos θ_i)
 

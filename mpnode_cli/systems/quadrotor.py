@@ -4,7 +4,7 @@ The paper's hardest system: the authors generated it with the trajectory optimiz
 et al. (RA-L 2020) and never released a generator; this is a self-contained closed-loop one
 (physics in `quadrotor_dynamics`, reference and controller in `quadrotor_control`, the
 design and its checks in `docs/quadrotor.md`). Parameters are the RA-L code's
-(`examples/RA-L/models.jl`, systems-notes §7).
+(RoboticExplorationLab/TrajectoryOptimization.jl, `examples/RA-L/models.jl`).
 
 Dataset: node = quadrotor, state 13 (r, q scalar first, v world, ω body), control 5 (the
 four rotor forces and the cable tension, each the mean over the 0.2 s sample interval),

@@ -2,10 +2,10 @@
 
 Everything here is batched torch in the caller's dtype, with no Python loop over flights.
 
-Quadrotor (Jackson et al., RA-L 2020, `examples/RA-L/models.jl`; systems-notes §7): state 13
-= position r, unit quaternion q (scalar first, body → world), world-frame velocity v, body
-rates ω. Rotor forces w₁..₄ (kf = 1, so w is a force in N) in a "+" layout, rotor 1 on +x,
-2 on +y, 3 on −x, 4 on −y:
+Quadrotor (Jackson et al., RA-L 2020; TrajectoryOptimization.jl `examples/RA-L/models.jl`):
+state 13 = position r, unit quaternion q (scalar first, body → world), world-frame velocity
+v, body rates ω. Rotor forces w₁..₄ (kf = 1, so w is a force in N) in a "+" layout, rotor 1
+on +x, 2 on +y, 3 on −x, 4 on −y:
 
     ṙ = v,   q̇ = ½ q ⊗ (0, ω),   v̇ = g + (R(q)·(0, 0, Σw) + F_cable)/m,
     ω̇ = J⁻¹(τ − ω × Jω),   τ = (L(w₂ − w₄), L(w₃ − w₁), km(w₁ − w₂ + w₃ − w₄)).

@@ -5,7 +5,7 @@ dicts only — so `torch.load(path, weights_only=True)` reads it without unpickl
 It carries what made the weights (model kind and config, normalization, the resolved train
 config, the dataset's fingerprint) and what training needs to continue exactly (epoch,
 optimizer state, RNG states, the loop's counters), unlike the authors' weights-only JLD2
-files (mpnode-jl-notes §6.2).
+files (MPNODE.jl `src/learn.jl:110-115`; docs/authors-code.md).
 
 Fields of the dict:
     format, format_version, mpnode_version: what this file is.

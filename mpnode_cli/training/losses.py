@@ -6,7 +6,7 @@ import torch
 
 
 def huber_loss(pred: torch.Tensor, target: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
-    """The authors' "Huber along time" (`time_series_huber`, mpnode-jl-notes §2.5).
+    """The authors' "Huber along time", `time_series_huber` (MPNODE.jl `src/losses.jl:56-62`).
 
     Huber(δ) per element, summed over time (t₁…t_T) and features, averaged over
     trajectories × nodes.
