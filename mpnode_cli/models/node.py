@@ -1,8 +1,9 @@
 """A monolithic neural ODE over the whole system state (the authors' `ndeln4`).
 
 MPNODE.jl `exps/models.jl:25-31` (docs/authors-code.md): `Chain(DenseLN(N·(D+U) → 32, tanh),
-DenseLN(32 → 32, tanh), Dense(32 → N·D))` with `DenseLN` = Dense then LayerNorm. It sees every node at once, so it is
-tied to one node count N and cannot transfer to another graph size (`transferable = False`).
+DenseLN(32 → 32, tanh), Dense(32 → N·D))` with `DenseLN` = Dense then LayerNorm. It sees
+every node at once, so it is tied to one node count N and cannot transfer to another graph
+size (`transferable = False`).
 The graph is not an input: coupling must be learned from the concatenated state.
 """
 
