@@ -295,8 +295,15 @@ def zeroed_eval(checkpoint: str, data_path: str) -> None:
 # ------------------------------------------------------------------------------- scheduling
 
 
+def priorities(jobs: dict[str, tuple[float, tuple[str, ...]]]) -> dict[str, float]:
+    """A job's seconds plus those of the jobs waiting for it: what it holds up."""
+    return {name: seconds + sum(s for s, deps in jobs.values() if name in deps)
+            for name, (seconds, _) in jobs.items()}
+
+
 def schedule(jobs: dict[str, tuple[float, tuple[str, ...]]], workers: int) -> float:
-    """Makespan of list scheduling: the longest ready job first on the first free worker.
+    """Makespan of list scheduling, as `run_all` runs: the ready job of highest priority
+    first, on the first free worker.
 
     Args:
         jobs: name → (seconds, names it waits for).
@@ -304,10 +311,11 @@ def schedule(jobs: dict[str, tuple[float, tuple[str, ...]]], workers: int) -> fl
     done: dict[str, float] = {}
     free = [0.0] * workers
     pending = dict(jobs)
+    rank = priorities(jobs)
     while pending:
         ready = [(n, s, deps) for n, (s, deps) in pending.items()
                  if all(d in done or d not in jobs for d in deps)]
-        name, seconds, deps = max(ready, key=lambda job: job[1])
+        name, seconds, deps = max(ready, key=lambda job: rank[job[0]])
         w = min(range(workers), key=free.__getitem__)
         start = max([free[w], *(done[d] for d in deps if d in done)])
         done[name] = free[w] = start + seconds
@@ -364,7 +372,10 @@ def run_all(args, cases: list[Case], presets: list[str], report: Callable[[str],
         aggregate = default_aggregate(args)
         report(f"the CLI's default aggregation on gene-ba-4x4 is {aggregate}")
     names = {c.name for c in cases}
-    pending = sorted(cases, key=lambda c: -c.epochs * per_epoch(args, c)[0])
+    rank = priorities({c.name: (c.epochs * per_epoch(args, c)[0],
+                                tuple(filter(None, [reference(c, aggregate)])))
+                       for c in cases})
+    pending = sorted(cases, key=lambda c: -rank[c.name])
     running: dict[Future, Case] = {}
     failures: list[str] = []
     with ThreadPoolExecutor(args.workers) as pool:
