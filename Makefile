@@ -3,7 +3,7 @@ PY      := .venv/bin/python
 STAMP   := .venv/.installed
 TORCH   := torch==2.13.0
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint bench bench-quality clean
 
 setup: $(STAMP)
 
@@ -32,6 +32,12 @@ bench: $(STAMP)
 	$(PY) bench/solver.py
 	$(PY) bench/generate.py
 	$(PY) bench/train.py
+
+# The paper's experiments at fixed epoch budgets beside naive baselines; writes
+# bench/results/quality.md (about an hour on 2 cores: `$(PY) bench/quality.py --plan`).
+bench-quality: $(STAMP)
+	$(PY) -m pip install -q -e '.[dev,bench]'
+	$(PY) bench/quality.py
 
 clean:
 	rm -rf .venv build *.egg-info .pytest_cache .ruff_cache

@@ -71,6 +71,8 @@ def test_evaluate_table_json_and_plots(trained, data, tmp_path):
     result = invoke("evaluate", best, data["l3"])
     assert result.exit_code == 0, result.output
     assert "MSE (normalized)" in result.output and "RMSE z" in result.output
+    assert "hold-x(0) MSE" in result.output and "time-mean MSE" in result.output
+    assert "the time mean of the train split of l3.h5" in result.output
     result = invoke("evaluate", best, data["l3"], "--split", "validation", "--json", "--plot",
                     "--plot-dir", tmp_path)
     assert result.exit_code == 0, result.output
@@ -88,6 +90,7 @@ def test_zeroshot_onto_seven_nodes(trained, data):
     rows = json.loads(result.output)["datasets"]
     assert [r["num_nodes"] for r in rows] == [5, 7]
     assert all(r["result"]["failed"] == 0 and r["result"]["mse"] > 0 for r in rows)
+    assert all(r["baselines"]["hold_x0"] > 0 and r["baselines"]["time_mean"] > 0 for r in rows)
     table = invoke("zeroshot", best, data["l7"])
     assert table.exit_code == 0 and "l7.h5" in table.output
 

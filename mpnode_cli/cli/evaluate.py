@@ -3,6 +3,8 @@
 evaluate: one checkpoint on one dataset split, with optional plots. zeroshot: one checkpoint
 on datasets of other sizes and topologies, with the training normalization and no training.
 compare: runs side by side from their `summary.json` (or, unfinished, their metrics).
+Every MSE is shown beside two naive predictors (hold x(0) and the train split's time mean;
+`mpnode_cli.training.evaluate.baseline_mse`).
 Exit code 2 for anything the user can fix (a missing file, incompatible sizes).
 """
 
@@ -31,7 +33,7 @@ def evaluate_command(
     device: str = typer.Option("cpu", help="cpu or cuda."),
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
-    from mpnode_cli.report.tables import metrics_table
+    from mpnode_cli.report.tables import baselines_note, metrics_table
 
     ckpt = _load_checkpoint(checkpoint)
     where = (plot_dir or _default_plot_dir(checkpoint)) if plot else None
@@ -40,7 +42,9 @@ def evaluate_command(
         typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
         return
     title = f"{checkpoint} on {dataset} ({split}, N={row['num_nodes']})"
-    console().print(metrics_table(row["result"], ckpt.dataset["state_names"], title))
+    console().print(metrics_table(row["result"], ckpt.dataset["state_names"], title,
+                                  row["baselines"]))
+    console().print(baselines_note(row["baselines_note"]))
     for path in row["plots"]:
         typer.echo(f"wrote {path}")
 
@@ -54,7 +58,7 @@ def zeroshot_command(
     device: str = typer.Option("cpu", help="cpu or cuda."),
 ) -> None:
     """Run a trained node network on graphs it never saw, without training."""
-    from mpnode_cli.report.tables import zeroshot_table
+    from mpnode_cli.report.tables import baselines_note, zeroshot_table
 
     ckpt = _load_checkpoint(checkpoint)
     rows = [_evaluate(ckpt, path, split, "zeroshot", batch_size, device, None)
@@ -68,6 +72,8 @@ def zeroshot_command(
              f"N={trained['num_nodes']}, {trained.get('topology') or '?'})")
     console().print(zeroshot_table(
         [{**row, "dataset": Path(row["dataset"]).name} for row in rows], title))
+    for note in dict.fromkeys(row["baselines_note"] for row in rows):  # unique, in order
+        console().print(baselines_note(note))
 
 
 def compare_command(

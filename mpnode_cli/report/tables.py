@@ -1,7 +1,9 @@
 """Rich tables of results. They are built here and printed by `cli/` (the library never prints).
 
 Every function takes plain dicts (`EvalResult.to_dict()`, `summary.json`), so tables can be
-drawn from files as well as from live results.
+drawn from files as well as from live results. Every MSE is shown beside the two naive
+predictors of `mpnode_cli.training.evaluate.baseline_mse` (hold x(0), time mean), each with
+its ratio to the model's MSE: "×20" means the baseline's error is 20 times the model's.
 """
 
 from __future__ import annotations
@@ -27,13 +29,32 @@ def fmt(value: Any, digits: int = 4) -> str:
     return str(value)
 
 
-def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str) -> Table:
-    """One evaluation: errors, per-state RMSE, error at a few horizons."""
+def versus(baseline: Any, mse: Any) -> str:
+    """A baseline's MSE and its ratio to the model's: `0.1234 (×20.5)`."""
+    if not isinstance(baseline, float) or not isinstance(mse, float) or not mse > 0:
+        return fmt(baseline)
+    return f"{fmt(baseline)} (×{fmt(baseline / mse, 3)})"
+
+
+def baselines_note(source: str) -> str:
+    """The line under a table that says what the baselines are; `source` names the train
+    split whose time mean is used."""
+    return (f"baselines: hold x(0), and the time mean of {source}; "
+            "×: baseline MSE / model MSE")
+
+
+def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str,
+                  baselines: dict[str, Any] | None = None) -> Table:
+    """One evaluation: errors (beside the naive baselines), per-state RMSE, error at a few
+    horizons."""
     table = Table(title=title, show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column(justify="right")
     table.add_row("trajectories", f"{result['trajectories']} ({result['failed']} failed)")
     table.add_row("MSE (normalized)", fmt(result["mse"]))
+    baselines = baselines or {}
+    table.add_row("hold-x(0) MSE (× model)", versus(baselines.get("hold_x0"), result["mse"]))
+    table.add_row("time-mean MSE (× model)", versus(baselines.get("time_mean"), result["mse"]))
     table.add_row("Huber loss", fmt(result["huber"]))
     for name, rmse in zip(state_names, result["rmse"], strict=False):
         table.add_row(f"RMSE {name}", fmt(rmse))
@@ -49,37 +70,43 @@ def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str
 def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
     """One row per dataset: where the trained node network ran, and how well.
 
-    RMSE is in physical units, averaged over the states (per state in `--json`).
+    MSE is normalized, beside the baselines' (with their ratio to it); RMSE is in physical
+    units, averaged over the states (per state in `--json`).
     """
     table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD)
-    for name in ("dataset", "system", "N", "topology", "K", "failed", "MSE", "Huber",
-                 "RMSE"):
+    for name in ("dataset", "system", "N", "topology", "K", "failed", "MSE", "hold x(0)",
+                 "time mean", "Huber", "RMSE"):
         table.add_column(name, justify="left" if name in ("dataset", "system", "topology")
                          else "right")
     for row in rows:
         r = row["result"]
         rmse = [v for v in r["rmse"] if v is not None]
+        base = row.get("baselines") or {}
         table.add_row(row["dataset"], row["system"], str(row["num_nodes"]),
                       fmt(row["topology"]), str(r["trajectories"]), str(r["failed"]),
-                      fmt(r["mse"]), fmt(r["huber"]),
+                      fmt(r["mse"]), versus(base.get("hold_x0"), r["mse"]),
+                      versus(base.get("time_mean"), r["mse"]), fmt(r["huber"]),
                       fmt(sum(rmse) / len(rmse) if rmse else None))
     return table
 
 
 def compare_table(summaries: Sequence[dict[str, Any]]) -> Table:
-    """Runs side by side. Table-2 is the paper's figure: best epoch × min validation loss."""
+    """Runs side by side. Table-2 is the paper's figure: best epoch × min validation loss;
+    the test MSE sits beside the naive baselines' on the same split."""
     table = Table(title="runs (val: validation loss; MSE normalized)", title_justify="left",
                   box=box.SIMPLE_HEAD)
     columns = ("run", "model", "params", "epochs", "best", "min val", "Table-2", "test MSE",
-               "s/epoch")
+               "hold x(0)", "time mean", "s/epoch")
     for name in columns:
         table.add_column(name, justify="left" if name in ("run", "model") else "right")
     for s in summaries:
-        test = s.get("test") or {}
+        test, base = s.get("test") or {}, s.get("baselines") or {}
         epochs = fmt(s.get("epochs")) + ("" if s.get("finished", True) else "…")
         table.add_row(Path(s["run_dir"]).name, fmt(s.get("model")), fmt(s.get("parameters")),
                       epochs, fmt(s.get("best_epoch")), fmt(s.get("min_val_loss")),
                       fmt(s.get("table2")), fmt(test.get("mse")),
+                      versus(base.get("hold_x0"), test.get("mse")),
+                      versus(base.get("time_mean"), test.get("mse")),
                       fmt(s.get("seconds_per_epoch"), 3))
     return table
 
@@ -90,7 +117,7 @@ def train_table(summary: dict[str, Any]) -> Table:
                   title_justify="left")
     table.add_column(style="bold")
     table.add_column(justify="right")
-    test = summary.get("test") or {}
+    test, base = summary.get("test") or {}, summary.get("baselines") or {}
     rows = [
         ("model", f"{summary['model']} ({fmt(summary['parameters'])} parameters)"),
         ("data", f"{summary['dataset']} ({summary['system']}, N={summary['num_nodes']})"),
@@ -100,6 +127,8 @@ def train_table(summary: dict[str, Any]) -> Table:
         ("min validation MSE", fmt(summary["min_val_mse"])),
         ("Table-2 (best epoch × min val loss)", fmt(summary["table2"])),
         ("test MSE (normalized)", fmt(test.get("mse"))),
+        ("test hold-x(0) MSE (× model)", versus(base.get("hold_x0"), test.get("mse"))),
+        ("test time-mean MSE (× model)", versus(base.get("time_mean"), test.get("mse"))),
         ("test Huber", fmt(test.get("huber"))),
         ("seconds per epoch", fmt(summary["seconds_per_epoch"], 3)),
         ("wall seconds", fmt(summary["wall_seconds"], 3)),

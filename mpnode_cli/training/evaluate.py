@@ -5,6 +5,11 @@ Every trajectory is predicted open-loop from its first sample over the whole hor
 shooting, as the model is trained) and compared with the data at every later sample time
 (t₀ is given, so it is excluded). Errors are taken in the training normalization — the
 paper's "test error" is an MSE in normalized units — and per state in physical units.
+
+Every MSE comes with two naive predictors in the same units (`baseline_mse`), so that a
+number can be read without knowing the system: "hold x(0)" (nothing moves) and "time mean"
+(the train split's average trajectory, which knows the typical evolution but not this
+trajectory). A model worth having beats both by a wide margin.
 """
 
 from __future__ import annotations
@@ -146,6 +151,80 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
                       messages=messages, status=out.status.cpu())
 
 
+def baseline_mse(train: TrajectoryData, data: TrajectoryData,
+                 normalizer: Normalizer) -> dict[str, float]:
+    """The MSE of two naive predictors on `data`, in `evaluate`'s units.
+
+    Both are measured as `EvalResult.mse` is: normalized units, t₀ excluded, the mean over
+    every predicted sample, node and feature (over all trajectories of `data`, including any
+    whose model rollout failed).
+
+    - hold_x0: x̂(t_k) = x(t₀), every node keeps its initial state.
+    - time_mean: x̂(t_k) = the mean of the train trajectories' states at t_k, over
+      trajectories and nodes, per feature. A sample time of `data` takes the train mean of
+      the latest train sample time at or before it, so equal grids match sample by sample
+      and beyond the train horizon the last train time-mean is held.
+
+    Args:
+        train: trajectories whose per-time mean is the time_mean predictor (the split the
+            model was trained on). data: the trajectories to score; physical units both.
+        normalizer: the training normalization.
+
+    Returns:
+        `{"hold_x0": float, "time_mean": float}`, NaN where undefined (empty `data` or
+        `train`, or a single sample time).
+    """
+    if len(data) == 0 or data.time.numel() < 2:
+        return {"hold_x0": math.nan, "time_mean": math.nan}
+    x = normalizer.norm_x(data.states.double())  # (K, T, N, D)
+    hold = float((x[:, 1:] - x[:, :1]).pow(2).mean())
+    if len(train) == 0:
+        return {"hold_x0": hold, "time_mean": math.nan}
+    mean_t = normalizer.norm_x(train.states.double()).mean(dim=(0, 2))  # (T', D)
+    # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
+    ts, train_ts = data.time.double(), train.time.double()
+    slack = 1e-9 * max(1.0, float(ts.abs().max()))
+    at = torch.searchsorted(train_ts, ts + slack, right=True) - 1  # (T,) latest t' ≤ t_k
+    pred = mean_t[at.clamp(0, len(train_ts) - 1)]  # (T, D)
+    time_mean = float((x[:, 1:] - pred[None, 1:, None, :]).pow(2).mean())
+    return {"hold_x0": hold, "time_mean": time_mean}
+
+
+def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData, str]:
+    """The train split a checkpoint was fitted on, for `baseline_mse`'s time mean.
+
+    It is the checkpoint's own training dataset (the same file by fingerprint, or the file at
+    its recorded path if that still has the recorded fingerprint), limited to the first
+    `trajectories` as in training. When that file is gone or changed, the train split of
+    `data` stands in, and the returned note says so.
+
+    Returns:
+        (train trajectories, where they came from: "the train split of NAME", and why when
+        it is not the training dataset).
+    """
+    want = ckpt.dataset.get("fingerprint")
+    source, note = None, ""
+    if data.fingerprint == want:
+        source = data
+    else:
+        path = Path(ckpt.dataset.get("path") or "")
+        try:
+            candidate = TrajectoryData.load(path) if path.is_file() else None
+        except (OSError, ValueError):
+            candidate = None
+        if candidate is not None and candidate.fingerprint == want:
+            source = candidate
+    limit = ckpt.train_config.get("trajectories")
+    if source is None:
+        note = (f" (the training dataset {ckpt.dataset.get('path')} is missing or changed, "
+                f"so {data.path.name} stands in)")
+        source, limit = data, None
+    train = source.subset("train")
+    if limit is not None:
+        train = train.take(torch.arange(min(int(limit), len(train))))
+    return train, f"the train split of {source.path.name}{note}"
+
+
 def check_compatible(model_kind: str, model_config: dict[str, Any], trained_nodes: int,
                      data: TrajectoryData, verb: str) -> None:
     """Raise a one-line `ValueError` when a trained model cannot run on `data`.
@@ -186,7 +265,9 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
             there as `<dataset>-<split>-rollout.png` and `-error.png`.
 
     Returns:
-        JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`), plots.
+        JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`),
+        baselines (`baseline_mse`, with the train split from `train_reference`),
+        baselines_note (where the time mean came from), plots.
 
     Raises:
         ValueError: incompatible per-node sizes, or an empty split.
@@ -200,6 +281,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                "atol": ckpt.train_config.get("atol", 1e-4),
                "fixed_dt": ckpt.train_config.get("fixed_dt"), "device": device}
     result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
+    train, note = train_reference(ckpt, data)
+    baselines = {k: _finite(v) for k, v in baseline_mse(train, subset, normalizer).items()}
     plots: list[str] = []
     if plot_dir is not None:
         from mpnode_cli.report.plots import plot_error_vs_time, plot_rollout
@@ -217,7 +300,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         ]
     return {"dataset": str(data.path), "system": data.system, "num_nodes": data.num_nodes,
             "topology": data.attrs.get("topology"), "split": split,
-            "result": result.to_dict(), "plots": plots}
+            "result": result.to_dict(), "baselines": baselines, "baselines_note": note,
+            "plots": plots}
 
 
 def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):

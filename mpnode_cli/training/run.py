@@ -29,7 +29,9 @@ class TrainSummary:
     """What `summary.json` holds: `train`'s result.
 
     `table2` is the paper's Table-2 figure, best epoch × minimum validation loss; `test`
-    holds `EvalResult.to_dict()` of the best checkpoint on the test split (None without one).
+    holds `EvalResult.to_dict()` of the best checkpoint on the test split (None without one)
+    and `baselines` the naive predictors' MSE on that split, `{hold_x0, time_mean}` (see
+    `mpnode_cli.training.evaluate.baseline_mse`).
     """
 
     run_dir: str
@@ -53,6 +55,7 @@ class TrainSummary:
     restores: int
     init_checkpoint: str | None
     parent_sha256: str | None
+    baselines: dict[str, Any] | None = None
     finished: bool = True
 
 

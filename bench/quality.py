@@ -1,0 +1,614 @@
+"""Quality benchmark: the paper's experiments at fixed epoch budgets, against naive baselines.
+
+Each case trains one model with `mpnode train` (the CLI's defaults, plus only the options the
+case is about), then measures it with `mpnode evaluate` / `mpnode zeroshot`, and reports
+every MSE (normalized, t₀ excluded) beside two naive predictors on the same trajectories:
+hold x(0) and the train split's time mean (`mpnode_cli.training.evaluate.baseline_mse`).
+
+Cases (Gupta et al. 2022; paper numbers from Table 1):
+- gene-ba-{mean,sum,pna}: MP-NODE on gene-ba-4x4 with each aggregation; BA validation and
+  test MSE, zero-shot on gene-er-4x4 and gene-ws-4x4 (all their trajectories).
+- gene-ba-l2s, gene-ba-gnode: the baselines on the same data at the wall time of the MP-NODE
+  run with the CLI's default aggregation. `mpnode train` has no time limit, so the
+  baseline first trains a few epochs, and is then resumed (`--resume`, which continues
+  exactly) to the epoch count that its measured seconds per epoch fit into that budget.
+  L2S is CI-sized as in `bench/baselines.sh`: latent and hidden 32, 5 message-passing steps.
+- pendulum-messages, pendulum-no-messages: the §4.1 ablation; the messages-on model is also
+  evaluated with its messages zeroed at test time (Fig. 3b). The CLI has no switch for
+  that, so it is done through the library: the checkpoint's model config gets
+  `messages=False` (same weights) and `evaluate_checkpoint` runs it.
+- kuramoto-m{1,3,7,13}: message dimensions on kuramoto10-ba (Fig. 8).
+- lorenz3: trained on lorenz3, zero-shot on lorenz7 and lorenz10 (Fig. 11).
+- quad3-mpnode, quad3-l2s: the 3-quadrotor swarm, L2S (CI-sized) at MP-NODE's wall time.
+
+Verdict targets: gene BA test ≤ 0.0045 and ER/WS zero-shot ≤ 0.0051; MP-NODE's BA
+validation MSE below L2S's at equal wall time; pendulum test ≤ 0.05 with messages and ≥ 3×
+worse without; every MP-NODE test or zero-shot MSE ≥ 20× below hold x(0) and ≥ 5× below
+the time mean.
+
+Cases run as subprocesses, `--workers` (2) at a time, each on one thread
+(OMP_NUM_THREADS=1). Datasets are generated once into `--data` (bench/.data); each case
+trains into `--runs`/<case>/ and leaves `result.json` there, so `--only` refreshes some rows
+and the table is rebuilt from every cached case.
+
+Usage:
+    .venv/bin/python bench/quality.py                       # all cases (see --plan for time)
+    .venv/bin/python bench/quality.py --plan                # the time estimate only
+    .venv/bin/python bench/quality.py --only lorenz3,pendulum-messages
+    .venv/bin/python bench/quality.py --scale 0.003 --out /tmp/quality.md   # smoke
+Writes `bench/results/quality.md`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+RESULTS = HERE / "results" / "quality.md"
+L2S_CI = ("--model", "l2s", "--latent", "32", "--hidden", "32", "--steps", "5")
+GENE_AGGREGATES = ("mean", "sum", "pna")
+TIMING_EPOCHS = 3  # epochs an equal-time case trains to measure its seconds per epoch
+
+
+@dataclass(frozen=True)
+class Case:
+    """One training run and the measurements made on it.
+
+    Attributes:
+        preset: the training dataset (`mpnode generate --preset`).
+        epochs: the epoch budget at `--scale 1` (an equal-time case: its estimate only).
+        options: `mpnode train` options beyond the CLI's defaults: what the case is about.
+        val: also report the validation MSE of the best checkpoint.
+        zeroshot: presets to run the trained model on, without training.
+        equal_time: a case's wall time is this case's budget; "gene-default" means the
+            gene-ba case with the CLI's default aggregation.
+        zeroed: also evaluate with messages zeroed at test time.
+        paper: measure → the paper's number.
+        s_per_epoch: planning estimate: seconds per epoch (validation included) alone on
+            one core of the 2-core machine the results were taken on, from the first epochs
+            of each case (CPU time, as the machine was busy) and, where the learned dynamics
+            stiffen during training (pendulum, kuramoto, lorenz), the growth of solver
+            steps seen in longer runs.
+        note: said in the table's notes.
+    """
+
+    name: str
+    preset: str
+    epochs: int
+    options: tuple[str, ...] = ()
+    val: bool = False
+    zeroshot: tuple[str, ...] = ()
+    equal_time: str | None = None
+    zeroed: bool = False
+    paper: dict[str, float] = field(default_factory=dict)
+    s_per_epoch: float = 1.0
+    note: str = ""
+
+
+GENE_PAPER = {"val": 0.0051, "test": 0.0045, "gene-er-4x4": 0.0026, "gene-ws-4x4": 0.0023}
+CASES = {c.name: c for c in [
+    *(Case(f"gene-ba-{agg}", "gene-ba-4x4", 1500, ("--aggregate", agg), val=True,
+           zeroshot=("gene-er-4x4", "gene-ws-4x4"), paper=GENE_PAPER,
+           s_per_epoch={"mean": 0.3, "sum": 0.45, "pna": 0.4}[agg])
+      for agg in GENE_AGGREGATES),
+    Case("gene-ba-l2s", "gene-ba-4x4", 26, L2S_CI, val=True, equal_time="gene-default",
+         paper={"val": 0.0106}, s_per_epoch=17.0,
+         note="L2S CI-sized (latent/hidden 32, 5 steps), at the wall time of the default-"
+              "aggregation MP-NODE gene run; the paper's L2S is full size."),
+    Case("gene-ba-gnode", "gene-ba-4x4", 1300, ("--model", "gnode"), val=True,
+         equal_time="gene-default", s_per_epoch=0.35,
+         note="GNN-ODE at the wall time of the default-aggregation MP-NODE gene run."),
+    Case("pendulum-messages", "pendulum", 400, zeroed=True, s_per_epoch=1.5,
+         note="'messages zeroed at test': the same checkpoint with messages=False (library)."),
+    Case("pendulum-no-messages", "pendulum", 400, ("--no-messages",), s_per_epoch=1.2),
+    *(Case(f"kuramoto-m{m}", "kuramoto10-ba", 250, ("--message-dim", str(m)),
+           s_per_epoch={1: 0.5, 3: 0.7, 7: 0.8, 13: 1.0}[m]) for m in (1, 3, 7, 13)),
+    Case("lorenz3", "lorenz3", 500, zeroshot=("lorenz7", "lorenz10"), s_per_epoch=0.7),
+    Case("quad3-mpnode", "quad3", 150, s_per_epoch=3.0),
+    Case("quad3-l2s", "quad3", 240, L2S_CI, equal_time="quad3-mpnode", s_per_epoch=1.9,
+         note="L2S CI-sized (latent/hidden 32, 5 steps), at MP-NODE's quad3 wall time."),
+]}
+# Seconds to generate each preset (one thread), for the plan.
+GENERATE_SECONDS = {"quad3": 30.0, "lorenz10": 8.0, "kuramoto10-ba": 6.0, "pendulum": 6.0}
+EVAL_SECONDS = 20.0  # a case's evaluations, zero-shot runs and process starts, for the plan
+
+
+# ---------------------------------------------------------------------------- running cases
+
+
+def env() -> dict[str, str]:
+    """One thread per worker: the cases share 2 cores two at a time."""
+    return {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+            "COLUMNS": "150", "PYTHONPATH": str(ROOT)}
+
+
+def command(cmd: list[str], log: Path, clock: dict[str, float] | None = None) -> str:
+    """Run `cmd` on one thread, appending its output to `log`; return its stdout.
+
+    Args:
+        clock: if given, its "cpu" and "wall" seconds grow by this process's. Their ratio
+            is the share of a core the process got: on a busy machine wall times stretch,
+            CPU times much less, so the report can say how loaded the run was.
+
+    Raises:
+        RuntimeError: a non-zero exit, with the last line it printed (the log has the rest).
+    """
+    start = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as out, open(log, "a") as err:
+        err.write(f"$ {' '.join(cmd)}\n")
+        err.flush()
+        proc = subprocess.Popen(cmd, stdout=out, stderr=err, text=True, env=env(), cwd=ROOT)
+        # wait4 rather than wait: it also returns the child's own CPU time.
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        stdout = out.read()
+        wall = time.perf_counter() - start
+        err.write(f"{stdout}# exit {proc.returncode}, {wall:.1f} s wall, "
+                  f"{usage.ru_utime + usage.ru_stime:.1f} s CPU\n\n")
+    if clock is not None:
+        clock["cpu"] = clock.get("cpu", 0.0) + usage.ru_utime + usage.ru_stime
+        clock["wall"] = clock.get("wall", 0.0) + wall
+    if proc.returncode != 0:
+        tail = log.read_text().strip().splitlines()[-2:-1] or [""]
+        raise RuntimeError(f"{' '.join(cmd[2:4])} exited {proc.returncode}: {tail[0]}")
+    return stdout
+
+
+def mpnode(*args: Any, log: Path, clock: dict[str, float] | None = None) -> str:
+    """`mpnode ARGS` with this interpreter (see `command`)."""
+    return command([sys.executable, "-m", "mpnode_cli.cli.app", *map(str, args)], log, clock)
+
+
+def dataset(args, preset: str) -> Path:
+    return args.data / f"{preset}.h5"
+
+
+def generate(args, preset: str) -> None:
+    path = dataset(args, preset)
+    if path.is_file():
+        return
+    args.data.mkdir(parents=True, exist_ok=True)
+    mpnode("generate", "--preset", preset, "--out", path, log=args.data / f"{preset}.log")
+
+
+def epochs_for(case: Case, scale: float) -> int:
+    return max(1, round(case.epochs * scale))
+
+
+def default_aggregate(args) -> str:
+    """The aggregation `mpnode train` picks for gene-ba-4x4 when none is given (a 0-epoch
+    run resolves the CLI's defaults)."""
+    probe = args.runs / ".probe"
+    shutil.rmtree(probe, ignore_errors=True)
+    probe.mkdir(parents=True)
+    mpnode("train", dataset(args, "gene-ba-4x4"), "--epochs", 0, "--no-plots", "--run-dir",
+           probe / "run", log=probe / "log")
+    summary = json.loads((probe / "run" / "summary.json").read_text())
+    shutil.rmtree(probe, ignore_errors=True)
+    return summary["model_config"]["aggregate"]
+
+
+def reference(case: Case, aggregate: str) -> str | None:
+    """The case whose wall time is `case`'s budget."""
+    if case.equal_time == "gene-default":
+        return f"gene-ba-{aggregate}"
+    return case.equal_time
+
+
+def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[str, Any]:
+    """Train and measure one case (at `ref`'s wall time `budget`, if given); write and
+    return its `result.json`."""
+    folder = args.runs / case.name
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    log, run = folder / "log.txt", folder / "run"
+    data = dataset(args, case.preset)
+    started = time.perf_counter()
+    common = ("--seed", 0, "--run-dir", run)
+    clock: dict[str, float] = {}
+    if budget is None:
+        mpnode("train", data, "--epochs", epochs_for(case, args.scale), *common, *case.options,
+               log=log, clock=clock)
+    else:
+        # Equal wall time: time a few epochs, then resume to what fits in the budget.
+        timing = TIMING_EPOCHS if args.scale >= 1 else 1
+        mpnode("train", data, "--epochs", timing, *common, *case.options, log=log, clock=clock)
+        per_epoch = json.loads((run / "summary.json").read_text())["seconds_per_epoch"]
+        total = max(timing, math.floor(budget / per_epoch))
+        if total > timing:
+            mpnode("train", "--resume", run, "--epochs", total, log=log, clock=clock)
+    summary = json.loads((run / "summary.json").read_text())
+    best = run / "checkpoints" / "best.pt"
+    rows = []
+    if case.val:
+        val = json.loads(mpnode("evaluate", best, data, "--split", "validation", "--json",
+                                log=log))
+        rows.append(_row("val", case.preset, "validation", val))
+    rows.append({"measure": "test", "dataset": case.preset, "split": "test",
+                 "mse": (summary["test"] or {}).get("mse"),
+                 "failed": (summary["test"] or {}).get("failed"),
+                 **(summary.get("baselines") or {})})
+    if case.zeroshot:
+        paths = [dataset(args, p) for p in case.zeroshot]
+        report = json.loads(mpnode("zeroshot", best, *paths, "--json", log=log))
+        for preset, row in zip(case.zeroshot, report["datasets"], strict=True):
+            rows.append(_row(preset, preset, row["split"], row))
+    if case.zeroed:
+        zeroed = command([sys.executable, __file__, "--zeroed-eval", str(best), str(data)], log)
+        rows.append(_row("test, messages zeroed", case.preset, "test", json.loads(zeroed)))
+    result = {
+        "case": case.name, "options": list(case.options), "scale": args.scale,
+        "epochs": summary["epochs"], "best_epoch": summary["best_epoch"],
+        "wall_seconds": summary["wall_seconds"], "process_seconds":
+            time.perf_counter() - started,
+        "seconds_per_epoch": summary["seconds_per_epoch"], "budget_seconds": budget,
+        "train_cpu_seconds": clock["cpu"], "train_process_seconds": clock["wall"],
+        "reference": ref,
+        "model": summary["model"], "parameters": summary["parameters"],
+        "date": datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
+        "rows": rows,
+    }  # fmt: skip
+    (folder / "result.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def _row(measure: str, preset: str, split: str, report: dict[str, Any]) -> dict[str, Any]:
+    """A row from `evaluate --json` / one `zeroshot --json` dataset."""
+    base = report.get("baselines") or {}
+    return {"measure": measure, "dataset": preset, "split": split,
+            "mse": report["result"]["mse"], "failed": report["result"]["failed"],
+            "hold_x0": base.get("hold_x0"), "time_mean": base.get("time_mean")}
+
+
+def zeroed_eval(checkpoint: str, data_path: str) -> None:
+    """Print `evaluate_checkpoint` JSON of a checkpoint with its messages zeroed (Fig. 3b).
+
+    MP-NODE's `messages=False` clamps every incoming message to zero and changes no weight,
+    so the trained weights load unchanged into that model.
+    """
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.evaluate import evaluate_checkpoint
+
+    ckpt = load_checkpoint(checkpoint)
+    ckpt.model_config = {**ckpt.model_config, "messages": False}
+    row = evaluate_checkpoint(ckpt, TrajectoryData.load(data_path), split="test")
+    print(json.dumps(row))
+
+
+# ------------------------------------------------------------------------------- scheduling
+
+
+def priorities(jobs: dict[str, tuple[float, tuple[str, ...]]]) -> dict[str, float]:
+    """A job's seconds plus those of the jobs waiting for it: what it holds up."""
+    return {name: seconds + sum(s for s, deps in jobs.values() if name in deps)
+            for name, (seconds, _) in jobs.items()}
+
+
+def schedule(jobs: dict[str, tuple[float, tuple[str, ...]]], workers: int) -> float:
+    """Makespan of list scheduling, as `run_all` runs: the ready job of highest priority
+    first, on the first free worker.
+
+    Args:
+        jobs: name → (seconds, names it waits for).
+    """
+    done: dict[str, float] = {}
+    free = [0.0] * workers
+    pending = dict(jobs)
+    rank = priorities(jobs)
+    while pending:
+        ready = [(n, s, deps) for n, (s, deps) in pending.items()
+                 if all(d in done or d not in jobs for d in deps)]
+        name, seconds, deps = max(ready, key=lambda job: rank[job[0]])
+        w = min(range(workers), key=free.__getitem__)
+        start = max([free[w], *(done[d] for d in deps if d in done)])
+        done[name] = free[w] = start + seconds
+        del pending[name]
+    return max(done.values(), default=0.0)
+
+
+def per_epoch(args, case: Case) -> tuple[float, str]:
+    """Seconds per epoch for the plan, and where the number comes from.
+
+    A cached full-budget result of this case measured it: its seconds per epoch × the share
+    of a core its training got (what it would take alone on a core). Otherwise the `Case`
+    estimate (a smoke run's first epochs are faster than a whole run's).
+    """
+    cached = read_result(args, case.name)
+    if cached and cached.get("train_cpu_seconds") and cached["scale"] >= 0.5:
+        share = min(1.0, cached["train_cpu_seconds"] / cached["train_process_seconds"])
+        return cached["seconds_per_epoch"] * share, f"measured {cached['date'][:10]}"
+    return case.s_per_epoch, "estimate"
+
+
+def plan(args, cases: list[Case], presets: list[str], aggregate: str) -> tuple[list[str], float]:
+    """The per-case budget table (lines) and the estimated wall seconds (one core per
+    worker, list scheduling in the order `run_all` uses)."""
+    lines = [f"{'case':22s} {'epochs':>7s} {'s/epoch':>8s} {'est. s':>8s}  source; options"]
+    jobs = {f"generate {p}": (GENERATE_SECONDS.get(p, 5.0), ())
+            for p in presets if not dataset(args, p).is_file()}
+    gen_deps = tuple(jobs)
+    for case in cases:
+        ref = reference(case, aggregate)
+        speed, source = per_epoch(args, case)
+        if ref is not None:
+            seconds = epochs_for(CASES[ref], args.scale) * per_epoch(args, CASES[ref])[0]
+            epochs = f"~{max(1, round(seconds / speed))}"
+        else:
+            seconds = epochs_for(case, args.scale) * speed
+            epochs = str(epochs_for(case, args.scale))
+        seconds += EVAL_SECONDS
+        deps = (*gen_deps, *((ref,) if ref else ()))
+        jobs[case.name] = (seconds, deps)
+        lines.append(f"{case.name:22s} {epochs:>7s} {speed:8.3f} {seconds:8.0f}  {source}; "
+                     f"{' '.join(case.options)}" + (f" (= {ref}'s wall time)" if ref else ""))
+    return lines, schedule(jobs, args.workers)
+
+
+def run_all(args, cases: list[Case], presets: list[str], report: Callable[[str], None]) -> None:
+    """Generate the datasets, then run the cases, `args.workers` at a time, each case as
+    soon as a worker is free and the case it takes its time budget from is done."""
+    with ThreadPoolExecutor(args.workers) as pool:
+        for future in [pool.submit(generate, args, p) for p in presets]:
+            future.result()
+    aggregate = "mean"
+    if any(c.equal_time == "gene-default" for c in cases):
+        aggregate = default_aggregate(args)
+        report(f"the CLI's default aggregation on gene-ba-4x4 is {aggregate}")
+    names = {c.name for c in cases}
+    rank = priorities({c.name: (c.epochs * per_epoch(args, c)[0],
+                                tuple(filter(None, [reference(c, aggregate)])))
+                       for c in cases})
+    pending = sorted(cases, key=lambda c: -rank[c.name])
+    running: dict[Future, Case] = {}
+    failures: list[str] = []
+    with ThreadPoolExecutor(args.workers) as pool:
+        while pending or running:
+            for case in list(pending):
+                if len(running) >= args.workers:
+                    break
+                ref = reference(case, aggregate)
+                if ref in names and any(c.name == ref for c in [*pending, *running.values()]):
+                    continue  # its budget is not known yet
+                budget = None
+                if ref is not None:
+                    cached = read_result(args, ref)
+                    if cached is None:
+                        failures.append(f"{case.name}: no result for {ref} (its time budget); "
+                                        f"run it too (--only {ref},{case.name})")
+                        pending.remove(case)
+                        continue
+                    budget = cached["wall_seconds"]
+                report(f"start {case.name}" + (f" (budget {budget:.0f} s)" if budget else ""))
+                running[pool.submit(run_case, args, case, ref, budget)] = case
+                pending.remove(case)
+            if not running:
+                continue
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in finished:
+                case = running.pop(future)
+                try:
+                    result = future.result()
+                    report(f"done  {case.name}: {result['epochs']} epochs, "
+                           f"{result['wall_seconds']:.0f} s, test MSE "
+                           f"{_fmt(result['rows'][int(case.val)]['mse'])}")
+                except Exception as exc:  # one broken case must not stop the others
+                    failures.append(f"{case.name}: {exc}")
+                    report(f"FAIL  {case.name}: {exc} (log: {args.runs / case.name})")
+    for line in failures:
+        report(f"not run: {line}")
+
+
+def read_result(args, name: str) -> dict[str, Any] | None:
+    path = args.runs / name / "result.json"
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+# ---------------------------------------------------------------------------------- verdicts
+
+
+def verdicts(results: dict[str, dict[str, Any]]) -> dict[tuple[str, str], str]:
+    """(case, measure) → "pass", "FAIL: why", or "—" (no target), from all cached results."""
+    out: dict[tuple[str, str], str] = {}
+
+    def mse_of(case: str, measure: str) -> float | None:
+        rows = (results.get(case) or {}).get("rows", [])
+        return next((r["mse"] for r in rows if r["measure"] == measure), None)
+
+    for name, result in results.items():
+        case = CASES[name]
+        for row in result["rows"]:
+            checks: list[tuple[bool, str]] = []
+            mse, measure = row["mse"], row["measure"]
+            if mse is None:
+                out[name, measure] = "FAIL: no MSE (rollouts failed)"
+                continue
+            mpnode_row = result["model"] == "mpnode" and case.name != "pendulum-no-messages"
+            if mpnode_row and measure != "val" and "zeroed" not in measure:
+                for key, times in (("hold_x0", 20), ("time_mean", 5)):
+                    base = row.get(key)
+                    if base is not None:
+                        label = key.replace("_x0", " x(0)").replace("_", "-")
+                        checks.append((base >= times * mse, f"{label} ≥ {times}× this"))
+            if name.startswith("gene-ba-") and result["model"] == "mpnode":
+                if measure == "test":
+                    checks.append((mse <= 0.0045, "≤ 0.0045"))
+                elif measure in ("gene-er-4x4", "gene-ws-4x4"):
+                    checks.append((mse <= 0.0051, "≤ 0.0051"))
+            if name == "gene-ba-l2s" and measure == "val":
+                ref = result.get("reference") or ""
+                ours = mse_of(ref, "val")
+                if ours is not None:
+                    checks.append((ours < mse, f"{ref} val ({_fmt(ours)}) < this"))
+            if name == "pendulum-messages" and measure == "test":
+                checks.append((mse <= 0.05, "≤ 0.05"))
+            if name == "pendulum-no-messages" and measure == "test":
+                ours = mse_of("pendulum-messages", "test")
+                if ours is not None:
+                    checks.append((mse >= 3 * ours, f"≥ 3× messages-on ({_fmt(ours)})"))
+            if row.get("failed"):
+                checks.append((False, "no failed rollouts"))
+            if not checks:
+                out[name, measure] = "—"
+                continue
+            failed = [why for ok, why in checks if not ok]
+            out[name, measure] = "pass" if not failed else "FAIL: want " + "; ".join(failed)
+    return out
+
+
+# ------------------------------------------------------------------------------------ report
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "—"
+    return f"{value:.{digits}g}"
+
+
+def _ratio(base: Any, mse: Any) -> str:
+    if base is None or mse is None or not mse > 0:
+        return "—"
+    return f"{base / mse:.3g}"
+
+
+def git_commit() -> str:
+    def git(*a):
+        return subprocess.run(["git", *a], capture_output=True, text=True, cwd=ROOT).stdout
+    commit = git("rev-parse", "--short=10", "HEAD").strip() or "?"
+    return commit + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
+def write_report(args, header: dict[str, Any]) -> None:
+    """Rebuild the table from every cached case result, in `CASES` order."""
+    results = {n: r for n in CASES if (r := read_result(args, n)) is not None}
+    verdict = verdicts(results)
+    lines = [
+        "# Quality: the paper's experiments against naive baselines",
+        "",
+        f"Command: `{header['command']}`. Machine: {header['cores']} cores, "
+        f"{args.workers} workers × 1 thread (OMP_NUM_THREADS=1; torch.get_num_threads() = "
+        f"{header['threads']}), torch {header['torch']}, Python "
+        f"{sys.version.split()[0]}, git {header['commit']}, {header['date']}. Load average "
+        f"(1/5/15 min) before {header['load_before']}, after {header['load_after']}. "
+        f"Epoch budgets × {args.scale:g}; estimated {header['estimate'] / 60:.0f} min, took "
+        f"{header['took'] / 60:.1f} min (this invocation: {header['ran']}).",
+        "",
+        "MSE: normalized units (the training z-score), t₀ excluded, mean over predicted "
+        "samples, nodes and features, best-validation checkpoint. Baselines on the same "
+        "trajectories: hold x(0) predicts x(t) = x(t₀); time mean predicts the train split's "
+        "mean state at each sample time (mean over train trajectories and nodes; a longer "
+        "horizon holds the last train mean). Ratios: baseline MSE / ours (higher is "
+        "better). val: validation split; test: test split; zero-shot rows: every "
+        "trajectory of that dataset. Wall s: training time (validation included) from "
+        "`summary.json`.",
+        "",
+        "| case | measure | MSE | hold x(0) | time mean | hold ÷ ours | mean ÷ ours | paper | "
+        "epochs | wall s | verdict |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for name, result in results.items():
+        for i, row in enumerate(result["rows"]):
+            paper = CASES[name].paper.get(row["measure"])
+            first = i == 0
+            failed = f" ({row['failed']} failed)" if row.get("failed") else ""
+            lines.append(
+                f"| {name if first else ''} | {row['measure']} | {_fmt(row['mse'])}{failed} | "
+                f"{_fmt(row.get('hold_x0'))} | {_fmt(row.get('time_mean'))} | "
+                f"{_ratio(row.get('hold_x0'), row['mse'])} | "
+                f"{_ratio(row.get('time_mean'), row['mse'])} | {_fmt(paper)} | "
+                f"{result['epochs'] if first else ''} | "
+                f"{_fmt(result['wall_seconds'], 3) if first else ''} | "
+                f"{verdict.get((name, row['measure']), '—')} |")
+    lines += ["", "Cases:", ""]
+    for name, result in results.items():
+        case = CASES[name]
+        extra = f" {case.note}" if case.note else ""
+        if result.get("budget_seconds"):
+            extra += (f" Budget {result['budget_seconds']:.0f} s ({result.get('reference')}); "
+                      f"{result['seconds_per_epoch']:.3g} s/epoch.")
+        options = " ".join(case.options) or "(CLI defaults)"
+        cpu, wall = result["train_cpu_seconds"], result["train_process_seconds"]
+        lines.append(f"- {name}: `mpnode train {case.preset}.h5 {options}`, "
+                     f"{result['model']} ({result['parameters']:,} parameters), best epoch "
+                     f"{result['best_epoch']}; training processes {wall:.0f} s wall, "
+                     f"{cpu:.0f} s CPU ({cpu / wall:.0%} of a core).{extra}")
+    runs: dict[tuple, list[str]] = {}
+    for name, r in results.items():
+        runs.setdefault((r["date"][:13], r["commit"], r["scale"]), []).append(name)
+    if len(runs) > 1:
+        lines += ["", "Rows come from more than one invocation (date and hour, commit, scale):"]
+        lines += [f"- {', '.join(names)}: {when}, {commit}, × {scale:g}"
+                  for (when, commit, scale), names in sorted(runs.items())]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", help=f"comma-separated cases (of: {', '.join(CASES)})")
+    parser.add_argument("--scale", type=float, default=1.0,
+                        help="multiply the epoch budgets (0.003 for a smoke run)")
+    parser.add_argument("--workers", type=int, default=2, help="cases run at once")
+    parser.add_argument("--data", type=Path, default=HERE / ".data", help="dataset cache")
+    parser.add_argument("--runs", type=Path, default=HERE / ".runs", help="case folders")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--plan", action="store_true", help="print the estimate and stop")
+    parser.add_argument("--zeroed-eval", nargs=2, metavar=("CKPT", "DATA"),
+                        help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.zeroed_eval:
+        zeroed_eval(*args.zeroed_eval)
+        return 0
+    args.data, args.runs = args.data.resolve(), args.runs.resolve()
+    names = args.only.split(",") if args.only else list(CASES)
+    unknown = [n for n in names if n not in CASES]
+    if unknown:
+        parser.error(f"unknown case {', '.join(unknown)} (choose from: {', '.join(CASES)})")
+    cases = [CASES[n] for n in names]
+    presets = list(dict.fromkeys(p for c in cases for p in (c.preset, *c.zeroshot)))
+
+    def report(line: str) -> None:
+        print(f"[{time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
+
+    # The plan assumes the default aggregation is mean until the probe says otherwise.
+    lines, estimate = plan(args, cases, presets, "mean")
+    print("\n".join(lines), file=sys.stderr)
+    print(f"estimated wall time: {estimate / 60:.0f} min on {args.workers} workers "
+          f"(× {args.scale:g} epochs)", file=sys.stderr)
+    if args.plan:
+        return 0
+    threads = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads(),"
+                              " torch.__version__)"], capture_output=True, text=True,
+                             env=env(), check=True).stdout.split()
+    header = {"command": " ".join(["bench/quality.py", *(argv or sys.argv[1:])]),
+              "cores": os.cpu_count(), "threads": threads[0], "torch": threads[1],
+              "commit": git_commit(), "date": datetime.now().isoformat(timespec="minutes"),
+              "load_before": "/".join(f"{x:.2f}" for x in os.getloadavg()),
+              "estimate": estimate, "ran": ", ".join(names)}
+    start = time.perf_counter()
+    run_all(args, cases, presets, report)
+    header["took"] = time.perf_counter() - start
+    header["load_after"] = "/".join(f"{x:.2f}" for x in os.getloadavg())
+    write_report(args, header)
+    report(f"wrote {args.out} ({header['took'] / 60:.1f} min)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
