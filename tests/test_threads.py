@@ -60,6 +60,17 @@ def test_generate_sets_torch_threads(tmp_path, restore_threads, args, env, expec
     assert expected in result.stdout
 
 
+def test_a_verbs_own_option_wins_over_the_roots(tmp_path, restore_threads):
+    torch.set_num_threads(1)
+    result = runner.invoke(app, ["--threads", "1", "generate", *TINY, "--out",
+                                 str(tmp_path / "d.h5"), "--threads", "2"])
+    assert result.exit_code == 0, result.output
+    assert torch.get_num_threads() == 2
+    bad = runner.invoke(app, ["generate", *TINY, "--out", str(tmp_path / "e.h5"),
+                              "--threads", "0"])
+    assert bad.exit_code == 2 and "--threads must be a whole number" in bad.stderr
+
+
 @pytest.mark.parametrize(("args", "env", "named"), [
     (["--threads", "0"], {}, "--threads"),
     ([], {ENV_VAR: "all"}, ENV_VAR),

@@ -3,9 +3,10 @@
 `mpnode --help` must stay instant, so nothing at module level here imports torch, h5py or
 matplotlib; each command function imports what it needs when it runs.
 
-Thread count is a property of the process, not of a verb, so it is one root option
-(`mpnode --threads N VERB ...`) beside `MPNODE_THREADS`. Each computing verb decides and
-applies it (a bad value is a one-line usage error) after parsing its options, before it runs.
+Thread count is a property of the process: a root option (`mpnode --threads N VERB ...`),
+the same option on every computing verb (`mpnode VERB ... --threads N`, which wins) and
+`MPNODE_THREADS`. Each computing verb decides and applies it (a bad value is a one-line
+usage error) after parsing its options, before it runs.
 """
 
 from __future__ import annotations
@@ -64,7 +65,8 @@ class _Computing(TyperCommand):
 
     def invoke(self, ctx: typer.Context) -> Any:
         try:
-            choice = choose_threads(ctx.meta.get(_THREADS))
+            own = ctx.params.get("threads")
+            choice = choose_threads(own if own is not None else ctx.meta.get(_THREADS))
         except ValueError as exc:
             fail(str(exc))
         apply_threads(choice)

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import typer
 
+# Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
+# verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.
+THREADS = typer.Option(
+    None, "--threads", metavar="N", show_default=False,
+    help="CPU threads torch may use (default 1, or MPNODE_THREADS).")
+
 
 def error_message(exc: Exception) -> str:
     """One line for a user: pydantic's multi-line errors condensed, others as they are."""

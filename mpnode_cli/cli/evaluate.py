@@ -16,7 +16,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import console, error_message, fail
+from mpnode_cli.cli.common import THREADS, console, error_message, fail
 
 _SPLITS = "train, validation, test or all"
 
@@ -31,6 +31,7 @@ def evaluate_command(
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
+    threads: str | None = THREADS,
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
     from mpnode_cli.report.tables import baselines_note, metrics_table
@@ -56,6 +57,7 @@ def zeroshot_command(
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
+    threads: str | None = THREADS,
 ) -> None:
     """Run a trained node network on graphs it never saw, without training."""
     from mpnode_cli.report.tables import baselines_note, zeroshot_table

@@ -13,6 +13,7 @@ from typing import Any
 
 import typer
 
+from mpnode_cli.cli.common import THREADS
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.threads import applied_threads
@@ -84,6 +85,7 @@ def generate_command(
         metavar="NAME=VALUE",
         help="System parameter NAME=VALUE, e.g. -p K=0.5 (repeatable).",
     ),
+    threads: str | None = THREADS,
 ) -> None:
     """Simulate ground truth on graphs and write an HDF5 dataset."""
     from mpnode_cli.config import GenerateConfig, read_config_file

@@ -18,7 +18,7 @@ from typing import Any, Literal, get_args, get_origin
 import typer
 from pydantic.fields import FieldInfo
 
-from mpnode_cli.cli.common import console, error_message, fail
+from mpnode_cli.cli.common import THREADS, console, error_message, fail
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.threads import applied_threads
 
@@ -78,11 +78,12 @@ def train_command(
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
-    trajectories: int | None = _TRAJECTORIES,
+    trajectories: int | None = _TRAJECTORIES, threads: str | None = THREADS,
     **model_options: Any,
 ) -> None:
     """Train a model on a dataset's train split; results go to runs/<name>/."""
-    options = _given(locals(), exclude=("dataset", "resume", "config_file", "model_options"))
+    options = _given(locals(), exclude=("dataset", "resume", "config_file", "model_options",
+                                        "threads"))
     chosen = _given(model_options, exclude=())  # model options given
     try:
         if resume is not None:
@@ -167,10 +168,10 @@ def finetune_command(
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
-    trajectories: int | None = _TRAJECTORIES,
+    trajectories: int | None = _TRAJECTORIES, threads: str | None = THREADS,
 ) -> None:
     """Train from a checkpoint's weights and architecture on another dataset (a new run)."""
-    options = _given(locals(), exclude=("checkpoint", "dataset", "config_file"))
+    options = _given(locals(), exclude=("checkpoint", "dataset", "config_file", "threads"))
     try:
         config = _config(config_file, {**options, "dataset": dataset,
                                        "init_checkpoint": checkpoint})
