@@ -277,6 +277,15 @@ def test_blow_up_is_marked_and_other_samples_succeed():
     assert Status.DT_UNDERFLOW.message and "max_steps" in Status.MAX_STEPS.message
 
 
+def test_a_blow_up_is_marked_once_steps_stop_advancing_time():
+    """Near the singularity of y' = y² every step is accepted while the step size falls below
+    the clock's resolution; the sample must fail there, not keep stepping on the spot."""
+    y0 = torch.ones(1, 1, dtype=torch.float64)
+    sol = solve(lambda t, y: y**2, y0, [0.0, 2.0], rtol=1e-8, atol=1e-10)
+    assert sol.status.tolist() == [Status.DT_UNDERFLOW]
+    assert int(sol.stats["n_steps"][0]) < 600  # 3946 steps when only rejections were checked
+
+
 def test_max_steps_marks_only_the_samples_that_need_more():
     rate = torch.tensor([1.0, 2000.0], dtype=torch.float64)  # the second is stiff
     y0 = torch.ones(2, 1, dtype=torch.float64)
