@@ -252,7 +252,12 @@ def test_each_sample_in_a_batch_equals_the_sample_solved_alone():
     sol = solve(parametrised_rhs(mu, blow), y0, ts, rtol=1e-8, atol=1e-10)
     assert set(sol.status[[3, 17, 40]].tolist()) <= {Status.NON_FINITE, Status.DT_UNDERFLOW}
     assert bool((sol.status[blow == 0] == Status.SUCCESS).all())
-    for i in (0, 3, 5, 17, 22, 40, 51, 63):
+    # Solved alone: one blow-up (the other two fail the same way, from x0 = 3) and, of the
+    # others, the first and those with the fewest and the most steps.
+    steps = sol.stats["n_steps"].double()
+    fewest = int(torch.where(blow == 0, steps, math.inf).argmin())
+    most = int(torch.where(blow == 0, steps, -math.inf).argmax())
+    for i in (3, 0, fewest, most):
         alone = solve(parametrised_rhs(mu[i : i + 1], blow[i : i + 1]), y0[i : i + 1], ts,
                       rtol=1e-8, atol=1e-10)
         assert alone.status[0] == sol.status[i]
