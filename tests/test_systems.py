@@ -15,6 +15,7 @@ from scipy.integrate import solve_ivp
 from mpnode_cli.graphs import make_graph
 from mpnode_cli.solver import solve
 from mpnode_cli.systems import SYSTEMS, System, get_system
+from mpnode_cli.systems.base import NeighbourSum
 
 RNG_SEED = 20221029
 
@@ -152,6 +153,45 @@ def test_kuramoto_rhs_matches_reference():
     for b in range(3):
         ref = _kuramoto_ref(graphs[b], theta[b], params[b]["omega"], 0.7)
         np.testing.assert_allclose(got[b], ref, rtol=1e-12, atol=1e-12)
+
+
+# Graphs in blocks, as the generator passes several graphs: trajectory k is on graph BLOCKS[k]
+# (a graph may come back after others, which makes a new block).
+BLOCKS = [0, 0, 0, 1, 1, 2, 2, 2, 2, 0, 0, 1]
+
+
+@pytest.mark.parametrize("d", [1, 3])
+def test_neighbour_sum_in_blocks_equals_the_per_trajectory_product(d):
+    rng = np.random.default_rng(RNG_SEED)
+    mats = torch.from_numpy(rng.standard_normal((3, 7, 7)))  # weighted, like Lorenz's H
+    adjacency = mats[BLOCKS]  # [12, 7, 7]
+    x = torch.from_numpy(rng.standard_normal((12, 7, d)))
+    grouped = NeighbourSum(adjacency)
+    assert grouped.runs is not None and len(grouped.runs) == 5  # one product per block
+    torch.testing.assert_close(grouped(x), adjacency @ x, rtol=0, atol=1e-12)
+    torch.testing.assert_close(NeighbourSum(mats[:1])(x), mats[0] @ x, rtol=0, atol=1e-12)
+    distinct = NeighbourSum(torch.from_numpy(rng.standard_normal((12, 7, 7))))
+    assert distinct.runs is None  # a graph per trajectory: one batched matmul
+    torch.testing.assert_close(distinct(x), distinct.adjacency @ x, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("name", ["pendulum", "lorenz", "gene", "kuramoto"])
+def test_rhs_on_graphs_in_blocks_equals_each_trajectory_alone(name):
+    rng = np.random.default_rng(RNG_SEED)
+    system = get_system(name)
+    graphs = _random_graphs(3, 6, rng)
+    per_graph = [system.graph_params(a, rng) for a in graphs]
+    adjacency = torch.from_numpy(graphs[BLOCKS].astype(np.float64))  # [12, N, N]
+    params = {key: torch.from_numpy(np.stack([per_graph[g][key] for g in BLOCKS]))
+              for key in per_graph[0]}  # fmt: skip
+    y = torch.from_numpy(np.concatenate([system.sample_initial(graphs[g], 1, rng)
+                                         for g in BLOCKS]))  # fmt: skip
+    t = torch.zeros(len(BLOCKS), dtype=torch.float64)
+    got = system.rhs(adjacency, params)(t, y)
+    for k in range(len(BLOCKS)):
+        one = {key: value[k : k + 1] for key, value in params.items()}
+        alone = system.rhs(adjacency[k : k + 1], one)(t[k : k + 1], y[k : k + 1])
+        torch.testing.assert_close(got[k], alone[0], rtol=0, atol=1e-12)
 
 
 # ----- per-graph parameters, samplers, rejection -----------------------------------------------
