@@ -251,10 +251,11 @@ class NeighbourSum:
     A right-hand side is evaluated hundreds of times per solve, so the plan is made when it
     is built: consecutive trajectories on the same graph (a run) share one GEMM,
     `(k·D, N) @ (N, N)` over their states. The generator keeps each graph's trajectories in
-    one block, so a chunk over G graphs costs G small GEMMs per evaluation, where a batched
-    matmul over per-trajectory copies of A reads all K·N² entries each time (~1 ms for 200
+    one block, so a chunk over G graphs costs G small GEMMs per evaluation (one batched
+    call when the runs are equally long, the usual case), where a batched matmul over
+    per-trajectory copies of A reads all K·N² entries each time (~1.3 ms for 200
     trajectories on 64 nodes, most of a gene solve). When runs are short (distinct graphs
-    in most trajectories) a batched matmul is kept, as it is then one call instead of many.
+    in most trajectories) that batched matmul is kept, as it is then one call, not many.
 
     The result equals `adjacency @ x` up to rounding (summation order inside the GEMM).
     """
@@ -272,26 +273,33 @@ class NeighbourSum:
         new = torch.ones(k, dtype=torch.bool, device=adjacency.device)  # [K] a run starts
         new[1:] = (adjacency[1:] != adjacency[:-1]).flatten(1).any(1)
         starts = [*torch.nonzero(new).flatten().tolist(), k]
+        lengths = {b - a for a, b in itertools.pairwise(starts)}
         self.adjacency = adjacency
-        # (first trajectory, one past the last, Aᵀ) per run; None: one batched matmul.
+        # Aᵀ of each run, stacked `[G, N, N]`, when the runs are equally long (or shared).
+        self.stacked: torch.Tensor | None = None
+        # Otherwise (first trajectory, one past the last, Aᵀ) per run; both None: the
+        # per-trajectory batched matmul.
         self.runs: list[tuple[int, int, torch.Tensor]] | None = None
-        if len(starts) - 1 <= max(1, k // 2):
+        if len(lengths) == 1:
+            self.stacked = adjacency[starts[:-1]].transpose(1, 2).contiguous()
+        elif len(starts) - 1 <= k // 2:
             self.runs = [(a, b, adjacency[a].T) for a, b in itertools.pairwise(starts)]
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """`x: [K, N, D]` → `[K, N, D]`."""
         import torch
 
-        if self.runs is None:
-            return self.adjacency @ x
         k, n, d = x.shape
         xt = x.transpose(1, 2)  # (K, D, N)
-        # Explicit 2-D products: `xt @ Aᵀ` on this transposed view is not folded into one
-        # GEMM but run as a batched matmul over a stride-0 Aᵀ, 2-3× slower for D = 1 and
-        # ~3× for D = 3 on CPU.
-        if len(self.runs) == 1:  # one graph, shared `[1, N, N]` or in K copies
-            out = torch.mm(xt.reshape(k * d, n), self.runs[0][2])  # (K·D, N)
-        else:
+        # Products over explicit (rows, N) blocks: `xt @ Aᵀ` on this transposed view is not
+        # folded into one GEMM but run as a batched matmul over a stride-0 Aᵀ, 2-3× slower
+        # for D = 1 and ~3× for D = 3 on CPU.
+        if self.stacked is not None:  # G runs of K/G trajectories (G = 1 if shared)
+            g = self.stacked.shape[0]
+            out = torch.bmm(xt.reshape(g, k // g * d, n), self.stacked)  # (G, K/G·D, N)
+        elif self.runs is not None:
             out = torch.cat([torch.mm(xt[a:b].reshape((b - a) * d, n), a_t)
-                             for a, b, a_t in self.runs])  # fmt: skip
+                             for a, b, a_t in self.runs])  # fmt: skip  (K·D, N)
+        else:
+            return self.adjacency @ x
         return out.view(k, d, n).transpose(1, 2)
