@@ -175,7 +175,9 @@ class System(ABC):
 
         Args:
             adjacency: `[K, N, N]` float64, the graph of each trajectory, or `[1, N, N]`
-                when all K trajectories share one graph (the generator's usual case).
+                when all K trajectories share one graph (the generator's usual case). With
+                several graphs the generator keeps each graph's trajectories in one block,
+                which `NeighbourSum` turns into one product per graph.
             params: `graph_params` of each trajectory's graph, stacked on a leading `[K]`
                 axis (e.g. `coupling: [K, 3N, 3N]`), or `[1, ...]` when shared.
 
