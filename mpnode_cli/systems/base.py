@@ -299,9 +299,9 @@ class NeighbourSum:
         if self.stacked is not None:  # G runs of K/G trajectories (G = 1 if shared)
             g = self.stacked.shape[0]
             out = torch.bmm(xt.reshape(g, k // g * d, n), self.stacked)  # (G, K/G·D, N)
-        elif self.runs is not None:
+        elif self.runs is not None:  # one mm per run, stacked back to (K·D, N)
             out = torch.cat([torch.mm(xt[a:b].reshape((b - a) * d, n), a_t)
-                             for a, b, a_t in self.runs])  # fmt: skip  (K·D, N)
+                             for a, b, a_t in self.runs])  # fmt: skip
         else:
             return self.adjacency @ x
         return out.view(k, d, n).transpose(1, 2)
