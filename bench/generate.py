@@ -20,6 +20,7 @@ and gene-ba-8x8.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import platform
 import tempfile
@@ -102,9 +103,15 @@ def bench_preset(name: str, folder: Path, n_scipy: int) -> dict:
     config = resolve_config(
         GenerateConfig(**{**get_preset(name), "out": folder / f"{name}.h5", "dtype": "float64"})
     )
+    # Each timed part starts from a collected heap. Otherwise the garbage of the previous
+    # preset's scipy loop and file reads sets off a full collection inside the next timed
+    # part (a scan of every object of torch, scipy and networkx: ~0.09 s, a third of
+    # gene-ba-8x8's generate), which `mpnode generate` in its own process does not pay.
+    gc.collect()
     summary = generate(config, overwrite=True)
     ds = read_dataset(summary.path)
     subset = np.random.default_rng(0).choice(ds.num_trajectories, n_scipy, replace=False)
+    gc.collect()
     scipy_seconds, max_diff = scipy_loop(ds, np.sort(subset), config.rtol, config.atol)
     scipy_all = scipy_seconds / n_scipy * ds.num_trajectories
     return {

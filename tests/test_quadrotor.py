@@ -19,6 +19,7 @@ from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.solver import solve
 from mpnode_cli.systems import get_system
 from mpnode_cli.systems import quadrotor_flight as qf
+from mpnode_cli.systems.quadrotor import Quadrotor
 from mpnode_cli.systems.quadrotor_control import circle_directions, hover_state
 from mpnode_cli.systems.quadrotor_dynamics import (
     QuadParams,
@@ -203,19 +204,34 @@ def test_clearances_see_every_kind_of_violation():
 
 @pytest.fixture(scope="module")
 def quad3(tmp_path_factory):
-    config = GenerateConfig(system="quadrotor", nodes=3, trajectories=4,
+    """Four quad3 flights of the shortest horizon made by `generate`: the dataset, its
+    summary, and the `Simulation`s behind it (with the diagnostics the file does not keep).
+
+    A flight costs the same per control update whatever the batch, so the suite flies one
+    batch here and every flight test reads it.
+    """
+    sims = []
+    simulate = Quadrotor.simulate
+
+    def recording(self, *args, **kwargs):
+        sims.append(simulate(self, *args, **kwargs))
+        return sims[-1]
+
+    config = GenerateConfig(system="quadrotor", nodes=3, trajectories=4, t_end=qf.MIN_HORIZON,
                             out=tmp_path_factory.mktemp("quad") / "quad3.h5")  # fmt: skip
-    summary = generate(config)
-    return read_dataset(summary.path), summary
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Quadrotor, "simulate", recording)
+        summary = generate(config)
+    return read_dataset(summary.path), summary, sims
 
 
 def test_every_stored_flight_passes_the_checks(quad3):
-    ds, summary = quad3
-    k, t, n = 4, 51, 3
+    ds, summary, _ = quad3
+    k, t, n = 4, 41, 3
     assert ds.states.shape == (k, t, n, 13) and ds.controls.shape == (k, t, n, 5)
     assert ds.hidden["load"].shape == (k, t, 6) and ds.hidden["load_reference"].shape == (k, t, 3)
     assert ds.control_names == ("w1", "w2", "w3", "w4", "tension")
-    np.testing.assert_allclose(ds.time[-1], 10.0)
+    np.testing.assert_allclose(ds.time[-1], qf.MIN_HORIZON)
     assert (ds.adjacency[0] == 1 - np.eye(n)).all()  # complete graph among the quads
     assert ds.extra_attrs["n_rejected"] == summary.rejected
 
@@ -233,16 +249,12 @@ def test_every_stored_flight_passes_the_checks(quad3):
     assert w.min() >= 0 and w.max() <= P.w_max + 1e-6 and s.min() >= 0
 
 
-def test_flights_report_their_checks_and_saturation():
+def test_flights_report_their_checks_and_saturation(quad3):
     # What the stored arrays cannot show (rotor saturation, cable length between samples)
     # is in the simulation's diagnostics, and `rejected` is exactly their verdict.
-    adjacency = SYSTEM.graph("complete", 3, 0)
-    y0, inputs = SYSTEM.sample(adjacency, 2, np.random.default_rng(7))
-    ts = torch.arange(51, dtype=torch.float64) * 0.2
-    sim = SYSTEM.simulate(torch.from_numpy(adjacency[None].astype(float)), {},
-                          torch.from_numpy(y0), ts,
-                          {name: torch.from_numpy(v) for name, v in inputs.items()},
-                          rtol=1e-8, atol=1e-10)  # fmt: skip
+    _, _, sims = quad3
+    sim = sims[0]  # the first round: all four flights as drawn
+    assert sim.states.shape[0] == 4
     d = sim.diagnostics
     verdict = ~((d["cable_error"] < qf.MAX_CABLE_ERROR) & (d["obstacle"] >= 0) & (d["room"] >= 0)
                 & (d["separation"] >= 0) & (d["goal_error"] <= qf.GOAL_TOLERANCE)
@@ -259,7 +271,7 @@ def test_flights_report_their_checks_and_saturation():
 def test_render_a_flight(quad3, tmp_path):
     from mpnode_cli.report.flight import plot_flight
 
-    ds, _ = quad3
+    ds, _, _ = quad3
     path = plot_flight(ds.states[0], ds.hidden["load"][0], tmp_path / "f" / "flight.png",
                        reference=ds.hidden["load_reference"][0], time=ds.time)  # fmt: skip
     image = __import__("matplotlib.image").image.imread(path)
@@ -288,7 +300,7 @@ def test_mpnode_trains_on_a_small_quad3_set(quad3, tmp_path):
     from mpnode_cli.training.loop import train
     from mpnode_cli.training.run import read_metrics
 
-    _, summary = quad3
+    _, summary, _ = quad3
     config = TrainConfig(dataset=summary.path, epochs=8, batch_size=4, lr=1e-2, plots=False,
                          run_dir=tmp_path / "run", model_options={"hidden": 16})
     result = train(config)

@@ -50,9 +50,9 @@ def rows(run_dir):
 
 
 def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
-    summary = train(config(gene, tmp_path / "run", epochs=30, plots=True))
+    summary = train(config(gene, tmp_path / "run", epochs=20, plots=True))
     metrics = read_metrics(tmp_path / "run")
-    assert [r["epoch"] for r in metrics] == list(range(31))  # epoch 0: the starting weights
+    assert [r["epoch"] for r in metrics] == list(range(21))  # epoch 0: the starting weights
     after_one_epoch = metrics[1]["val_loss"]
     assert summary.min_val_loss <= after_one_epoch / 10, (after_one_epoch, summary.min_val_loss)
     assert summary.best_epoch == min(metrics, key=lambda r: r["val_loss"])["epoch"]
@@ -67,7 +67,7 @@ def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
             "plots/gene-test-error.png"} <= files
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["best_epoch"] == (
         summary.best_epoch)
-    assert TrainConfig(**json.loads((tmp_path / "run" / "config.json").read_text())).epochs == 30
+    assert TrainConfig(**json.loads((tmp_path / "run" / "config.json").read_text())).epochs == 20
 
 
 def test_two_plus_two_epochs_equal_four(gene, tmp_path):

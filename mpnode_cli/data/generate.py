@@ -284,7 +284,9 @@ def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):
     With one graph, every chunk shares it (graph id given): the right-hand side then gets
     one adjacency and parameter set (`[1, ...]`) and aggregates with a single matmul. With
     several graphs, chunks mix them (graph id None) and carry per-trajectory copies: one
-    batched solve beats one small solve per graph, whose per-step overhead dominates.
+    batched solve beats one small solve per graph, whose per-step overhead dominates. The
+    copies stay in blocks by graph (trajectories are numbered graph by graph and `pending`
+    is sorted), so the systems' `NeighbourSum` still does one product per graph.
     """
     graphs = np.unique(graph_index[pending])
     for chunk in np.array_split(pending, math.ceil(len(pending) / size)):

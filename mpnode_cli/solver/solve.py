@@ -436,7 +436,11 @@ def _step(fun, consts, state):
         n_nonfinite = torch.where(finite, 0, n_nonfinite + running)
         not_done = stop_idx < n_stops
         too_many = n_nonfinite >= _MAX_NON_FINITE_REJECTS
-        underflow = (t + dt <= t) & ~accept
+        # The next step would not move the clock. Checked after accepted steps too: near a
+        # blow-up the step shrinks geometrically while every step is accepted, and checking
+        # only rejections let such a sample take thousands of steps that advance no time.
+        t_next = torch.where(accept, t_new, t)
+        underflow = t_next + dt <= t_next
         out_of_steps = n_steps >= max_steps
         failed = (too_many | underflow | out_of_steps) & running & not_done
         running_next = running & not_done & ~failed
@@ -448,7 +452,6 @@ def _step(fun, consts, state):
     acc2 = accept[:, None]
     y_next = torch.where(acc2, y_new, y)
     k1 = torch.where(acc2, f_new, k1)
-    t_next = torch.where(accept, t_new, t)
     state = (t_next, dt, y_next, k1, running_next, stop_idx, stop_t, err_prev, n_steps, n_acc,
              n_nonfinite, out_idx)
     code = (too_many, underflow)

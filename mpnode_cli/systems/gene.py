@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System, neighbour_sum
+from mpnode_cli.systems.base import RHS, NeighbourSum, System
 
 if TYPE_CHECKING:
     import torch
@@ -78,10 +78,11 @@ class Gene(System):
     def rhs(self, adjacency: torch.Tensor, params: dict[str, torch.Tensor]) -> RHS:
         """f(t [K], y [K, N, 1]) → [K, N, 1]; `adjacency` `[K, N, N]`, `params` unused."""
         b, f_exp, h = (self.params[key] for key in ("b", "f", "h"))
+        neighbour_sum = NeighbourSum(adjacency)
 
         def f(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             activation = y**h / (1.0 + y**h)  # [K, N, 1]
-            return -b * y**f_exp + neighbour_sum(adjacency, activation)
+            return -b * y**f_exp + neighbour_sum(activation)
 
         return f
 

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System, neighbour_sum
+from mpnode_cli.systems.base import RHS, NeighbourSum, System
 
 if TYPE_CHECKING:
     import torch
@@ -66,13 +66,14 @@ class Kuramoto(System):
 
         coupling = self.params["K"]
         omega = params["omega"].unsqueeze(1)  # [K, 1, 3], shared by the nodes
+        neighbour_sum = NeighbourSum(adjacency)
 
         def f(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             # Σ_j A_ij sin(θ_j − θ_i) = cos θ_i (A sin θ)_i − sin θ_i (A cos θ)_i: two
             # matmuls instead of a [K, N, N, 3] tensor of pairwise differences.
             sin, cos = torch.sin(y), torch.cos(y)  # [K, N, 3]
             return omega + coupling * (
-                cos * neighbour_sum(adjacency, sin) - sin * neighbour_sum(adjacency, cos)
+                cos * neighbour_sum(sin) - sin * neighbour_sum(cos)
             )
 
         return f

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System
+from mpnode_cli.systems.base import RHS, NeighbourSum, System
 
 if TYPE_CHECKING:
     import torch
@@ -82,16 +82,15 @@ class Lorenz(System):
         import torch
 
         sigma, rho, beta = (self.params[key] for key in ("sigma", "rho", "beta"))
-        h = params["coupling"]  # [K, 3N, 3N]
+        # H·X is a neighbour sum over the 3N components, with H as weighted adjacency.
+        h_product = NeighbourSum(params["coupling"])  # H: [K or 1, 3N, 3N]
 
         def f(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             x_, y_, z_ = y.unbind(dim=-1)  # [K, N] each
             lorenz = torch.stack(
                 (sigma * (y_ - x_), x_ * (rho - z_) - y_, x_ * y_ - beta * z_), dim=-1
             )  # [K, N, 3]
-            if h.shape[0] == 1:  # one shared H: a single (K, 3N) @ (3N, 3N) product
-                return lorenz + (y.reshape(y.shape[0], -1) @ h[0].T).view(y.shape)
             flat = y.reshape(y.shape[0], -1, 1)  # [K, 3N, 1], node-major
-            return lorenz + (h @ flat).reshape(y.shape)
+            return lorenz + h_product(flat).reshape(y.shape)
 
         return f

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, System, neighbour_sum
+from mpnode_cli.systems.base import RHS, NeighbourSum, System
 
 if TYPE_CHECKING:
     import torch
@@ -79,12 +79,13 @@ class Pendulum(System):
 
         m, length, k, g = (self.params[key] for key in ("m", "l", "k", "g"))
         degree = adjacency.sum(dim=-1)  # [K, N]
+        neighbour_sum = NeighbourSum(adjacency)
 
         def f(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             theta, theta_dot = y[..., 0], y[..., 1]  # [K, N] each
             sin, cos = torch.sin(theta), torch.cos(theta)
             # Σ_j A_ij (sin θ_j − sin θ_i), the springs' pull on node i.
-            pull = neighbour_sum(adjacency, sin.unsqueeze(-1)).squeeze(-1)  # [K, N]
+            pull = neighbour_sum(sin.unsqueeze(-1)).squeeze(-1)  # [K, N]
             spring = pull - degree * sin
             theta_ddot = (m * sin * (length * theta_dot**2 - g) + k * length * spring) / (
                 m * length * cos
