@@ -44,6 +44,7 @@ from mpnode_cli.training.evaluate import (
     evaluate_checkpoint,
 )
 from mpnode_cli.training.losses import LOSSES
+from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.recipe import resolve_recipe
 
 Progress = Callable[[dict[str, Any]], None]
@@ -141,7 +142,7 @@ def train(config: TrainConfig, *, resume: bool = False,
         model.fit_statistics(normalizer.norm_x(train_set.states),
                              float(train_set.time[1] - train_set.time[0]), train_set.adjacency)
     model.to(device)
-    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    optimizer = Adam(model.parameters(), lr=config.lr)
     shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
     state = LoopState()
     if last is not None:
