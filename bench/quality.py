@@ -440,9 +440,9 @@ def run_all(args, cases: list[Case], presets: list[str], report: Callable[[str],
                 case = running.pop(future)
                 try:
                     result = future.result()
+                    test = next(r["mse"] for r in result["rows"] if r["measure"] == "test")
                     report(f"done  {case.name}: {result['epochs']} epochs, "
-                           f"{result['wall_seconds']:.0f} s, test MSE "
-                           f"{_fmt(result['rows'][int(case.val)]['mse'])}")
+                           f"{result['wall_seconds']:.0f} s, test MSE {_fmt(test)}")
                 except Exception as exc:  # one broken case must not stop the others
                     failures.append(f"{case.name}: {exc}")
                     report(f"FAIL  {case.name}: {exc} (log: {args.runs / case.name})")
