@@ -151,3 +151,39 @@ def aggregator(adjacency: torch.Tensor, how: str = "mean", backend: str = "auto"
         return torch.cat([mean, mean * amp.to(m.dtype), mean * att.to(m.dtype)], dim=-1)
 
     return pna
+
+
+class DegreeAwareAggregation:
+    """What MP-NODE and GNN-ODE share about their neighbours: the graph mode, PNA's δ and the
+    aggregation over one batch of graphs.
+
+    A subclass (an `nn.Module`) sets `self.graph` ("sys" or "full"), `self.aggregate` and
+    calls `_register_degree_statistic()` in its constructor.
+    """
+
+    graph: str
+    aggregate: str
+    degree_delta: torch.Tensor
+
+    def _register_degree_statistic(self) -> None:
+        # PNA's δ, the training graphs' mean log(in-degree + 1): fitted once by
+        # `fit_statistics`, saved with the weights, used unchanged on any other graph.
+        self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
+
+    def _graph(self, adjacency: torch.Tensor) -> torch.Tensor:
+        """The graph messages pass over: the data's, or complete with self-loops."""
+        return torch.ones_like(adjacency) if self.graph == "full" else adjacency
+
+    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
+        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` (states, dt unused)."""
+        if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
+            self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
+
+    def aggregator(self, adjacency: torch.Tensor, backend: str = "auto"):
+        """The aggregation over in-neighbours: `m [B, N, F] → [B, N, channels(F)]`.
+
+        Args:
+            adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff j sends to i.
+        """
+        delta = float(self.degree_delta) if self.aggregate == "pna" else None
+        return aggregator(self._graph(adjacency), self.aggregate, backend, delta)

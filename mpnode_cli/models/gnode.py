@@ -21,13 +21,13 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import aggregator, channels, mean_log_degree
+from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
 from mpnode_cli.models.base import NeuralModel, Rollout, zoh_controls
 from mpnode_cli.models.options import GNODEOptions
 from mpnode_cli.solver import solve
 
 
-class GNODE(NeuralModel):
+class GNODE(DegreeAwareAggregation, NeuralModel):
     """Graph neural ODE with sum aggregation and skip connections.
 
     Args:
@@ -55,21 +55,11 @@ class GNODE(NeuralModel):
         for layer in (self.lift, self.message, self.update, self.decode):
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
-        # PNA's δ (see `MPNODE.degree_delta`).
-        self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
-
-    def _graph(self, adjacency: torch.Tensor) -> torch.Tensor:
-        return torch.ones_like(adjacency) if self.graph == "full" else adjacency
-
-    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
-        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]`."""
-        if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
-            self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
+        self._register_degree_statistic()
 
     def vector_field(self, adjacency: torch.Tensor, u=None):
         """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`."""
-        delta = float(self.degree_delta) if self.aggregate == "pna" else None
-        aggregate = aggregator(self._graph(adjacency), self.aggregate, "auto", delta)
+        aggregate = self.aggregator(adjacency)
 
         def f(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
             inputs = torch.cat([x, u(t).to(x.dtype)], dim=-1) if u is not None else x

@@ -26,13 +26,13 @@ from typing import ClassVar
 
 import torch
 
-from mpnode_cli.models.aggregate import aggregator, channels, mean_log_degree
+from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
 from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
 
 
-class MPNODE(NeuralModel):
+class MPNODE(DegreeAwareAggregation, NeuralModel):
     """Message-passing neural ODE over a batch of graphs.
 
     Args:
@@ -57,26 +57,7 @@ class MPNODE(NeuralModel):
         self.aggregate, self.backend = o.aggregate, o.backend
         self.net = mlp(node_dim + control_dim + channels(o.aggregate, o.message_dim), o.hidden,
                        o.layers, node_dim + o.message_dim, o.activation)
-        # PNA's δ, the training graphs' mean log(in-degree + 1): fitted once by
-        # `fit_statistics`, saved with the weights, used unchanged on any other graph.
-        self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
-
-    def _graph(self, adjacency: torch.Tensor) -> torch.Tensor:
-        return torch.ones_like(adjacency) if self.graph == "full" else adjacency
-
-    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
-        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` (states, dt unused)."""
-        if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
-            self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
-
-    def aggregator(self, adjacency: torch.Tensor):
-        """This model's aggregation over in-neighbours: `m [B, N, M] → [B, N, M']`.
-
-        Args:
-            adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff j sends to i.
-        """
-        delta = float(self.degree_delta) if self.aggregate == "pna" else None
-        return aggregator(self._graph(adjacency), self.aggregate, self.backend, delta)
+        self._register_degree_statistic()
 
     def vector_field(self, adjacency: torch.Tensor, u=None):
         """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]` for `solve`.
@@ -85,7 +66,7 @@ class MPNODE(NeuralModel):
             adjacency: `[B, N, N]`.
             u: `u(t [B]) → [B, N, U]` (zero-order hold), or None when U = 0.
         """
-        aggregate = self.aggregator(adjacency)
+        aggregate = self.aggregator(adjacency, self.backend)
         d = self.node_dim
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
