@@ -1,7 +1,7 @@
 """Batched Runge–Kutta ODE solvers in torch: `solve(f, y0, t_eval, method=...) -> Solution`.
 
-Names are re-exported lazily, so that `mpnode_cli.solver.tableau` (which the CLI's help
-reads) imports without torch.
+Names are re-exported lazily, so that `mpnode_cli.solver.options` and `.tableau` (which the
+configs and the CLI's help read) import without torch.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ _EXPORTS = {
     "Solution": "solve",
     "Status": "solve",
     "solve": "solve",
+    "SolverOptions": "options",
     "ButcherTableau": "tableau",
     "METHODS": "tableau",
 }
