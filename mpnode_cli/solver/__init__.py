@@ -26,7 +26,9 @@ def __getattr__(name: str) -> Any:
         raise AttributeError(f"module 'mpnode_cli.solver' has no attribute '{name}'")
     module = import_module(f"mpnode_cli.solver.{_EXPORTS[name]}")
     # Importing the submodule `solve` binds the package's `solve` to that module; the
-    # exports, bound here afterwards, take the name back for the function.
+    # exports, bound here afterwards, take the name back for the function. (Code that
+    # imports `mpnode_cli.solver.solve` as a module before anything asks the package for
+    # `solve` would leave the module there: import the names from the package.)
     exports = {key: getattr(module, key) for key, where in _EXPORTS.items()
                if where == _EXPORTS[name]}
     globals().update(exports)
