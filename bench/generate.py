@@ -112,7 +112,8 @@ def bench_preset(name: str, folder: Path, n_scipy: int) -> dict:
     ds = read_dataset(summary.path)
     subset = np.random.default_rng(0).choice(ds.num_trajectories, n_scipy, replace=False)
     gc.collect()
-    scipy_seconds, max_diff = scipy_loop(ds, np.sort(subset), config.rtol, config.atol)
+    scipy_seconds, max_diff = scipy_loop(ds, np.sort(subset), config.solver.rtol,
+                                         config.solver.atol)
     scipy_all = scipy_seconds / n_scipy * ds.num_trajectories
     return {
         "preset": name,

@@ -45,6 +45,7 @@ from mpnode_cli.data.generate import generate
 from mpnode_cli.data.presets import get_preset
 from mpnode_cli.models.base import Rollout
 from mpnode_cli.models.mpnode import MPNODE
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.evaluate import evaluate
 from mpnode_cli.training.loop import train
@@ -59,12 +60,11 @@ def _peer_rollout(integrate):
     `f(t [B], z [B, N, D+M])` is the model's own vector field; `zs: [B, T, N, D+M]`.
     """
 
-    def rollout(self, x0, ts, adjacency, controls=None, *, rtol=1e-4, atol=1e-4,
-                fixed_dt=None, return_messages=False):
+    def rollout(self, x0, ts, adjacency, controls=None, *, solver, return_messages=False):
         ts = ts.to(device=x0.device, dtype=torch.float64)
         z0 = torch.cat([x0, x0.new_zeros(*x0.shape[:-1], self.message_dim)], dim=-1)
         f = self.vector_field(adjacency.to(x0.dtype))
-        zs, evals = integrate(f, z0, ts, rtol, atol)
+        zs, evals = integrate(f, z0, ts, solver.rtol, solver.atol)
         d = self.node_dim
         status = torch.zeros(len(x0), dtype=torch.long, device=x0.device)
         return Rollout(zs[..., :d], zs[..., d:] if return_messages else None, status, evals)
@@ -104,7 +104,7 @@ def torchode_tsit5(f, z0, ts, rtol, atol):
 
 VARIANTS = {
     "mpnode tsit5": ({}, None),
-    "mpnode tsit5 fixed dt=0.05": ({"fixed_dt": 0.05}, None),
+    "mpnode tsit5 fixed dt=0.05": ({"solver": {"fixed_dt": 0.05}}, None),
     "torchdiffeq dopri5": ({}, torchdiffeq_dopri5),
     "torchode tsit5": ({}, torchode_tsit5),
 }
@@ -136,7 +136,7 @@ def run_variant(name, dataset, root, args):
     ckpt = load_checkpoint(checkpoint_path(config.run_dir, "last"))
     data = data.subset("validation")
     referee = evaluate(ckpt.build_model().to(args.device), data, ckpt.build_normalizer(),
-                       rtol=1e-6, atol=1e-6, device=args.device)
+                       solver=SolverOptions(rtol=1e-6, atol=1e-6), device=args.device)
     return {
         "variant": name,
         "s_per_epoch": statistics.median(r["train_seconds"] for r in rows[1:] or rows),

@@ -15,14 +15,33 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from mpnode_cli.solver.options import SolverOptions
+
 # Relative slack when checking that t_end is a whole number of dt steps (0.3 / 0.1 is not
 # exactly 3 in binary floating point).
 _GRID_TOL = 1e-9
+
+
+def generate_solver() -> SolverOptions:
+    """The solver of `mpnode generate`: ground truth at tight tolerances (float64)."""
+    return SolverOptions(rtol=1e-8, atol=1e-10)
+
+
+def train_solver() -> SolverOptions:
+    """The solver of training rollouts: the paper's rtol = atol = 1e-4."""
+    return SolverOptions(rtol=1e-4, atol=1e-4)
+
+
+def _over(defaults: Callable[[], SolverOptions], value: Any) -> Any:
+    """A `solver` table that names only some options: the rest from the verb's defaults
+    (not `SolverOptions`' own, which are `solve`'s)."""
+    return {**defaults().model_dump(), **value} if isinstance(value, dict) else value
 
 
 class GenerateConfig(BaseModel):
@@ -48,7 +67,9 @@ class GenerateConfig(BaseModel):
         dt: sample spacing.
         seed: seed of the initial states and of the train/validation/test split.
         split: train, validation, test fractions (by trajectory), summing to 1.
-        rtol, atol: solver tolerances (float64 throughout).
+        solver: how the trajectories are integrated (float64 throughout); default Tsit5 at
+            rtol 1e-8, atol 1e-10 (`generate_solver`). A table that names only some options
+            takes the others from that default.
         dtype: storage dtype of `states`.
         out: output file (default `datasets/<system>-n<N>-<topology>-s<seed>.h5`).
         chunk_size: trajectories solved together in one batch (bounds memory).
@@ -69,8 +90,7 @@ class GenerateConfig(BaseModel):
     dt: float | None = Field(None, gt=0)
     seed: int = 0
     split: tuple[float, float, float] = (0.7, 0.15, 0.15)
-    rtol: float = Field(1e-8, gt=0, lt=1)
-    atol: float = Field(1e-10, gt=0)
+    solver: SolverOptions = Field(default_factory=generate_solver)
     dtype: Literal["float32", "float64"] = "float32"
     out: Path | None = None
     chunk_size: int = Field(1024, ge=1)
@@ -87,6 +107,11 @@ class GenerateConfig(BaseModel):
         if len(numbers) != 3:
             raise ValueError(f"expected three fractions like 0.7,0.15,0.15, got {value!r}")
         return numbers
+
+    @field_validator("solver", mode="before")
+    @classmethod
+    def _fill_solver(cls, value: Any) -> Any:
+        return _over(generate_solver, value)
 
     @field_validator("split")
     @classmethod
@@ -169,7 +194,9 @@ class TrainConfig(BaseModel):
         seed: model initialization, shuffling and noise.
         device: "cpu" or "cuda".
         run_dir: the run folder (default `runs/<dataset>-<model>-<time>`).
-        rtol, atol: solver tolerances of the rollouts. fixed_dt: fixed-step Tsit5 instead.
+        solver: how the rollouts are integrated, in training and in every evaluation of
+            the checkpoints; default adaptive Tsit5 at rtol = atol = 1e-4 (`train_solver`).
+            A table that names only some options takes the others from that default.
         horizon_curriculum: train on prefixes of the trajectories that grow linearly from
             `curriculum_start` samples to the whole horizon over `curriculum_epochs` epochs
             (validation always uses the whole horizon). The mpnode recipe turns it on for
@@ -204,9 +231,7 @@ class TrainConfig(BaseModel):
     seed: int = 0
     device: Literal["cpu", "cuda"] = "cpu"
     run_dir: Path | None = None
-    rtol: float = Field(1e-4, gt=0, lt=1)
-    atol: float = Field(1e-4, gt=0)
-    fixed_dt: float | None = Field(None, gt=0)
+    solver: SolverOptions = Field(default_factory=train_solver)
     horizon_curriculum: bool = False
     curriculum_start: int = Field(5, ge=2)
     curriculum_epochs: int = Field(100, ge=1)
@@ -215,6 +240,11 @@ class TrainConfig(BaseModel):
     init_checkpoint: Path | None = None
     trajectories: int | None = Field(None, ge=1)
     renormalize: bool = False
+
+    @field_validator("solver", mode="before")
+    @classmethod
+    def _fill_solver(cls, value: Any) -> Any:
+        return _over(train_solver, value)
 
 
 # TrainConfig fields that held model options before each model declared its own (written
@@ -225,13 +255,54 @@ _FLAT_MODEL_FIELDS = ("hidden", "layers", "activation", "message_dim", "graph", 
                       "history", "step_noise")
 
 
+# Config fields that held solver options before `solver` (generate: rtol, atol; train: all
+# three), written into datasets' config, run folders' config.json and checkpoints.
+_FLAT_SOLVER_FIELDS = ("rtol", "atol", "fixed_dt")
+
+
+def upgrade_solver_fields(fields: dict[str, Any]) -> dict[str, Any]:
+    """Map a generate or train config written before `solver` onto today's fields.
+
+    The flat `rtol`, `atol` and `fixed_dt` move into the `solver` table (where it names
+    them too, the table wins); the options they did not have take the config's defaults,
+    which are what the solver did then (Tsit5, `solve`'s `max_steps`, no compile). A
+    config without flat solver fields is returned as it is.
+
+    Args:
+        fields: a config as JSON fields (a dataset's stored config, a run's `config.json`,
+            a config file).
+
+    Returns:
+        New fields that the config accepts (if the rest is valid).
+    """
+    flat = {k: fields[k] for k in _FLAT_SOLVER_FIELDS if k in fields}
+    if not flat:
+        return fields
+    fields = {k: v for k, v in fields.items() if k not in flat}
+    nested = fields.get("solver")
+    if nested is None or isinstance(nested, dict):
+        fields["solver"] = {**flat, **(nested or {})}
+    return fields
+
+
+def stored_solver(fields: dict[str, Any], defaults: Callable[[], SolverOptions]) -> SolverOptions:
+    """The solver options of a stored config, of today's form or an earlier one, without
+    validating the rest of it.
+
+    Args:
+        fields: e.g. a checkpoint's `train_config` or a dataset's stored config.
+        defaults: the verb's defaults, `train_solver` or `generate_solver`.
+    """
+    return SolverOptions(**_over(defaults, upgrade_solver_fields(fields).get("solver", {})))
+
+
 def upgrade_train_fields(fields: dict[str, Any]) -> dict[str, Any]:
-    """Map a train config written before `model_options` onto today's fields.
+    """Map a train config written by an earlier version onto today's fields.
 
     The flat model fields set (not None) move into `model_options`, `aggregation`
     becoming `backend`; `step_noise`, then a field of every config, is kept for L2S
-    only, the one model that used it. A config that has `model_options` is returned as
-    it is.
+    only, the one model that used it. The flat solver fields move into `solver`
+    (`upgrade_solver_fields`). A config of today's form is returned as it is.
 
     Args:
         fields: a resolved train config as JSON fields (e.g. a run's `config.json`).
@@ -239,6 +310,7 @@ def upgrade_train_fields(fields: dict[str, Any]) -> dict[str, Any]:
     Returns:
         New fields that `TrainConfig(**fields)` accepts (if the rest is valid).
     """
+    fields = upgrade_solver_fields(fields)
     if "model_options" in fields or not any(k in fields for k in _FLAT_MODEL_FIELDS):
         return fields
     fields = dict(fields)

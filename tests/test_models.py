@@ -9,6 +9,7 @@ import torch.nn.functional as F
 from mpnode_cli.data.dataset import Normalizer
 from mpnode_cli.models.base import zoh_controls
 from mpnode_cli.models.registry import build_model
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.losses import huber_loss, mse_loss
 
 pytestmark = pytest.mark.usefixtures("float64_default")
@@ -27,6 +28,7 @@ def model(**kw):
 
 
 TS = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+TIGHT = SolverOptions(rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.parametrize("aggregate", ["mean", "sum", "pna"])
@@ -36,8 +38,8 @@ def test_permutation_equivariance(aggregate):
     net.fit_statistics(None, 0.1, adj)
     x0 = torch.randn(2, 6, 3)
     perm = torch.tensor([3, 0, 5, 1, 4, 2])
-    out = net.rollout(x0, TS, adj, rtol=1e-9, atol=1e-9, return_messages=True)
-    out_p = net.rollout(x0[:, perm], TS, adj[:, perm][:, :, perm], rtol=1e-9, atol=1e-9,
+    out = net.rollout(x0, TS, adj, solver=TIGHT, return_messages=True)
+    out_p = net.rollout(x0[:, perm], TS, adj[:, perm][:, :, perm], solver=TIGHT,
                         return_messages=True)
     torch.testing.assert_close(out_p.states, out.states[:, :, perm], rtol=1e-7, atol=1e-9)
     torch.testing.assert_close(out_p.messages, out.messages[:, :, perm], rtol=1e-7, atol=1e-9)
@@ -58,8 +60,8 @@ def test_messages_reach_exactly_the_connected_component(messages):
     x0 = torch.randn(1, 5, 3)
     moved = x0.clone()
     moved[0, 2] += 1.0  # change node 2 only
-    a = net.rollout(x0, TS, adj, fixed_dt=0.05).states
-    b = net.rollout(moved, TS, adj, fixed_dt=0.05).states
+    a = net.rollout(x0, TS, adj, solver=SolverOptions(fixed_dt=0.05)).states
+    b = net.rollout(moved, TS, adj, solver=SolverOptions(fixed_dt=0.05)).states
     changed = (a - b).abs().amax(dim=(0, 1, 3)) > 1e-9  # per node
     if messages:
         assert changed.tolist() == [True, True, True, False, False]
@@ -74,8 +76,8 @@ def test_full_graph_mode_couples_every_node():
     x0 = torch.randn(1, 5, 3)
     moved = x0.clone()
     moved[0, 2] += 1.0
-    a = net.rollout(x0, TS, adj, fixed_dt=0.05).states
-    b = net.rollout(moved, TS, adj, fixed_dt=0.05).states
+    a = net.rollout(x0, TS, adj, solver=SolverOptions(fixed_dt=0.05)).states
+    b = net.rollout(moved, TS, adj, solver=SolverOptions(fixed_dt=0.05)).states
     assert bool(((a - b).abs().amax(dim=(0, 1, 3)) > 1e-9).all())
 
 
@@ -86,8 +88,8 @@ def test_dense_and_scatter_models_give_the_same_rollout(aggregate):
     nets = [model(aggregate=aggregate, backend=backend) for backend in ("dense", "scatter")]
     for net in nets:
         net.fit_statistics(x0, 0.1, adj)
-    a = nets[0].rollout(x0, TS, adj, fixed_dt=0.1).states
-    b = nets[1].rollout(x0, TS, adj, fixed_dt=0.1).states
+    a = nets[0].rollout(x0, TS, adj, solver=SolverOptions(fixed_dt=0.1)).states
+    b = nets[1].rollout(x0, TS, adj, solver=SolverOptions(fixed_dt=0.1)).states
     torch.testing.assert_close(a, b)
 
 
@@ -113,7 +115,7 @@ def test_controlled_model_integrates_a_held_input():
     ts = torch.tensor([0.0, 0.5, 1.0])
     controls = torch.tensor([[[[0.2]], [[-0.4]], [[9.0]]]])  # [1, 3, 1, 1]
     out = net.rollout(torch.zeros(1, 1, 1), ts, torch.zeros(1, 1, 1), controls,
-                      rtol=1e-10, atol=1e-12)
+                      solver=SolverOptions(rtol=1e-10, atol=1e-12))
     want = torch.tensor([0.0, 0.1, -0.1])
     torch.testing.assert_close(out.states[0, :, 0, 0], want, rtol=1e-5, atol=1e-6)
 

@@ -17,6 +17,7 @@ from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate, resolve_config
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.solver import solve
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.systems import get_system
 from mpnode_cli.systems import quadrotor_flight as qf
 from mpnode_cli.systems.quadrotor import Quadrotor
@@ -290,7 +291,7 @@ def test_presets_and_limits():
     with pytest.raises(ValueError, match="t_end >= 8"):
         SYSTEM.simulate(None, {}, torch.from_numpy(y0), torch.tensor([0.0, 5.0]).double(),
                         {name: torch.from_numpy(v) for name, v in inputs.items()},
-                        rtol=1e-8, atol=1e-10)  # fmt: skip
+                        solver=SolverOptions(rtol=1e-8, atol=1e-10))  # fmt: skip
 
 
 def test_mpnode_trains_on_a_small_quad3_set(quad3, tmp_path):

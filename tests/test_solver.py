@@ -1,4 +1,5 @@
-"""Tests of the batched Tsit5 solver against independent references.
+"""Tests of the batched Runge–Kutta solvers against independent references, through
+`solve(method=...)` and the methods' tableaus (`METHODS`).
 
 References: the rooted-tree order conditions (computed here, not copied), closed-form
 solutions, scipy's DOP853 at tight tolerance, and finite differences (gradcheck).
@@ -8,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import sys
 
 import numpy as np
 import pytest
@@ -16,10 +16,9 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from mpnode_cli.solver import Status, solve
-from mpnode_cli.solver import tableau as tab
+from mpnode_cli.solver import METHODS, Status, solve
 
-solve_mod = sys.modules["mpnode_cli.solver.solve"]
+ADAPTIVE = [name for name, tableau in METHODS.items() if tableau.adaptive]
 
 # ----------------------------------------------------------------------------- order conditions
 
@@ -62,50 +61,75 @@ def stage_weights(t, a: np.ndarray) -> np.ndarray:
     return phi
 
 
-def tableau_arrays():
-    s = len(tab.C)
-    a = np.zeros((s, s))
-    for i, row in enumerate(tab.A):
+def tableau_arrays(name: str):
+    """`(a (s, s), b, e or None, c)` of a method, as numpy arrays."""
+    t = METHODS[name]
+    a = np.zeros((t.stages, t.stages))
+    for i, row in enumerate(t.a):
         a[i, : len(row)] = row
-    a[s - 1, : s - 1] = tab.B[:-1]
-    return a, np.array(tab.B), np.array(tab.E), np.array(tab.C)
+    e = None if t.e is None else np.array(t.e)
+    return a, np.array(t.b), e, np.array(t.c)
+
+
+def with_end_stage(name: str):
+    """`(a, c)` with, for a method that is not FSAL, the stage f(t + h, y₁) appended (a = b,
+    c = 1): the stages the interpolant's rows refer to."""
+    a, b, _, c = tableau_arrays(name)
+    if METHODS[name].fsal:
+        return a, c
+    s = len(b)
+    ext = np.zeros((s + 1, s + 1))
+    ext[:s, :s], ext[s, :s] = a, b
+    return ext, np.append(c, 1.0)
 
 
 def test_number_of_trees_matches_known_counts():
-    assert [len(rooted_trees(k)) for k in range(1, 6)] == [1, 1, 2, 4, 9]
+    assert [len(rooted_trees(k)) for k in range(1, 7)] == [1, 1, 2, 4, 9, 20]
 
 
-def test_row_sums_are_the_nodes():
-    a, _, _, c = tableau_arrays()
+@pytest.mark.parametrize("name", METHODS)
+def test_row_sums_are_the_nodes(name):
+    a, _, _, c = tableau_arrays(name)
     np.testing.assert_allclose(a.sum(axis=1), c, atol=1e-14)
 
 
-def test_b_satisfies_all_order_conditions_up_to_5():
-    a, b, _, _ = tableau_arrays()
-    for order in range(1, 6):
+@pytest.mark.parametrize("name", METHODS)
+def test_b_satisfies_the_order_conditions_of_its_order_and_no_more(name):
+    a, b, _, _ = tableau_arrays(name)
+    p = METHODS[name].order
+    for order in range(1, p + 1):
         for t in rooted_trees(order):
             assert b @ stage_weights(t, a) == pytest.approx(1 / gamma(t), abs=1e-13), t
+    residual = max(abs(b @ stage_weights(t, a) - 1 / gamma(t)) for t in rooted_trees(p + 1))
+    assert residual > 1e-5
 
 
-def test_embedded_weights_have_order_4_but_not_5():
-    a, b, e, _ = tableau_arrays()
+@pytest.mark.parametrize("name", ADAPTIVE)
+def test_embedded_weights_have_their_order_but_not_more(name):
+    a, b, e, _ = tableau_arrays(name)
     b_hat = b - e
-    for order in range(1, 5):
+    q = METHODS[name].error_order
+    for order in range(1, q + 1):
         for t in rooted_trees(order):
             assert b_hat @ stage_weights(t, a) == pytest.approx(1 / gamma(t), abs=1e-13), t
-    residual5 = max(abs(b_hat @ stage_weights(t, a) - 1 / gamma(t)) for t in rooted_trees(5))
-    assert residual5 > 1e-5  # otherwise the error estimate would not estimate anything
+    residual = max(abs(b_hat @ stage_weights(t, a) - 1 / gamma(t)) for t in rooted_trees(q + 1))
+    assert residual > 1e-5  # otherwise the error estimate would not estimate anything
     assert e.sum() == pytest.approx(0.0, abs=1e-15)
 
 
-def test_fsal_and_dense_output_conditions():
-    a, b, _, _ = tableau_arrays()
-    assert tab.C[-1] == 1.0 and tab.B[-1] == 0.0
-    interp = np.array(tab.INTERP)  # (7, 4): coefficients of θ, θ², θ³, θ⁴
+@pytest.mark.parametrize("name", METHODS)
+def test_fsal_and_dense_output_conditions(name):
+    tab = METHODS[name]
+    a, _ = with_end_stage(name)
+    b = np.array(tab.b) if tab.fsal else np.append(tab.b, 0.0)
+    if tab.fsal:
+        assert tab.c[-1] == 1.0 and tab.b[-1] == 0.0
+        np.testing.assert_array_equal(a[-1, :-1], b[:-1])
+    interp = np.array(tab.interp)  # (s, K): coefficients of θ, θ², ..., θ^K
     np.testing.assert_allclose(interp.sum(axis=1), b, atol=1e-14)  # b_i(1) = b_i
     for theta in (0.1, 0.37, 0.5, 0.8):
-        b_theta = interp @ np.array([theta, theta**2, theta**3, theta**4])
-        for order in range(1, 5):
+        b_theta = interp @ theta ** np.arange(1, interp.shape[1] + 1)
+        for order in range(1, tab.dense_order + 1):
             for t in rooted_trees(order):
                 want = theta ** tree_size(t) / gamma(t)
                 assert b_theta @ stage_weights(t, a) == pytest.approx(want, abs=1e-12)
@@ -124,7 +148,26 @@ def observed_order(hs, errors) -> float:
     return float(np.polyfit(np.log(hs), np.log(errors), 1)[0])
 
 
-def test_fixed_step_converges_with_order_5():
+def one_step(name: str, y0: np.ndarray, h: float):
+    """A plain numpy step of y' = M y from the tableau's numbers: `(y₁, err or None, b(θ)
+    → y(θh))`, an independent reading of the tableau to check `solve` against."""
+    a, c = with_end_stage(name)
+    tab = METHODS[name]
+    k = np.zeros((len(c), len(y0)))
+    for i in range(len(c)):
+        k[i] = M @ (y0 + h * a[i, :i] @ k[:i])
+    y1 = y0 + h * np.array(tab.b) @ k[: tab.stages]
+    err = None if tab.e is None else h * np.array(tab.e) @ k[: tab.stages]
+    interp = np.array(tab.interp)
+
+    def dense(theta: float) -> np.ndarray:
+        return y0 + h * (interp @ theta ** np.arange(1, interp.shape[1] + 1)) @ k
+
+    return y1, err, dense
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test_fixed_step_converges_with_its_order(name):
     y0 = np.array([1.0, 0.5, -0.3])
     mt = torch.tensor(M)
     ts = torch.tensor([0.0, 1.0, 2.0])
@@ -132,33 +175,61 @@ def test_fixed_step_converges_with_order_5():
     hs = [0.4, 0.2, 0.1, 0.05]
     errors = []
     for h in hs:
-        sol = solve(lambda t, y: y @ mt.T, torch.tensor(y0)[None], ts, fixed_dt=h)
+        sol = solve(lambda t, y: y @ mt.T, torch.tensor(y0)[None], ts, method=name, fixed_dt=h)
         errors.append(np.abs(sol.ys[0].numpy() - exact).max())
-    assert 4.6 < observed_order(hs, errors) < 5.6, errors
+    order = observed_order(hs, errors)
+    assert abs(order - METHODS[name].order) < 0.3, (order, errors)
 
 
-def test_embedded_solution_has_order_4_and_error_estimate_tracks_it():
-    """y4 = y5 − err is 4th order, and err ≈ its local error (catches a wrong error weight)."""
-    y0 = torch.tensor([[1.0, 0.5, -0.3]], dtype=torch.float64)
-    mt = torch.tensor(M)
-    tsit5 = solve_mod._Tableau(torch.float64, torch.device("cpu"))
-    f = lambda t, y: y @ mt.T  # noqa: E731
+@pytest.mark.parametrize("name", ADAPTIVE)
+def test_embedded_solution_has_its_order_and_the_error_estimate_tracks_it(name):
+    """y₁ − err (the embedded solution) has local error h^(q+1), and err ≈ that error
+    (catches a wrong error weight)."""
+    y0 = np.array([1.0, 0.5, -0.3])
     hs = [0.2, 0.1, 0.05, 0.025]
-    local4, ratios = [], []
+    local, ratios = [], []
     for h in hs:
-        t0, step = torch.zeros(1, dtype=torch.float64), torch.full((1,), h, dtype=torch.float64)
-        stages = solve_mod._Stages(1, 3, y0, reuse=True)
-        y5, err, _, _ = solve_mod._rk_step(f, tsit5, stages, t0, step, y0, f(None, y0),
-                                           t0 + step)
-        exact = torch.tensor(expm(M * h) @ y0[0].numpy())
-        true4 = exact - (y5[0] - err[0])
-        local4.append(true4.abs().max().item())
-        ratios.append((err[0] - true4).norm().item() / true4.norm().item())
-    assert 4.6 < observed_order(hs, local4) < 5.6  # local error of a 4th-order method: h^5
-    assert ratios[-1] < 0.05  # err is the 4th-order solution's error, to leading order
+        y1, err, _ = one_step(name, y0, h)
+        true = expm(M * h) @ y0 - (y1 - err)
+        local.append(np.abs(true).max())
+        ratios.append(np.linalg.norm(err - true) / np.linalg.norm(true))
+    q = METHODS[name].error_order
+    assert abs(observed_order(hs, local) - (q + 1)) < 0.3
+    assert ratios[-1] < 0.05  # err is the embedded solution's error, to leading order
 
 
-def test_dense_output_error_has_order_at_least_4():
+@pytest.mark.parametrize("name", ADAPTIVE)
+def test_solve_accepts_a_step_by_the_tableaus_error_estimate(name):
+    """With rtol = 0 a step is accepted iff RMS(err) ≤ atol: `solve` estimates the error
+    with the tableau's weights (one step of size h, just above and below the threshold)."""
+    y0 = np.array([1.0, 0.5, -0.3])
+    mt = torch.tensor(M)
+    h = 0.1
+    _, err, _ = one_step(name, y0, h)
+    rms = float(np.sqrt(np.mean(err**2)))
+    accepted = []
+    for atol in (1.001 * rms, 0.999 * rms):
+        sol = solve(lambda t, y: y @ mt.T, torch.tensor(y0)[None], [0.0, h], method=name,
+                    rtol=0.0, atol=atol, dt0=h, max_steps=1)
+        accepted.append(int(sol.stats["n_accepted"][0]))
+    assert accepted == [1, 0]
+
+
+@pytest.mark.parametrize("name", METHODS)
+def test_interpolant_has_its_local_order(name):
+    """One step's dense output y(θh) has local error h^(q+1), q the interpolant's order."""
+    y0 = np.array([1.0, 0.5, -0.3])
+    hs, errors = [0.4, 0.2, 0.1, 0.05], []
+    for h in hs:
+        _, _, dense = one_step(name, y0, h)
+        errors.append(max(np.abs(dense(th) - expm(M * th * h) @ y0).max()
+                          for th in (0.3, 0.5, 0.7)))
+    order = observed_order(hs, errors)
+    assert abs(order - (METHODS[name].dense_order + 1)) < 0.3, (order, errors)
+
+
+@pytest.mark.parametrize("name", ADAPTIVE)
+def test_dense_output_error_has_order_at_least_4(name):
     """Outputs between steps come from the interpolant: error ~ h^5 locally, ≥ h^4 globally."""
     y0 = torch.tensor([[1.0, 0.5, -0.3]], dtype=torch.float64)
     mt = torch.tensor(M)
@@ -168,9 +239,22 @@ def test_dense_output_error_has_order_at_least_4():
     for h in hs:
         # Steps fixed at h via the stop grid (tstops), outputs in between interpolated.
         stops = torch.arange(h, 2.0 + 1e-9, h, dtype=torch.float64)
-        sol = solve(lambda t, y: y @ mt.T, y0, ts, rtol=1e3, atol=1e3, dt0=h, tstops=stops)
+        sol = solve(lambda t, y: y @ mt.T, y0, ts, method=name, rtol=1e3, atol=1e3, dt0=h,
+                    tstops=stops)
         errors.append(np.abs(sol.ys[0].numpy() - exact).max())
-    assert observed_order(hs, errors) > 3.8, errors
+    assert observed_order(hs, errors) > METHODS[name].dense_order - 0.2, errors
+
+
+def test_rk4_takes_fixed_steps_only():
+    f = lambda t, y: -y  # noqa: E731
+    y0 = torch.ones(1, 1, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"rk4.*no error estimate.*fixed_dt"):
+        solve(f, y0, [0.0, 1.0], method="rk4")
+    with pytest.raises(ValueError, match=r"unknown solver method 'rk5'.*tsit5, dopri5, rk4"):
+        solve(f, y0, [0.0, 1.0], method="rk5")
+    sol = solve(f, y0, [0.0, 0.25, 1.0], method="rk4", fixed_dt=0.1)
+    # 11 steps (as `test_fixed_dt_steps_align_with_output_times`), 4 new evaluations each.
+    assert int(sol.stats["n_steps"][0]) == 11 and int(sol.stats["n_f_evals"][0]) == 1 + 4 * 11
 
 
 # ----------------------------------------------------------------------------- accuracy vs scipy
@@ -203,12 +287,13 @@ PROBLEMS = {
 }
 
 
-@pytest.mark.parametrize("name", sorted(PROBLEMS))
-def test_matches_scipy_dop853_at_tight_tolerance(name):
+@pytest.mark.parametrize(("method", "name"), [
+    *(("tsit5", name) for name in sorted(PROBLEMS)), ("dopri5", "lorenz"), ("dopri5", "two_body")])
+def test_matches_scipy_dop853_at_tight_tolerance(method, name):
     f, y0s, t_end = PROBLEMS[name]
     ts = torch.linspace(0.0, t_end, 33, dtype=torch.float64)
     y0 = torch.tensor(y0s, dtype=torch.float64)
-    sol = solve(f, y0, ts, rtol=1e-10, atol=1e-12)
+    sol = solve(f, y0, ts, method=method, rtol=1e-10, atol=1e-12)
     assert bool(sol.success.all())
     for i, y in enumerate(y0s):
         ref = solve_ivp(numpy_version(f), (0.0, t_end), y, method="DOP853", t_eval=ts.numpy(),

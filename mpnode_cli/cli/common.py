@@ -1,14 +1,42 @@
-"""What every verb shares: turning exceptions into one line for the user and an exit code."""
+"""What every verb shares: options declared elsewhere (threads, the solver's), and turning
+exceptions into one line for the user and an exit code."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import typer
+
+from mpnode_cli.solver.options import SolverOptions
 
 # Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
 # verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.
 THREADS = typer.Option(
     None, "--threads", metavar="N", show_default=False,
     help="CPU threads torch may use (default 1, or MPNODE_THREADS).")
+
+
+def solver_option(name: str, defaults: SolverOptions) -> Any:
+    """The CLI option of one `SolverOptions` field: its declared help and the verb's default.
+
+    Options left out stay out (None), so that the config fills them from its own defaults.
+
+    Args:
+        name: the field (`method`, `rtol`, `atol`, `fixed_dt`).
+        defaults: the verb's options (`config.generate_solver()`, `config.train_solver()`).
+    """
+    value = getattr(defaults, name)
+    shown = "" if value is None else f" (default {_number(value)})"
+    text = SolverOptions.model_fields[name].description or name
+    return typer.Option(None, help=f"{text.removesuffix('.')}{shown}.")
+
+
+def _number(value: Any) -> str:
+    """`1e-4` rather than `0.0001` for small and large floats; other values as they are."""
+    if not isinstance(value, float) or value == 0 or 1e-3 <= abs(value) < 1e4:
+        return f"{value:g}" if isinstance(value, float) else str(value)
+    mantissa, exponent = f"{value:.12e}".split("e")
+    return f"{mantissa.rstrip('0').rstrip('.')}e{int(exponent)}"
 
 
 def error_message(exc: Exception) -> str:

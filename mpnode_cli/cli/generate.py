@@ -13,14 +13,17 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS
+from mpnode_cli.cli.common import THREADS, solver_option
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
+from mpnode_cli.config import generate_solver
 from mpnode_cli.threads import applied_threads
 
 # Fields that exclude each other: one given by a later layer drops the other from earlier
 # layers, so `--preset gene-ba-4x4 --nodes 25` means 25 nodes rather than a conflict.
 _EXCLUSIVE = (("nodes", "grid"), ("topology", "edge_list"))
+# Tables whose entries merge key by key across layers.
+_TABLES = ("params", "solver")
 
 
 def _complete_system(incomplete: str) -> list[str]:
@@ -63,8 +66,10 @@ def generate_command(
     split: str | None = typer.Option(
         None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."
     ),
-    rtol: float | None = typer.Option(None, help="Solver relative tolerance (default 1e-8)."),
-    atol: float | None = typer.Option(None, help="Solver absolute tolerance (default 1e-10)."),
+    method: str | None = solver_option("method", generate_solver()),
+    rtol: float | None = solver_option("rtol", generate_solver()),
+    atol: float | None = solver_option("atol", generate_solver()),
+    fixed_dt: float | None = solver_option("fixed_dt", generate_solver()),
     dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
     out: Path | None = typer.Option(
         None, help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5)."
@@ -88,16 +93,20 @@ def generate_command(
     threads: str | None = THREADS,
 ) -> None:
     """Simulate ground truth on graphs and write an HDF5 dataset."""
-    from mpnode_cli.config import GenerateConfig, read_config_file
+    from mpnode_cli.config import GenerateConfig, read_config_file, upgrade_solver_fields
     from mpnode_cli.data.presets import get_preset
 
     options = {
         "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
-        "t_end": t_end, "dt": dt, "seed": seed, "split": split, "rtol": rtol, "atol": atol,
-        "dtype": dtype, "out": out, "chunk_size": chunk_size,
+        "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
+        "chunk_size": chunk_size,
     }  # fmt: skip
     options = {key: value for key, value in options.items() if value is not None}
+    solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
+    solver = {key: value for key, value in solver.items() if value is not None}
+    if solver:  # the config's `solver` table, merged over a config file's
+        options["solver"] = solver
     try:
         params = _parse_params(param or [])
         for key, value in (("coupling", coupling), ("init", init), ("ic_range", ic_range)):
@@ -107,7 +116,8 @@ def generate_command(
             options["params"] = params
         layers = [
             (f"preset {preset}", get_preset(preset) if preset else {}),
-            (f"config {config_file}", read_config_file(config_file) if config_file else {}),
+            (f"config {config_file}",
+             upgrade_solver_fields(read_config_file(config_file)) if config_file else {}),
             ("command line", options),
         ]
         fields = _merge(layers)
@@ -203,13 +213,14 @@ def _parse_params(items: list[str]) -> dict[str, float | str]:
 
 
 def _merge(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
-    """Later layers override earlier ones; `params` merge key by key.
+    """Later layers override earlier ones; `params` and `solver` merge key by key.
 
     Args:
         layers: `(where it came from, fields)`, lowest precedence first.
 
     Raises:
-        ValueError: two layers name different systems, or `params` is not a table.
+        ValueError: two layers name different systems, or `params` or `solver` is not a
+            table.
     """
     fields: dict[str, Any] = {}
     source = ""
@@ -225,11 +236,12 @@ def _merge(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
             for given, other in ((a, b), (b, a)):
                 if given in layer and other not in layer:
                     fields.pop(other, None)
-        params = layer.pop("params", {})
-        if not isinstance(params, dict):
-            raise ValueError(f"params ({where}) must be a table of NAME = value")
-        params = {**fields.get("params", {}), **params}
+        tables = {name: layer.pop(name, {}) for name in _TABLES}
+        for name, table in tables.items():
+            if not isinstance(table, dict):
+                raise ValueError(f"{name} ({where}) must be a table of NAME = value")
         fields.update(layer)
-        if params:
-            fields["params"] = params
+        for name, table in tables.items():
+            if merged := {**fields.get(name, {}), **table}:
+                fields[name] = merged
     return fields

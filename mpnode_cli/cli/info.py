@@ -35,6 +35,8 @@ def _rows(header: dict[str, Any]) -> list[tuple[str, str]]:
     """(label, text) rows of the summary table."""
     import numpy as np
 
+    from mpnode_cli.config import generate_solver, stored_solver
+
     attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
     (k, t, n, d), states_dtype = shapes["states"]
     adjacency = header["adjacency"]  # [G, N, N]
@@ -42,6 +44,9 @@ def _rows(header: dict[str, Any]) -> list[tuple[str, str]]:
     edges = adjacency.reshape(len(adjacency), -1).sum(axis=1) / 2  # undirected edges per graph
     failed = int(np.count_nonzero(header["solver_status"]))
     scalars = ", ".join(f"{key}={value:g}" for key, value in header["scalar_params"].items())
+    solver = stored_solver(config, generate_solver)
+    steps = (f"fixed dt {solver.fixed_dt:g}" if solver.fixed_dt is not None
+             else f"rtol {solver.rtol:g}, atol {solver.atol:g}")
     per_graph = ", ".join(
         f"{name.removeprefix('params/')} {list(shape)}"
         for name, (shape, _) in shapes.items()
@@ -64,8 +69,7 @@ def _rows(header: dict[str, Any]) -> list[tuple[str, str]]:
         ("seeds", f"trajectories {attrs['seed']}, graphs {config.get('graph_seed', '?')}"),
         (
             "solver",
-            f"rtol {config.get('rtol', '?')}, atol {config.get('atol', '?')}, "
-            f"{failed} unfinished in the file",
+            f"{solver.method}, {steps}, {failed} unfinished in the file",
         ),
     ]
     if "n_rejected" in attrs:

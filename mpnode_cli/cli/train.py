@@ -18,7 +18,8 @@ from typing import Any, Literal, get_args, get_origin
 import typer
 from pydantic.fields import FieldInfo
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail
+from mpnode_cli.cli.common import THREADS, console, error_message, fail, solver_option
+from mpnode_cli.config import train_solver
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.threads import applied_threads
 
@@ -46,9 +47,8 @@ _EPOCHS = typer.Option(None, help="Epochs to train (default 4000; on --resume, t
 _SEED = typer.Option(None, help="Seed of initialization, shuffling and noise (default 0).")
 _DEVICE = typer.Option(None, help="cpu (default) or cuda.")
 _RUN_DIR = typer.Option(None, help="Run folder (default runs/<dataset>-<model>-<time>).")
-_RTOL = typer.Option(None, help="Solver relative tolerance (default 1e-4).")
-_ATOL = typer.Option(None, help="Solver absolute tolerance (default 1e-4).")
-_FIXED_DT = typer.Option(None, help="Fixed-step Tsit5 with this step instead of adaptive.")
+_METHOD, _RTOL, _ATOL, _FIXED_DT = (solver_option(name, train_solver())
+                                    for name in ("method", "rtol", "atol", "fixed_dt"))
 _CURRICULUM = typer.Option(
     None, "--horizon-curriculum/--no-horizon-curriculum",
     help="Train on growing prefixes of the trajectories (default: on for more than 60 "
@@ -74,7 +74,7 @@ def train_command(
     clip: float | None = _CLIP, patience: int | None = _PATIENCE,
     noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
     device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
-    rtol: float | None = _RTOL, atol: float | None = _ATOL,
+    method: str | None = _METHOD, rtol: float | None = _RTOL, atol: float | None = _ATOL,
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
@@ -164,7 +164,7 @@ def finetune_command(
     clip: float | None = _CLIP, patience: int | None = _PATIENCE,
     noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
     device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
-    rtol: float | None = _RTOL, atol: float | None = _ATOL,
+    method: str | None = _METHOD, rtol: float | None = _RTOL, atol: float | None = _ATOL,
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
@@ -184,16 +184,24 @@ def _given(values: dict[str, Any], exclude: tuple[str, ...]) -> dict[str, Any]:
     return {k: v for k, v in values.items() if v is not None and k not in exclude}
 
 
+# The options that fill the config's `solver` table.
+_SOLVER = ("method", "rtol", "atol", "fixed_dt")
+
+
 def _config(config_file: Path | None, options: dict[str, Any],
             model_options: dict[str, Any] | None = None):
-    """The train config: the file's fields, beneath the options given (model options merged
-    into the file's `[model_options]` table one by one)."""
-    from mpnode_cli.config import TrainConfig, read_config_file
+    """The train config: the file's fields (upgraded if written by an earlier version),
+    beneath the options given; model options and solver options are merged into the file's
+    `[model_options]` and `[solver]` tables one by one."""
+    from mpnode_cli.config import TrainConfig, read_config_file, upgrade_train_fields
 
-    fields = read_config_file(config_file) if config_file else {}
-    in_file = fields.get("model_options", {})
-    if model_options and isinstance(in_file, dict):  # else TrainConfig says what is wrong
-        fields["model_options"] = in_file | model_options
+    fields = upgrade_train_fields(read_config_file(config_file)) if config_file else {}
+    solver = {k: v for k, v in options.items() if k in _SOLVER}
+    options = {k: v for k, v in options.items() if k not in _SOLVER}
+    for table, given in (("model_options", model_options), ("solver", solver)):
+        in_file = fields.get(table, {})
+        if given and isinstance(in_file, dict):  # else TrainConfig says what is wrong
+            fields[table] = in_file | given
     return TrainConfig(**{**fields, **options})
 
 

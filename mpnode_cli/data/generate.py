@@ -314,8 +314,7 @@ def _solve_chunk(system, config, ts, adjacency, params, y0, inputs):
         tensor(y0),
         ts,
         {name: tensor(v) for name, v in inputs.items()},
-        rtol=config.rtol,
-        atol=config.atol,
+        solver=config.solver,
     )
 
 

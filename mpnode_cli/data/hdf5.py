@@ -24,6 +24,7 @@ import h5py
 import numpy as np
 
 from mpnode_cli import __version__
+from mpnode_cli.config import upgrade_solver_fields
 
 FORMAT = "mpnode-dataset"
 FORMAT_VERSION = 1
@@ -244,7 +245,7 @@ def read_dataset(path: str | Path) -> Dataset:
             state_names=tuple(json.loads(attrs["state_names"])),
             control_names=tuple(json.loads(attrs["control_names"])),
             seed=attrs["seed"],
-            config=json.loads(attrs["config"]),
+            config=_config(attrs["config"]),
             time=f["time"][()],
             states=f["states"][()],
             adjacency=f["graph/adjacency"][()],
@@ -275,8 +276,9 @@ def read_header(path: str | Path) -> dict[str, Any]:
     """
     with _open(path) as f:
         attrs = _root_attrs(f)
-        for key in ("config", "state_names", "control_names"):
+        for key in ("state_names", "control_names"):
             attrs[key] = json.loads(attrs[key])
+        attrs["config"] = _config(attrs["config"])
         shapes: dict[str, tuple[tuple[int, ...], str]] = {}
         f.visititems(
             lambda name, obj: (
@@ -293,6 +295,14 @@ def read_header(path: str | Path) -> dict[str, Any]:
             "adjacency": f["graph/adjacency"][()],
             "scalar_params": {name: float(v) for name, v in f["params"].attrs.items()},
         }
+
+
+def _config(text: str) -> dict[str, Any]:
+    """The stored generate config, in today's form (files written before the `solver`
+    table held flat `rtol` and `atol`; the format version did not change, since older
+    readers only show the config)."""
+    config = json.loads(text)
+    return upgrade_solver_fields(config) if isinstance(config, dict) else config
 
 
 def _open(path: str | Path) -> h5py.File:

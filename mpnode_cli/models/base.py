@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from mpnode_cli.models.options import ModelOptions
+from mpnode_cli.solver.options import SolverOptions
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "tanh": nn.Tanh,
@@ -144,9 +145,9 @@ class NeuralModel(nn.Module):
             ts: `[T]` sample times.
             adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff node j sends to node i.
             controls: `[B, T, N, U]` normalized (zero-order hold), or None.
-            **options: the solver's `rtol`, `atol`, `fixed_dt` and `return_messages`
-                (models without a solver accept and ignore them); a model with
-                `initial_states` C > 1 also takes `history: [B, C, N, D]`.
+            **options: `solver` (a `SolverOptions`; None: `solve`'s defaults) and
+                `return_messages` (models without a solver accept and ignore them); a model
+                with `initial_states` C > 1 also takes `history: [B, C, N, D]`.
         """
         raise NotImplementedError
 
@@ -164,16 +165,16 @@ class NeuralModel(nn.Module):
     def training_loss(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
                       controls: torch.Tensor | None,
                       loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
-                      **solver: Any) -> BatchLoss:
+                      solver: SolverOptions | None = None) -> BatchLoss:
         """The loss of one training batch: `loss_fn` of the whole-horizon rollout.
 
         Args:
             x: `[B, H, N, D]` normalized (noisy) training states; ts: `[H]` their times.
             adjacency: `[B, N, N]`. controls: `[B, H, N, U]` or None.
             loss_fn: `loss_fn(pred, target)` on `[B, H, N, D]` states.
-            **solver: `rtol`, `atol`, `fixed_dt` of the rollout.
+            solver: how the rollout is integrated (None: `solve`'s defaults).
         """
-        out = self.rollout_from_data(x, ts, adjacency, controls, **solver)
+        out = self.rollout_from_data(x, ts, adjacency, controls, solver=solver)
         loss = loss_fn(out.states, x) if bool((out.status == 0).all()) else None
         return BatchLoss(loss, out.status, out.n_f_evals)
 

@@ -25,6 +25,7 @@ from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
 from mpnode_cli.models.base import NeuralModel, Rollout, zoh_controls
 from mpnode_cli.models.options import GNODEOptions
 from mpnode_cli.solver import solve
+from mpnode_cli.solver.options import SolverOptions
 
 
 class GNODE(DegreeAwareAggregation, NeuralModel):
@@ -73,8 +74,7 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
         return f
 
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
-                controls: torch.Tensor | None = None, *, rtol: float = 1e-4,
-                atol: float = 1e-4, fixed_dt: float | None = None,
+                controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
                 return_messages: bool = False) -> Rollout:
         """Integrate from x(t₀); same arguments as `MPNODE.rollout` (no message states)."""
         if x0.shape[-1] != self.node_dim:
@@ -82,7 +82,8 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
                              f"expects {self.node_dim}")
         ts = ts.to(device=x0.device, dtype=torch.float64)
         u = zoh_controls(controls, ts) if self.control_dim else None
-        sol = solve(self.vector_field(adjacency.to(x0.dtype), u), x0, ts, rtol=rtol, atol=atol,
-                    fixed_dt=fixed_dt, tstops=ts[1:-1] if u is not None else None)
+        options = solver.solve_kwargs() if solver is not None else {}
+        sol = solve(self.vector_field(adjacency.to(x0.dtype), u), x0, ts, **options,
+                    tstops=ts[1:-1] if u is not None else None)
         return Rollout(states=sol.ys, messages=None, status=sol.status,
                        n_f_evals=int(sol.stats["n_f_evals"].max()))

@@ -30,6 +30,7 @@ from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
 from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
+from mpnode_cli.solver.options import SolverOptions
 
 
 class MPNODE(DegreeAwareAggregation, NeuralModel):
@@ -78,8 +79,7 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         return f
 
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
-                controls: torch.Tensor | None = None, *, rtol: float = 1e-4,
-                atol: float = 1e-4, fixed_dt: float | None = None,
+                controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
                 return_messages: bool = False) -> Rollout:
         """Integrate from x(t₀) over the whole horizon.
 
@@ -88,7 +88,8 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             ts: `[T]` sample times.
             adjacency: `[B, N, N]`.
             controls: `[B, T, N, U]` normalized, zero-order hold, or None.
-            rtol, atol, fixed_dt: solver options (adaptive Tsit5 unless fixed_dt).
+            solver: how to integrate (None: `solve`'s defaults; training passes its
+                config's, `TrainConfig.solver`).
             return_messages: also return the message states.
         """
         if x0.shape[-1] != self.node_dim:
@@ -103,8 +104,9 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             u = zoh_controls(controls, ts)
         # Steps must not straddle a control switch: stop at every sample time.
         tstops = ts[1:-1] if u is not None else None
-        sol = solve(self.vector_field(adjacency.to(x0.dtype), u), z0, ts, rtol=rtol, atol=atol,
-                    fixed_dt=fixed_dt, tstops=tstops)
+        options = solver.solve_kwargs() if solver is not None else {}
+        sol = solve(self.vector_field(adjacency.to(x0.dtype), u), z0, ts, **options,
+                    tstops=tstops)
         d = self.node_dim
         return Rollout(states=sol.ys[..., :d],
                        messages=sol.ys[..., d:] if return_messages else None,

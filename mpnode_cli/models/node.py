@@ -17,6 +17,7 @@ from torch import nn
 from mpnode_cli.models.base import ACTIVATIONS, NeuralModel, Rollout, zoh_controls
 from mpnode_cli.models.options import NODEOptions
 from mpnode_cli.solver import solve
+from mpnode_cli.solver.options import SolverOptions
 
 
 class NODE(NeuralModel):
@@ -54,8 +55,7 @@ class NODE(NeuralModel):
         return f
 
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
-                controls: torch.Tensor | None = None, *, rtol: float = 1e-4,
-                atol: float = 1e-4, fixed_dt: float | None = None,
+                controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
                 return_messages: bool = False) -> Rollout:
         """Integrate from x(t₀); `adjacency` is ignored (only its N is checked)."""
         if x0.shape[1] != self.num_nodes or x0.shape[-1] != self.node_dim:
@@ -63,7 +63,8 @@ class NODE(NeuralModel):
                              f"{self.node_dim} features, got {x0.shape[1]} × {x0.shape[-1]}")
         ts = ts.to(device=x0.device, dtype=torch.float64)
         u = zoh_controls(controls, ts) if self.control_dim else None
-        sol = solve(self.vector_field(u), x0, ts, rtol=rtol, atol=atol, fixed_dt=fixed_dt,
+        options = solver.solve_kwargs() if solver is not None else {}
+        sol = solve(self.vector_field(u), x0, ts, **options,
                     tstops=ts[1:-1] if u is not None else None)
         return Rollout(states=sol.ys, messages=None, status=sol.status,
                        n_f_evals=int(sol.stats["n_f_evals"].max()))

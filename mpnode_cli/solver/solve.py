@@ -1,21 +1,24 @@
-"""A batched Tsit5 solver with per-sample adaptive steps, written for torch.
+"""A batched explicit Runge–Kutta solver with per-sample adaptive steps, written for torch.
 
-One entry point, `solve(f, y0, t_eval, ...) -> Solution`. Each sample of the batch has its
+One entry point, `solve(f, y0, t_eval, method=..., ...) -> Solution`; the methods (Tsit5 by
+default, Dopri5, RK4) are tableaus in `tableau.py`. Each sample of the batch has its
 own time, step size, error control, controller history, counters and status, so a sample's
 result does not depend on what else is in the batch (torchdiffeq shares one step size across
 the batch; see docs/solver.md), and a sample that fails is frozen and marked while the others
 go on.
 
 Design points (docs/solver.md):
-- Stage sums are one fused `addmv` per stage over a stage-major `[7, B, F]` buffer of h·k_i
+- Stage sums are one fused `addmv` per stage over a stage-major `[s, B, F]` buffer of h·k_i
   (the per-sample step size is applied once, when a stage is stored), so a stage costs two
   tensor ops plus `f`.
-- Dense output uses Tsit5's free 4th-order interpolant, so steps are never shortened to hit
+- Every step ends with f at its new state: the last stage of an FSAL method (Tsit5, Dopri5),
+  or one stage appended to a method that is not (RK4), which the next step reuses as k₁.
+- Dense output uses the method's free interpolant, so steps are never shortened to hit
   output times; the outputs crossed by a step are written with a bounded, static-shape
   scatter (no `nonzero`).
 - One host sync per step: the "anyone still running?" flag and the number of outputs to
   write travel together in one `.tolist()`.
-- The controller (PI, OrdinaryDiffEq.jl's defaults for Tsit5) works on detached tensors:
+- The step-size controller (`controller.PIController`) works on detached tensors:
   gradients flow through the stages and the interpolant, not through the step-size choice
   (a prototype that let r^(−1/5) into autograd produced NaN gradients near r = 0).
 """
@@ -30,22 +33,11 @@ from enum import IntEnum
 
 import torch
 
-from mpnode_cli.solver import tableau
+from mpnode_cli.solver.controller import PIController
+from mpnode_cli.solver.tableau import ButcherTableau, get_method
 
 RHS = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
-# PI step-size controller, factor = safety · r^(−beta1) · r_prev^(beta2), clamped to [0.2, 10].
-# OrdinaryDiffEq.jl's defaults (beta1 = 0.7/p, beta2 = 0.4/p) settle near r ≈ 0.17 and so
-# take ~20% more steps than needed; beta1 = 0.85/p, beta2 = 0.25/p (diffrax's icoeff 0.6,
-# pcoeff 0.25) settles near r ≈ 0.4. On the coupled-Lorenz benchmark (rtol 1e-6) that is the
-# step count of an integral controller with 2.5× fewer rejected steps and 1.5× lower error.
-_BETA1 = 0.85 / tableau.ORDER
-_BETA2 = 0.25 / tableau.ORDER
-_SAFETY = 0.9
-_FACTOR_MIN = 0.2
-_FACTOR_MAX = 10.0
-_ERR_PREV_FLOOR = 1e-4  # ODE.jl's qoldinit: the history never claims a better error than this
-_R_FLOOR = 1e-10  # keeps r^(-beta) finite when a step is exact (e.g. a constant solution)
 # After this many consecutive rejections for a non-finite error estimate (the step shrinks by
 # 5× each time, so by ~1e14 in all) the right-hand side itself is taken to be non-finite.
 _MAX_NON_FINITE_REJECTS = 20
@@ -109,6 +101,7 @@ def solve(
     y0: torch.Tensor,
     t_eval: torch.Tensor | Sequence[float],
     *,
+    method: str = "tsit5",
     rtol: float = 1e-6,
     atol: float = 1e-8,
     dt0: float | torch.Tensor | None = None,
@@ -117,7 +110,7 @@ def solve(
     tstops: torch.Tensor | Sequence[float] | None = None,
     compile: bool = False,
 ) -> Solution:
-    """Integrate `dy/dt = f(t, y)` for a batch of initial states with Tsit5.
+    """Integrate `dy/dt = f(t, y)` for a batch of initial states with a Runge–Kutta method.
 
     Args:
         f: right-hand side `f(t, y) -> dy/dt`, called with `t: [B]` float64 (each sample's
@@ -127,6 +120,9 @@ def solve(
             solve runs in this dtype and on this device; time is kept in float64.
         t_eval: `[T]` strictly increasing output times, shared by the batch; `t_eval[0]` is
             the start time.
+        method: a name of `tableau.METHODS`: "tsit5" (default) or "dopri5", 5(4) pairs
+            with adaptive steps, or "rk4", the classic 4th-order method, which has no error
+            estimate and so needs `fixed_dt`.
         rtol, atol: per-element tolerances; a step is accepted when the RMS over the
             sample's elements of `err / (atol + rtol·max(|y|, |y_new|))` is at most 1.
         dt0: first step size (scalar or `[B]`); by default chosen per sample by Hairer's
@@ -157,6 +153,7 @@ def solve(
         raise ValueError("t_eval must be strictly increasing")
     if fixed_dt is not None and not fixed_dt > 0:
         raise ValueError("fixed_dt must be positive")
+    tableau = get_method(method, fixed_dt)
 
     batch, shape = y0.shape[0], y0.shape[1:]
     n_out = ts.numel()
@@ -173,11 +170,12 @@ def solve(
         return Solution(ts, y0.unsqueeze(1), zeros, {k: zeros for k in _STAT_NAMES})
 
     stops = _stop_times(ts, tstops)
+    tab = _Tableau(tableau, y.dtype, device)
     if fixed_dt is not None:
-        ys, status, stats = _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps)
+        ys, status, stats = _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps)
     else:
-        ys, status, stats = _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps,
-                                            compile)
+        ys, status, stats = _solve_adaptive(fun, tab, tableau.controller_order, y, ts, stops,
+                                            rtol, atol, dt0, max_steps, compile)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
 
 
@@ -195,27 +193,42 @@ def _stop_times(ts: torch.Tensor, tstops) -> torch.Tensor:
 
 
 class _Tableau:
-    """Tsit5 constants as tensors of the solve's dtype and device."""
+    """A method's constants as tensors of the solve's dtype and device.
 
-    def __init__(self, dtype: torch.dtype, device: torch.device):
-        n = len(tableau.C)
-        a = torch.zeros(n + 1, n, dtype=torch.float64)
-        for i, row in enumerate(tableau.A):
+    The stages run are the method's, plus, for a method that is not FSAL, one stage with
+    a = b and c = 1: f at the new state, which ends every step (it is the next step's k₁
+    and the interpolant's end derivative). The last stage input is then always the new
+    state, and a step costs `stages − 1` evaluations of f.
+    """
+
+    def __init__(self, tableau: ButcherTableau, dtype: torch.dtype, device: torch.device):
+        c, rows, e = list(tableau.c), list(tableau.a), tableau.e
+        if not tableau.fsal:
+            c, rows = [*c, 1.0], [*rows, tableau.b]
+            e = None if e is None else (*e, 0.0)
+        n = len(c)
+        a = torch.zeros(n, n, dtype=torch.float64)
+        for i, row in enumerate(rows):
             a[i, : len(row)] = torch.tensor(row, dtype=torch.float64) if row else 0.0
-        a[n - 1, : n - 1] = torch.tensor(tableau.B[:-1], dtype=torch.float64)
-        a[n] = torch.tensor(tableau.E, dtype=torch.float64)
-        # Rows 0..6: stage weights (row 6 = b, the propagated solution); row 7: error weights.
-        ae = a.to(dtype=dtype, device=device)  # (8, 7)
+        # Row i: the weights of stage i's input (the last row is b, the propagated solution).
+        ae = a.to(dtype=dtype, device=device)  # (s, s)
+        self.stages = n
         self.ae_rows = [ae[i, :i].contiguous() for i in range(n)]
-        self.e = ae[n].contiguous()
-        self.c_inner = torch.tensor(tableau.C[1:5], dtype=torch.float64, device=device)  # (4,)
+        self.e = None if e is None else torch.tensor(e, dtype=dtype, device=device)  # (s,)
+        # Stages with c = 1 are evaluated at the step's end from the left; they must come
+        # last (true of every method here), after the inner nodes 0 < c < 1.
+        n_end = len(c) - next(i for i in range(n) if all(x == 1.0 for x in c[i:]))
+        if any(x == 1.0 for x in c[1 : n - n_end]):
+            raise ValueError(f"method '{tableau.name}': stages with c = 1 must come last")
+        self.n_end = n_end
+        self.c_inner = torch.tensor(c[1 : n - n_end], dtype=torch.float64, device=device)
         self.neg_inf = torch.tensor(-math.inf, dtype=torch.float64, device=device)
-        # Interpolant: b(θ) = [θ, θ², θ³, θ⁴] @ interp, interp (4, 7).
-        self.interp = torch.tensor(tableau.INTERP, dtype=torch.float64, device=device).T
+        # Interpolant: b(θ) = [θ, θ², ..., θ^K] @ interp, interp (K, s).
+        self.interp = torch.tensor(tableau.interp, dtype=torch.float64, device=device).T
 
 
 class _Stages:
-    """The stage buffer `[7, B, F]` of h·k_i and its views, made once per solve.
+    """The stage buffer `[s, B, F]` of h·k_i and its views, made once per solve.
 
     Stage-major, so that a stage input y + Σ_j a_ij h·k_j is one addmv over the column-major
     (B·F, i) view and h is applied once, when a stage is stored. Reused from step to step
@@ -223,14 +236,15 @@ class _Stages:
     the previous one alive).
     """
 
-    def __init__(self, batch: int, feat: int, like: torch.Tensor, reuse: bool):
-        self.shape, self.like, self.reuse = (7, batch, feat), like, reuse
+    def __init__(self, stages: int, batch: int, feat: int, like: torch.Tensor, reuse: bool):
+        self.shape, self.like, self.reuse = (stages, batch, feat), like, reuse
         self.views = self._views() if reuse else None
 
     def _views(self):
+        s = self.shape[0]
         hk = torch.empty(self.shape, dtype=self.like.dtype, device=self.like.device)
-        hk_t = hk.view(7, -1).T  # (B·F, 7)
-        return hk, [hk[i] for i in range(7)], [hk_t[:, :i] for i in range(8)]
+        hk_t = hk.view(s, -1).T  # (B·F, s)
+        return hk, [hk[i] for i in range(s)], [hk_t[:, :i] for i in range(s + 1)]
 
     def get(self):
         """`(buffer, per-stage views or None, column views)`.
@@ -252,12 +266,12 @@ class _LazyColumns:
         self.hk = hk
 
     def __getitem__(self, i: int) -> torch.Tensor:
-        return self.hk.view(7, -1).T[:, :i]
+        return self.hk.view(self.hk.shape[0], -1).T[:, :i]
 
 
 def _rk_step(fun: RHS, tab: _Tableau, stages: _Stages, t: torch.Tensor, h: torch.Tensor,
              y: torch.Tensor, k1: torch.Tensor, t_end: torch.Tensor):
-    """One Tsit5 step of size `h` for every sample.
+    """One Runge–Kutta step of size `h` for every sample.
 
     Args:
         t: `[B]` float64 step start; h: `[B]` float64 step sizes (0 freezes a sample);
@@ -267,17 +281,19 @@ def _rk_step(fun: RHS, tab: _Tableau, stages: _Stages, t: torch.Tensor, h: torch
             changes at a stop is seen from the left inside the step.
 
     Returns:
-        y_new `[B, F]`; err `[B, F]`, the local error estimate h·Σ e_i k_i; f_new `[B, F]`,
-        f at (t_end, y_new); and the stage buffer `[7, B, F]` holding h·k_i.
+        y_new `[B, F]`; err `[B, F]`, the local error estimate h·Σ e_i k_i (None for a
+        method without one); f_new `[B, F]`, f at (t_end, y_new); and the stage buffer
+        `[s, B, F]` holding h·k_i.
     """
     batch, feat = y.shape
     hc = h.to(y.dtype)[:, None]  # (B, 1)
     t_left = torch.nextafter(t_end, tab.neg_inf)
-    # Stage times; c5 = c6 = 1, whose time is the step end (from the left).
-    tcs = (*torch.addcmul(t[:, None], h[:, None], tab.c_inner).unbind(1), t_left, t_left)
+    # Stage times; the last stages have c = 1, whose time is the step end (from the left).
+    tcs = (*torch.addcmul(t[:, None], h[:, None], tab.c_inner).unbind(1),
+           *(t_left,) * tab.n_end)
     hk, hk_i, hk_cols = stages.get()
     y_flat = y.view(-1)
-    for i in range(7):
+    for i in range(tab.stages):
         if i == 0:
             fi = k1
         else:
@@ -287,9 +303,9 @@ def _rk_step(fun: RHS, tab: _Tableau, stages: _Stages, t: torch.Tensor, h: torch
             hk[i] = fi * hc
         else:  # `out=` saves a temporary but is not differentiable
             torch.mul(fi, hc, out=hk_i[i])
-    # Row 6 of the tableau is b, so the last stage input is the new state (b7 = 0) and the
-    # last stage is the FSAL derivative at it.
-    err = torch.mv(hk_cols[7], tab.e).view(batch, feat)
+    # The last row of the tableau is b, so the last stage input is the new state and the
+    # last stage is the derivative at it.
+    err = None if tab.e is None else torch.mv(hk_cols[tab.stages], tab.e).view(batch, feat)
     return yi, err, fi, hk
 
 
@@ -298,8 +314,11 @@ def _rms(x: torch.Tensor) -> torch.Tensor:
     return torch.linalg.vector_norm(x, dim=1).double() / math.sqrt(x.shape[1])
 
 
-def _initial_step(fun, t0, y, k1, rtol, atol, span):
-    """Hairer, Nørsett & Wanner, Solving ODEs I, §II.4: a first step size per sample."""
+def _initial_step(fun, t0, y, k1, rtol, atol, span, p):
+    """Hairer, Nørsett & Wanner, Solving ODEs I, §II.4: a first step size per sample.
+
+    p: the error estimate's order + 1 (5 for a 5(4) pair), as in Hairer's DOPRI5 (`IORD`).
+    """
     with torch.no_grad():
         scale = atol + rtol * y.abs()
         d0, d1 = _rms(y / scale), _rms(k1 / scale)
@@ -311,16 +330,17 @@ def _initial_step(fun, t0, y, k1, rtol, atol, span):
         h1 = torch.where(
             dmax <= 1e-15,
             torch.clamp_min(h0 * 1e-3, 1e-6),
-            (0.01 / dmax.clamp_min(1e-300)) ** (1.0 / tableau.ORDER),
+            (0.01 / dmax.clamp_min(1e-300)) ** (1.0 / p),
         )
         h = torch.minimum(torch.minimum(100 * h0, h1), span)
         return torch.where(torch.isfinite(h) & (h > 0), h, span * 1e-6)
 
 
-def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps, compile=False):
+def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compile=False):
+    """The adaptive loop; p is the error estimate's order + 1 (the controller's exponent)."""
     batch, feat = y.shape
     dev, f64 = y.device, torch.float64
-    tab = _Tableau(y.dtype, dev)
+    ctrl = PIController.for_order(p)
     n_out, n_stops = ts.numel(), stops.numel()
     t0 = ts[0]
 
@@ -329,7 +349,7 @@ def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps, compile=False
     n_f = torch.ones(batch, dtype=torch.long, device=dev)
     span = (ts[-1] - t0).expand(batch)
     if dt0 is None:
-        dt = _initial_step(fun, t, y, k1, rtol, atol, span)
+        dt = _initial_step(fun, t, y, k1, rtol, atol, span, p)
         n_f += 1
     else:
         dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
@@ -340,7 +360,7 @@ def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps, compile=False
     out_idx = torch.ones(batch, dtype=torch.long, device=dev)  # next output to fill
     stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
     stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
-    err_prev = torch.full((batch,), _ERR_PREV_FLOOR, dtype=f64, device=dev)
+    err_prev = torch.full((batch,), ctrl.err_prev_floor, dtype=f64, device=dev)
     n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
     n_acc = torch.zeros_like(n_steps)
     n_nonfinite = torch.zeros_like(n_steps)  # consecutive rejections for NaN/inf
@@ -351,8 +371,9 @@ def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps, compile=False
     arange_out = torch.arange(n_out, device=dev)
 
     stop_t = stops_pad[stop_idx]  # (B,) next time a step must land on
-    stages = _Stages(batch, feat, y, reuse=not (torch.is_grad_enabled() and k1.requires_grad))
-    consts = (tab, stages, ts, stops_pad, n_stops, rtol, atol, max_steps)
+    stages = _Stages(tab.stages, batch, feat, y,
+                     reuse=not (torch.is_grad_enabled() and k1.requires_grad))
+    consts = (tab, ctrl, stages, ts, stops_pad, n_stops, rtol, atol, max_steps)
     state = (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
              out_idx)
     step = _compiled_step() if compile else _step
@@ -379,7 +400,7 @@ def _solve_adaptive(fun, y, ts, stops, rtol, atol, dt0, max_steps, compile=False
             break
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
      out_idx) = state
-    n_f += 6 * n_steps
+    n_f += (tab.stages - 1) * n_steps
     stats = {"n_steps": n_steps, "n_accepted": n_acc, "n_rejected": n_steps - n_acc,
              "n_f_evals": n_f}
     return ys[:, :n_out], status, stats
@@ -398,7 +419,7 @@ _STEP_COMPILED = None
 
 def _step(fun, consts, state):
     """Attempt one step for every running sample; pure tensor code, no host sync."""
-    tab, stages, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
+    tab, ctrl, stages, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
      out_idx) = state
 
@@ -415,18 +436,14 @@ def _step(fun, consts, state):
         scale = torch.maximum(y.abs(), y_new.abs()).mul_(rtol).add_(atol)
         r = _rms(err / scale)
         finite = torch.isfinite(r)
-        r = torch.where(finite, r, math.inf).clamp_min(_R_FLOOR)
+        r = ctrl.ratio(r, finite)
         accept = running & (r <= 1.0)
-        q = r.pow(-_BETA1)
-        grow = (_SAFETY * q * err_prev.pow(_BETA2)).clamp(_FACTOR_MIN, _FACTOR_MAX)
-        shrink = (_SAFETY * q).clamp(_FACTOR_MIN, _SAFETY)
-        dt_next = h * torch.where(accept, grow, shrink)
+        dt_next, err_prev = ctrl.propose(h, r, err_prev, accept)
         landed = accept & land
         # A step clipped at a stop says little about the step size the solution allows:
         # keep the proposal it was clipped from.
         dt_next = torch.where(landed, torch.maximum(dt_next, dt), dt_next)
         dt = torch.where(running, dt_next, dt)
-        err_prev = torch.where(accept, r.clamp_min(_ERR_PREV_FLOOR), err_prev)
 
         n_cross = torch.where(accept, torch.searchsorted(ts, t_new, right=True) - out_idx, 0)
         n_steps = n_steps + running
@@ -472,8 +489,8 @@ def _write_outputs(ys, ts, tab, t, h, y, hk, out_idx, n_cross, width, arange_out
     with torch.no_grad():
         h_safe = torch.where(h > 0, h, 1.0)
         theta = ((ts[j.clamp_max(n_out - 1)] - t[:, None]) / h_safe[:, None]).clamp(0.0, 1.0)
-        powers = torch.stack([theta, theta**2, theta**3, theta**4], dim=-1)  # (B, W, 4)
-        coef = (powers @ tab.interp).to(y.dtype)  # (B, W, 7): b_i(θ)
+        powers = torch.stack([theta**k for k in range(1, len(tab.interp) + 1)], -1)  # (B, W, K)
+        coef = (powers @ tab.interp).to(y.dtype)  # (B, W, s): b_i(θ)
     y_out = y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, hk)  # (B, W, F)
     ys.scatter_(1, j[:, :, None].expand(batch, width, feat), y_out)
 
@@ -489,10 +506,9 @@ def _fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[
     return grid
 
 
-def _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps):
+def _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps):
     batch = y.shape[0]
     dev = y.device
-    tab = _Tableau(y.dtype, dev)
     n_out = ts.numel()
     out_times = ts.tolist()
     grid = _fixed_grid(ts, stops, fixed_dt)
@@ -503,7 +519,7 @@ def _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps):
     t_prev = out_times[0]
     t = torch.full((batch,), t_prev, dtype=torch.float64, device=dev)
     k1 = fun(t, y)
-    stages = _Stages(batch, y.shape[1], y,
+    stages = _Stages(tab.stages, batch, y.shape[1], y,
                      reuse=not (torch.is_grad_enabled() and k1.requires_grad))
     running = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
     status = torch.where(running, Status.SUCCESS, Status.NON_FINITE)
@@ -537,5 +553,6 @@ def _solve_fixed(fun, y, ts, stops, fixed_dt, max_steps):
     outs[j:] = [nan_row] * (n_out - j)
     ys = torch.stack(outs, dim=1)  # (B, T, F)
     stats = {"n_steps": n_steps, "n_accepted": n_steps.clone(),
-             "n_rejected": torch.zeros_like(n_steps), "n_f_evals": 1 + 6 * n_steps + n_extra}
+             "n_rejected": torch.zeros_like(n_steps),
+             "n_f_evals": 1 + (tab.stages - 1) * n_steps + n_extra}
     return ys, status, stats

@@ -31,6 +31,8 @@ from mpnode_cli.graphs import make_graph
 if TYPE_CHECKING:
     import torch
 
+    from mpnode_cli.solver.options import SolverOptions
+
 RHS = Callable[["torch.Tensor", "torch.Tensor"], "torch.Tensor"]
 
 
@@ -210,8 +212,7 @@ class System(ABC):
         ts: torch.Tensor,
         inputs: dict[str, torch.Tensor],
         *,
-        rtol: float,
-        atol: float,
+        solver: SolverOptions,
     ) -> Simulation:
         """Trajectories from `y0` sampled at `ts`; by default one float64 solve of `rhs`.
 
@@ -220,14 +221,14 @@ class System(ABC):
             y0: `[B, N, D]` float64 initial states.
             ts: `[T]` float64 output times.
             inputs: `sample`'s per-trajectory inputs, each `[B, ...]` (none by default).
-            rtol, atol: solver tolerances.
+            solver: how to integrate (the generate config's `solver`).
 
         Returns:
             A `Simulation`.
         """
         from mpnode_cli.solver import solve
 
-        sol = solve(self.rhs(adjacency, params), y0, ts, rtol=rtol, atol=atol)
+        sol = solve(self.rhs(adjacency, params), y0, ts, **solver.solve_kwargs())
         return Simulation(states=sol.ys, status=sol.status, n_f_evals=sol.stats["n_f_evals"])
 
     def reject(self, states: np.ndarray) -> np.ndarray:

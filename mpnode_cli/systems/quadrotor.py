@@ -31,6 +31,8 @@ from mpnode_cli.systems.base import RHS, Simulation, System
 if TYPE_CHECKING:
     import torch
 
+    from mpnode_cli.solver.options import SolverOptions
+
 # Swarm sizes whose fold is collision-free and keeps every cable taut (see `Reference`): odd
 # sizes have no opposite pairs, and five quads do not fold without meeting.
 NODE_COUNTS = (3, 4, 6)
@@ -121,10 +123,9 @@ class Quadrotor(System):
         ts: torch.Tensor,
         inputs: dict[str, torch.Tensor],
         *,
-        rtol: float,
-        atol: float,
+        solver: SolverOptions,
     ) -> Simulation:
         """Fly B planned flights closed-loop; see `quadrotor_flight.fly`."""
         from mpnode_cli.systems.quadrotor_flight import fly
 
-        return fly(self.params, y0, ts, inputs, rtol=rtol, atol=atol)
+        return fly(self.params, y0, ts, inputs, solver=solver)

@@ -13,6 +13,7 @@ import math
 import torch
 
 from mpnode_cli.solver import Status, solve
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.systems.base import Simulation
 from mpnode_cli.systems.quadrotor_control import (
     CONTROL_DT,
@@ -150,7 +151,7 @@ def clearances(r_quads: torch.Tensor, r_load: torch.Tensor) -> dict[str, torch.T
 
 
 def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
-        inputs: dict[str, torch.Tensor], *, rtol: float, atol: float) -> Simulation:
+        inputs: dict[str, torch.Tensor], *, solver: SolverOptions) -> Simulation:
     """Fly B flights from their hover `y0 [B, N, 13]` and sample them at `ts [T]`.
 
     Args:
@@ -159,7 +160,7 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
         ts: `[T]` float64 output times; each interval is split into equal control holds of
             at most `CONTROL_DT`.
         inputs: `Quadrotor.sample`'s draws.
-        rtol, atol: solver tolerances.
+        solver: how each control hold is integrated (the generate config's `solver`).
 
     Raises:
         ValueError: a horizon shorter than `MIN_HORIZON`.
@@ -229,7 +230,7 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
             y = _renormalize(y, n)
             w_hold = w
             sol = solve(lambda t, yy, w_hold=w_hold: swarm_rhs(yy, w_hold, n, p), y,
-                        torch.tensor([ta, tb], dtype=torch.float64), rtol=rtol, atol=atol,
+                        torch.tensor([ta, tb], dtype=torch.float64), **solver.solve_kwargs(),
                         dt0=tb - ta)  # fmt: skip
             n_f += sol.stats["n_f_evals"]
             failed = (sol.status != Status.SUCCESS) & (status == Status.SUCCESS)

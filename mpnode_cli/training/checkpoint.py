@@ -1,4 +1,4 @@
-"""Checkpoint files, format "mpnode-checkpoint" version 3: everything to rebuild a model.
+"""Checkpoint files, format "mpnode-checkpoint" version 4: everything to rebuild a model.
 
 A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
 dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
@@ -29,6 +29,10 @@ to `backend`, added the `aggregate` choice (mean/sum/pna) and the PNA degree sta
 Version 3 moved the model options of `train_config` into its `model_options`, and L2S's
 training input noise `step_noise` from there into its `model_config` (an L2S option);
 version 2 files are upgraded on reading.
+Version 4 moved the solver fields `rtol`, `atol` and `fixed_dt` of `train_config` into its
+`solver` table (`SolverOptions`, which adds the method); version 3 files are upgraded on
+reading. The version changed because an older mpnode would read a version 4 file without
+complaint but evaluate it with its default solver, not the one it was trained with.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
 leaves the previous checkpoint intact.
@@ -46,13 +50,13 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from mpnode_cli import __version__
-from mpnode_cli.config import upgrade_train_fields
+from mpnode_cli.config import upgrade_solver_fields, upgrade_train_fields
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 
 
 class CheckpointFormatError(ValueError):
@@ -150,6 +154,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         _upgrade_v1(payload)
     if version < 3:
         _upgrade_v2(payload)
+    if version < 4 and isinstance(payload.get("train_config"), dict):
+        payload["train_config"] = upgrade_solver_fields(payload["train_config"])
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],

@@ -22,9 +22,11 @@ from typing import Any
 
 import torch
 
+from mpnode_cli.config import stored_solver, train_solver
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.registry import OPTIONS, model_class
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.losses import huber_loss
 
 
@@ -82,8 +84,8 @@ class Prediction:
 
 
 def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *,
-             batch_size: int = 128, rtol: float = 1e-4, atol: float = 1e-4,
-             fixed_dt: float | None = None, device: str | torch.device = "cpu") -> EvalResult:
+             batch_size: int = 128, solver: SolverOptions | None = None,
+             device: str | torch.device = "cpu") -> EvalResult:
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
@@ -91,7 +93,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
         data: the trajectories (one split, or all); physical units.
         normalizer: the training normalization (the model works in its units).
         batch_size: trajectories per rollout.
-        rtol, atol, fixed_dt: solver options, normally those the model was trained with.
+        solver: how the rollouts are integrated, normally as the model was trained
+            (None: `solve`'s defaults).
         device: where the rollouts run.
 
     Returns:
@@ -109,8 +112,7 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
         for idx in torch.arange(k).split(batch_size):
             batch = data.take(idx)
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
-            out = model.rollout_from_data(x, ts, batch.adjacency.to(device), u, rtol=rtol,
-                                          atol=atol, fixed_dt=fixed_dt)
+            out = model.rollout_from_data(x, ts, batch.adjacency.to(device), u, solver=solver)
             n_f_evals += out.n_f_evals
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
             failed += int((~good).sum())
@@ -137,15 +139,14 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
 
 
 def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
-            index: torch.Tensor, *, rtol: float = 1e-4, atol: float = 1e-4,
-            fixed_dt: float | None = None, device: str | torch.device = "cpu") -> Prediction:
+            index: torch.Tensor, *, solver: SolverOptions | None = None,
+            device: str | torch.device = "cpu") -> Prediction:
     """Roll out the trajectories at `index` (`[B]`) and return them in physical units."""
     batch = data.take(index)
     x, u = _normalized(batch, normalizer, device)
     with torch.no_grad():
         out = model.rollout_from_data(x, data.time.to(device), batch.adjacency.to(device), u,
-                                      rtol=rtol, atol=atol, fixed_dt=fixed_dt,
-                                      return_messages=True)
+                                      solver=solver, return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
                       messages=messages, status=out.status.cpu())
@@ -277,9 +278,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     if len(subset) == 0:
         raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
-    options = {"rtol": ckpt.train_config.get("rtol", 1e-4),
-               "atol": ckpt.train_config.get("atol", 1e-4),
-               "fixed_dt": ckpt.train_config.get("fixed_dt"), "device": device}
+    options = {"solver": stored_solver(ckpt.train_config, train_solver), "device": device}
     result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
     train, note = train_reference(ckpt, data)
     baselines = {k: _finite(v) for k, v in baseline_mse(train, subset, normalizer).items()}

@@ -171,8 +171,7 @@ def train(config: TrainConfig, *, resume: bool = False,
 
     def validate() -> EvalResult:
         return evaluate(model, val_set, normalizer, batch_size=config.val_batch_size,
-                        rtol=config.rtol, atol=config.atol, fixed_dt=config.fixed_dt,
-                        device=device)
+                        solver=config.solver, device=device)
 
     # 3. Epochs. The snapshot is the last completed epoch: what last.pt holds, what a run of
     # bad steps rolls back to, and what Ctrl-C leaves behind.
@@ -290,8 +289,7 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
 def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig):
     """One update from `x: [B, H, N, D]`. Returns (loss, grad norm, RHS evals, skip reason)."""
     optimizer.zero_grad(set_to_none=True)
-    batch = model.training_loss(x, ts, adjacency, u, loss_fn, rtol=config.rtol,
-                                atol=config.atol, fixed_dt=config.fixed_dt)
+    batch = model.training_loss(x, ts, adjacency, u, loss_fn, solver=config.solver)
     loss, evals = batch.loss, batch.n_f_evals
     if loss is None:
         failed = int((batch.status != 0).sum())

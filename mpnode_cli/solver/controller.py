@@ -1,0 +1,71 @@
+"""The PI step-size controller: from one step's error ratio to the next step's size.
+
+factor = safety · r^(−β₁) · r_prev^(β₂), clamped to [0.2, 10] after an accepted step and to
+[0.2, 0.9] after a rejected one (so that a rejected step always shrinks); r is the RMS error
+ratio of the step (accept when r ≤ 1) and r_prev that of the last accepted step.
+
+β₁ = 0.85/p and β₂ = 0.25/p, p = the error estimate's order + 1 (5 for the 5(4) pairs).
+OrdinaryDiffEq.jl's defaults for Tsit5 (β₁ = 0.7/p, β₂ = 0.4/p) settle near r ≈ 0.17 and so
+take ~20% more steps than needed; these (diffrax's `PIDController` with icoeff 0.6 and
+pcoeff 0.25) settle near r ≈ 0.4. On the coupled-Lorenz benchmark (rtol 1e-6) that is the
+step count of an integral controller with 2.5× fewer rejected steps and 1.5× lower error
+(docs/solver.md).
+
+It works on detached `[B]` float64 tensors, one value per sample, and is pure tensor code
+(no host sync), so the solver's step can be compiled with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class PIController:
+    """PI control of the step size, per sample.
+
+    Attributes:
+        beta1, beta2: exponents of the current and the previous error ratio.
+        safety: factor applied to every proposal.
+        factor_min, factor_max: bounds of the step-size change after an accepted step.
+        err_prev_floor: the history never claims a better error than this (OrdinaryDiffEq.jl's
+            `qoldinit`), also its value before the first accepted step.
+        r_floor: keeps r^(−β₁) finite when a step is exact (e.g. a constant solution).
+    """
+
+    beta1: float
+    beta2: float
+    safety: float = 0.9
+    factor_min: float = 0.2
+    factor_max: float = 10.0
+    err_prev_floor: float = 1e-4
+    r_floor: float = 1e-10
+
+    @classmethod
+    def for_order(cls, p: int) -> PIController:
+        """The controller for an error estimate of order p − 1."""
+        return cls(beta1=0.85 / p, beta2=0.25 / p)
+
+    def ratio(self, r: torch.Tensor, finite: torch.Tensor) -> torch.Tensor:
+        """`[B]` error ratios made safe to exponentiate: inf where not finite, floored."""
+        return torch.where(finite, r, torch.inf).clamp_min(self.r_floor)
+
+    def propose(self, h: torch.Tensor, r: torch.Tensor, err_prev: torch.Tensor,
+                accept: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The next step size and the updated history.
+
+        Args:
+            h: `[B]` the step just attempted; r: `[B]` its error ratio (from `ratio`);
+            err_prev: `[B]` the history; accept: `[B]` bool, whether the step was accepted.
+
+        Returns:
+            `(dt_next [B], err_prev [B])`; a rejection leaves the history as it was.
+        """
+        q = r.pow(-self.beta1)
+        grow = (self.safety * q * err_prev.pow(self.beta2)).clamp(self.factor_min,
+                                                                  self.factor_max)
+        shrink = (self.safety * q).clamp(self.factor_min, self.safety)
+        dt_next = h * torch.where(accept, grow, shrink)
+        return dt_next, torch.where(accept, r.clamp_min(self.err_prev_floor), err_prev)

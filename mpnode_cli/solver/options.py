@@ -1,0 +1,52 @@
+"""`SolverOptions`: how a verb asks the solver to integrate, as one typed value.
+
+The generate and train configs each hold one as their `solver` field (with their own
+defaults, `mpnode_cli.config`), and the layers between pass it on unchanged until
+`solve(f, y0, t_eval, **options.solve_kwargs())`. The field defaults here are `solve`'s own
+(tests/test_solver_options.py checks that they agree). Torch-free, like `tableau`, so that
+configs and the CLI's help can be built without importing torch.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from mpnode_cli.solver.tableau import METHODS, get_method
+
+Method = Literal[tuple(METHODS)]  # the registered methods' names
+
+_METHOD_HELP = "Runge–Kutta method: " + ", ".join(
+    f"{name} ({tableau.summary})" for name, tableau in METHODS.items()) + "."
+
+
+class SolverOptions(BaseModel):
+    """Options of `mpnode_cli.solver.solve` that a config carries.
+
+    Attributes:
+        method: a name of `mpnode_cli.solver.tableau.METHODS`.
+        rtol, atol: per-element tolerances of adaptive steps.
+        fixed_dt: take fixed steps of at most this size instead (no error control).
+        max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
+        compile: run the adaptive step through `torch.compile`.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: Method = Field("tsit5", description=_METHOD_HELP)
+    rtol: float = Field(1e-6, gt=0, lt=1, description="Solver relative tolerance.")
+    atol: float = Field(1e-8, gt=0, description="Solver absolute tolerance.")
+    fixed_dt: float | None = Field(
+        None, gt=0, description="Fixed steps of at most this size instead of adaptive ones.")
+    max_steps: int = Field(100_000, ge=1, description="Attempted steps per trajectory.")
+    compile: bool = Field(False, description="torch.compile the adaptive step.")
+
+    @model_validator(mode="after")
+    def _check_method(self) -> SolverOptions:
+        get_method(self.method, self.fixed_dt)  # a method without error estimate: fixed_dt
+        return self
+
+    def solve_kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of `solve` these options stand for."""
+        return self.model_dump()

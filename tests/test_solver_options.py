@@ -1,0 +1,136 @@
+"""`SolverOptions`: its defaults, checks and CLI flags, and its way from the generate and
+train configs (and their files, old and new) to `solve`."""
+
+from __future__ import annotations
+
+import inspect
+import json
+
+import h5py
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from mpnode_cli.cli.app import app
+from mpnode_cli.cli.info import _rows
+from mpnode_cli.cli.train import _config
+from mpnode_cli.config import (
+    GenerateConfig,
+    TrainConfig,
+    generate_solver,
+    stored_solver,
+    train_solver,
+    upgrade_solver_fields,
+    upgrade_train_fields,
+)
+from mpnode_cli.data.generate import generate
+from mpnode_cli.data.hdf5 import read_dataset, read_header
+from mpnode_cli.solver import METHODS, SolverOptions, solve
+from mpnode_cli.training.checkpoint import FORMAT, load_checkpoint
+from mpnode_cli.training.run import read_config
+
+runner = CliRunner()
+
+# A run's config as mpnode wrote it before the `solver` table: flat solver fields.
+FLAT = {"rtol": 1e-3, "atol": 1e-6, "fixed_dt": None}
+
+
+def test_defaults_are_solves_own():
+    declared = inspect.signature(solve).parameters
+    for name, field in SolverOptions.model_fields.items():
+        assert field.default == declared[name].default, name
+    assert set(SolverOptions.model_fields["method"].annotation.__args__) == set(METHODS)
+
+
+def test_solve_kwargs_drive_solve():
+    options = SolverOptions(method="rk4", fixed_dt=0.05)
+    sol = solve(lambda t, y: -y, torch.ones(1, 1, dtype=torch.float64), [0.0, 1.0],
+                **options.solve_kwargs())
+    assert int(sol.stats["n_steps"][0]) == 20
+    assert sol.ys[0, -1, 0].item() == pytest.approx(torch.e**-1, rel=1e-7)
+
+
+def test_a_method_without_error_estimate_needs_fixed_dt():
+    with pytest.raises(ValueError, match=r"'rk4' has no error estimate.*give fixed_dt"):
+        SolverOptions(method="rk4")
+    with pytest.raises(ValueError, match="greater than 0"):
+        SolverOptions(rtol=0)
+    with pytest.raises(ValueError, match="Extra inputs"):
+        SolverOptions(order=5)
+
+
+def test_each_verb_has_its_defaults_and_a_partial_table_fills_from_them():
+    assert GenerateConfig(system="lorenz").solver == generate_solver()
+    assert (generate_solver().rtol, generate_solver().atol) == (1e-8, 1e-10)
+    assert TrainConfig(dataset="d.h5").solver == train_solver()
+    assert (train_solver().rtol, train_solver().atol) == (1e-4, 1e-4)
+    config = TrainConfig(dataset="d.h5", solver={"method": "dopri5", "rtol": 1e-5})
+    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4)
+    assert GenerateConfig(system="lorenz", solver={"atol": 1e-9}).solver.rtol == 1e-8
+
+
+def test_solver_options_round_trip_through_a_train_config_json():
+    solver = SolverOptions(method="dopri5", rtol=1e-5, atol=1e-7, max_steps=500)
+    config = TrainConfig(dataset="d.h5", solver=solver)
+    fields = json.loads(config.model_dump_json())
+    assert fields["solver"] == solver.model_dump()
+    assert TrainConfig(**fields) == config
+    assert upgrade_train_fields(fields) == fields
+
+
+def test_an_old_flat_train_config_is_upgraded(tmp_path):
+    fields = TrainConfig(dataset="d.h5").model_dump(mode="json")
+    del fields["solver"]
+    old = fields | FLAT
+    assert TrainConfig(**upgrade_train_fields(old)).solver == SolverOptions(rtol=1e-3, atol=1e-6)
+    (tmp_path / "config.json").write_text(json.dumps(old | {"fixed_dt": 0.02}))
+    assert read_config(tmp_path).solver == SolverOptions(rtol=1e-3, atol=1e-6, fixed_dt=0.02)
+    # Where a file has both, the table wins; a partial flat file keeps the verb's defaults.
+    both = upgrade_solver_fields({"rtol": 1e-3, "solver": {"rtol": 1e-5}})
+    assert both == {"solver": {"rtol": 1e-5}}
+    assert stored_solver({"rtol": 1e-3}, train_solver) == SolverOptions(rtol=1e-3, atol=1e-4)
+
+
+def test_an_old_checkpoint_is_upgraded(tmp_path):
+    train_config = TrainConfig(dataset="d.h5").model_dump(mode="json")
+    del train_config["solver"]
+    payload = {"format": FORMAT, "format_version": 3, "model_kind": "node",
+               "model_config": {"node_dim": 1, "num_nodes": 2}, "state_dict": {},
+               "normalizer": {}, "train_config": train_config | FLAT | {"fixed_dt": 0.1},
+               "dataset": {}, "epoch": 0}
+    torch.save(payload, tmp_path / "v3.pt")
+    ckpt = load_checkpoint(tmp_path / "v3.pt")
+    assert ckpt.train_config["solver"] == FLAT | {"fixed_dt": 0.1}
+    assert "rtol" not in ckpt.train_config
+    assert stored_solver(ckpt.train_config, train_solver) == SolverOptions(
+        rtol=1e-3, atol=1e-6, fixed_dt=0.1)
+
+
+def test_an_old_dataset_config_is_upgraded_on_reading(tmp_path):
+    config = GenerateConfig(system="lorenz", nodes=2, trajectories=2, t_end=0.1, dt=0.05,
+                            solver={"method": "dopri5"}, out=tmp_path / "d.h5")
+    path = generate(config).path
+    stored = read_dataset(path).config
+    assert stored["solver"] == SolverOptions(method="dopri5", rtol=1e-8, atol=1e-10).model_dump()
+    flat = {k: v for k, v in stored.items() if k != "solver"} | {"rtol": 1e-7, "atol": 1e-9}
+    with h5py.File(path, "r+") as f:
+        f.attrs["config"] = json.dumps(flat)
+    upgraded = read_dataset(path).config
+    assert GenerateConfig(**upgraded).solver == SolverOptions(rtol=1e-7, atol=1e-9)
+    assert dict(_rows(read_header(path)))["solver"].startswith("tsit5, rtol 1e-07, atol 1e-09")
+
+
+def test_cli_flags_fill_the_solver_table(tmp_path):
+    config = _config(None, {"dataset": "d.h5", "method": "dopri5", "rtol": 1e-5})
+    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4)
+    assert "solver" in config.model_fields_set
+    # A config file's table (or its old flat fields) lies beneath the options given.
+    (tmp_path / "c.toml").write_text('rtol = 1e-3\n[solver]\natol = 1e-6\n')
+    config = _config(tmp_path / "c.toml", {"dataset": "d.h5", "fixed_dt": 0.1, "method": "rk4"})
+    assert config.solver == SolverOptions(method="rk4", rtol=1e-3, atol=1e-6, fixed_dt=0.1)
+    for verb in (["train", "d.h5"], ["generate", "lorenz"]):
+        result = runner.invoke(app, [*verb, "--method", "rk4"])
+        assert result.exit_code == 2, result.output
+        assert "Error: solver: method 'rk4' has no error estimate" in result.output
+    result = runner.invoke(app, ["train", "d.h5", "--method", "rk5"])
+    assert result.exit_code == 2 and "solver.method: Input should be 'tsit5'" in result.output
