@@ -312,6 +312,43 @@ def test_float32_solve_is_accurate_to_its_tolerance():
     assert np.abs(sol.ys[0].double().numpy() - ref).max() < 1e-3
 
 
+@pytest.mark.parametrize("name", sorted(PROBLEMS))
+def test_integral_controller_meets_loose_tolerances(name):
+    """At training tolerances both controllers' solutions are accurate (scipy DOP853 referee),
+    and on these hard problems, where steps sit at the error bound, they take as many steps
+    as each other to within 10%."""
+    f, y0s, t_end = PROBLEMS[name]
+    ts = torch.linspace(0.0, t_end, 33, dtype=torch.float64)
+    y0 = torch.tensor(y0s, dtype=torch.float64)
+    steps = {}
+    for kind in ("pi", "i"):
+        sol = solve(f, y0, ts, rtol=1e-4, atol=1e-4, controller=kind)
+        assert bool(sol.success.all())
+        steps[kind] = int(sol.stats["n_steps"].sum())
+        for i, y in enumerate(y0s):
+            ref = solve_ivp(numpy_version(f), (0.0, t_end), y, method="DOP853",
+                            t_eval=ts.numpy(), rtol=1e-12, atol=1e-12).y.T
+            rel = np.linalg.norm(sol.ys[i].numpy() - ref) / np.linalg.norm(ref)
+            assert rel < 3e-2, (name, kind, i, rel)
+    assert abs(steps["i"] - steps["pi"]) <= 0.1 * steps["pi"], steps
+    with pytest.raises(ValueError, match="controller"):
+        solve(f, y0, ts, controller="pid")
+
+
+def test_integral_controller_takes_fewer_steps_where_steps_are_far_below_the_bound():
+    """A smooth solution over a short horizon (y' = −y to t = 2.5, like a training rollout):
+    PI's history term r_prev^β₂ < 1 slows growth after very accurate steps; I does not."""
+    ts = torch.linspace(0.0, 2.5, 51, dtype=torch.float64)
+    y0 = torch.tensor([[1.0, 0.5]], dtype=torch.float64)
+    n = {}
+    for kind in ("pi", "i"):
+        sol = solve(lambda t, y: -y, y0, ts, rtol=1e-4, atol=1e-4, controller=kind)
+        n[kind] = int(sol.stats["n_steps"].sum())
+        exact = y0[:, None] * torch.exp(-ts)[None, :, None]
+        assert float((sol.ys - exact).abs().max()) < 1e-4
+    assert n["i"] < n["pi"], n
+
+
 # ----------------------------------------------------------------------------- batching & status
 
 

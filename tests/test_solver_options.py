@@ -18,6 +18,7 @@ from mpnode_cli.config import (
     GenerateConfig,
     TrainConfig,
     generate_solver,
+    pin_stored_controller,
     stored_solver,
     train_solver,
     upgrade_solver_fields,
@@ -65,7 +66,7 @@ def test_each_verb_has_its_defaults_and_a_partial_table_fills_from_them():
     assert TrainConfig(dataset="d.h5").solver == train_solver()
     assert (train_solver().rtol, train_solver().atol) == (1e-4, 1e-4)
     config = TrainConfig(dataset="d.h5", solver={"method": "dopri5", "rtol": 1e-5})
-    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4)
+    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i")
     assert GenerateConfig(system="lorenz", solver={"atol": 1e-9}).solver.rtol == 1e-8
 
 
@@ -82,7 +83,10 @@ def test_an_old_flat_train_config_is_upgraded(tmp_path):
     fields = TrainConfig(dataset="d.h5").model_dump(mode="json")
     del fields["solver"]
     old = fields | FLAT
-    assert TrainConfig(**upgrade_train_fields(old)).solver == SolverOptions(rtol=1e-3, atol=1e-6)
+    # A stored config from before the controller option ran PI; a user's file gets the default.
+    assert TrainConfig(**pin_stored_controller(upgrade_train_fields(old))).solver == (
+        SolverOptions(rtol=1e-3, atol=1e-6, controller="pi"))
+    assert TrainConfig(**upgrade_train_fields(old)).solver.controller == "i"
     (tmp_path / "config.json").write_text(json.dumps(old | {"fixed_dt": 0.02}))
     assert read_config(tmp_path).solver == SolverOptions(rtol=1e-3, atol=1e-6, fixed_dt=0.02)
     # Where a file has both, the table wins; a partial flat file keeps the verb's defaults.
@@ -100,7 +104,7 @@ def test_an_old_checkpoint_is_upgraded(tmp_path):
                "dataset": {}, "epoch": 0}
     torch.save(payload, tmp_path / "v3.pt")
     ckpt = load_checkpoint(tmp_path / "v3.pt")
-    assert ckpt.train_config["solver"] == FLAT | {"fixed_dt": 0.1}
+    assert ckpt.train_config["solver"] == FLAT | {"fixed_dt": 0.1, "controller": "pi"}
     assert "rtol" not in ckpt.train_config
     assert stored_solver(ckpt.train_config, train_solver) == SolverOptions(
         rtol=1e-3, atol=1e-6, fixed_dt=0.1)
@@ -122,12 +126,13 @@ def test_an_old_dataset_config_is_upgraded_on_reading(tmp_path):
 
 def test_cli_flags_fill_the_solver_table(tmp_path):
     config = _config(None, {"dataset": "d.h5", "method": "dopri5", "rtol": 1e-5})
-    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4)
+    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i")
     assert "solver" in config.model_fields_set
     # A config file's table (or its old flat fields) lies beneath the options given.
     (tmp_path / "c.toml").write_text('rtol = 1e-3\n[solver]\natol = 1e-6\n')
     config = _config(tmp_path / "c.toml", {"dataset": "d.h5", "fixed_dt": 0.1, "method": "rk4"})
-    assert config.solver == SolverOptions(method="rk4", rtol=1e-3, atol=1e-6, fixed_dt=0.1)
+    assert config.solver == SolverOptions(method="rk4", rtol=1e-3, atol=1e-6, fixed_dt=0.1,
+                                          controller="i")
     for verb in (["train", "d.h5"], ["generate", "lorenz"]):
         result = runner.invoke(app, [*verb, "--method", "rk4"])
         assert result.exit_code == 2, result.output

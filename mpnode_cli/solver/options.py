@@ -30,6 +30,7 @@ class SolverOptions(BaseModel):
         fixed_dt: take fixed steps of at most this size instead (no error control).
         max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
         compile: run the adaptive step through `torch.compile`.
+        controller: adaptive step-size control, "pi" or "i" (`controller.PIController`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -41,6 +42,9 @@ class SolverOptions(BaseModel):
         None, gt=0, description="Fixed steps of at most this size instead of adaptive ones.")
     max_steps: int = Field(100_000, ge=1, description="Attempted steps per trajectory.")
     compile: bool = Field(False, description="torch.compile the adaptive step.")
+    controller: Literal["pi", "i"] = Field(
+        "pi", description="Adaptive step-size control: pi (proportional-integral) or i "
+        "(integral; fewer steps at loose tolerances).")
 
     @model_validator(mode="after")
     def _check_method(self) -> SolverOptions:

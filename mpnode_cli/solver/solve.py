@@ -109,6 +109,7 @@ def solve(
     fixed_dt: float | None = None,
     tstops: torch.Tensor | Sequence[float] | None = None,
     compile: bool = False,
+    controller: str = "pi",
 ) -> Solution:
     """Integrate `dy/dt = f(t, y)` for a batch of initial states with a Runge–Kutta method.
 
@@ -135,6 +136,9 @@ def solve(
             with a new `f`, shape or dtype compiles for ~10 s; later ones run about 2× faster
             on CPU (bench/results/solver.md). Worth it for long or repeated solves; ignored
             with `fixed_dt`.
+        controller: adaptive step-size control, "pi" (proportional-integral, the default)
+            or "i" (integral; fewer steps at loose tolerances on smooth solutions): see
+            `controller.PIController`.
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
@@ -175,7 +179,8 @@ def solve(
         ys, status, stats = _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps)
     else:
         ys, status, stats = _solve_adaptive(fun, tab, tableau.controller_order, y, ts, stops,
-                                            rtol, atol, dt0, max_steps, compile)
+                                            rtol, atol, dt0, max_steps, compile,
+                                            controller)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
 
 
@@ -336,11 +341,12 @@ def _initial_step(fun, t0, y, k1, rtol, atol, span, p):
         return torch.where(torch.isfinite(h) & (h > 0), h, span * 1e-6)
 
 
-def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compile=False):
+def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compile=False,
+                    controller="pi"):
     """The adaptive loop; p is the error estimate's order + 1 (the controller's exponent)."""
     batch, feat = y.shape
     dev, f64 = y.device, torch.float64
-    ctrl = PIController.for_order(p)
+    ctrl = PIController.for_order(p, controller)
     n_out, n_stops = ts.numel(), stops.numel()
     t0 = ts[0]
 
@@ -354,9 +360,11 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
     else:
         dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
 
-    # Outputs: one spare column at index n_out takes the writes of masked-out lanes.
-    ys = torch.full((batch, n_out + 1, feat), math.nan, dtype=y.dtype, device=dev)
-    ys[:, 0] = y
+    # Outputs: (column index [B, W], value [B, W, F]) per writing step, scattered into the
+    # result once at the end (one gather in the backward pass instead of one full-size copy
+    # per step); a spare column at index n_out takes the writes of masked-out lanes.
+    out_cols = [torch.zeros(batch, 1, dtype=torch.long, device=dev)]
+    out_vals = [y.unsqueeze(1)]
     out_idx = torch.ones(batch, dtype=torch.long, device=dev)  # next output to fill
     stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
     stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
@@ -388,8 +396,10 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
             status = torch.where(failed, why, status)
         if width > 0:
             out_idx = state[-1]
-            _write_outputs(ys, ts, tab, t_old, h, y_old, hk, out_idx, n_cross, width,
-                           arange_out)
+            cols, vals = _interpolate_outputs(ts, tab, t_old, h, y_old, hk, out_idx, n_cross,
+                                              width, arange_out)
+            out_cols.append(cols)
+            out_vals.append(vals)
             state = (*state[:-1], out_idx + n_cross)
         if any_jumped:  # right-limit derivative at the stop, for those that landed there
             t_new, y_new, k1_new = state[0], state[2], state[3]
@@ -403,6 +413,9 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
     n_f += (tab.stages - 1) * n_steps
     stats = {"n_steps": n_steps, "n_accepted": n_acc, "n_rejected": n_steps - n_acc,
              "n_f_evals": n_f}
+    cols = torch.cat(out_cols, dim=1)
+    ys = torch.full((batch, n_out + 1, feat), math.nan, dtype=y.dtype, device=dev).scatter(
+        1, cols[:, :, None].expand(-1, -1, feat), torch.cat(out_vals, dim=1))
     return ys[:, :n_out], status, stats
 
 
@@ -475,12 +488,12 @@ def _step(fun, consts, state):
     return state, flags, (jumped, n_cross, failed, code, (t, h, y, hk))
 
 
-def _write_outputs(ys, ts, tab, t, h, y, hk, out_idx, n_cross, width, arange_out):
+def _interpolate_outputs(ts, tab, t, h, y, hk, out_idx, n_cross, width, arange_out):
     """Evaluate the interpolant at the ≤ `width` output times each sample crossed.
 
-    Writes `ys[b, out_idx[b] + w]` for `w < n_cross[b]`; other lanes go to the spare column.
+    Returns `(cols [B, W], values [B, W, F])`: `values[b, w]` belongs in output column
+    `out_idx[b] + w` for `w < n_cross[b]`; other lanes point at the spare column `n_out`.
     """
-    batch, feat = y.shape
     n_out = ts.numel()
     w = arange_out[:width]
     j = out_idx[:, None] + w  # (B, W)
@@ -491,8 +504,7 @@ def _write_outputs(ys, ts, tab, t, h, y, hk, out_idx, n_cross, width, arange_out
         theta = ((ts[j.clamp_max(n_out - 1)] - t[:, None]) / h_safe[:, None]).clamp(0.0, 1.0)
         powers = torch.stack([theta**k for k in range(1, len(tab.interp) + 1)], -1)  # (B, W, K)
         coef = (powers @ tab.interp).to(y.dtype)  # (B, W, s): b_i(θ)
-    y_out = y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, hk)  # (B, W, F)
-    ys.scatter_(1, j[:, :, None].expand(batch, width, feat), y_out)
+    return j, y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, hk)  # (B, W, F)
 
 
 def _fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[float]:

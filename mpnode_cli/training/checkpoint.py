@@ -1,4 +1,4 @@
-"""Checkpoint files, format "mpnode-checkpoint" version 4: everything to rebuild a model.
+"""Checkpoint files, format "mpnode-checkpoint" version 5: everything to rebuild a model.
 
 A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
 dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
@@ -33,6 +33,9 @@ Version 4 moved the solver fields `rtol`, `atol` and `fixed_dt` of `train_config
 `solver` table (`SolverOptions`, which adds the method); version 3 files are upgraded on
 reading. The version changed because an older mpnode would read a version 4 file without
 complaint but evaluate it with its default solver, not the one it was trained with.
+Version 5 added the step-size `controller` to the `solver` table; a version 4 file's table
+gets "pi", the controller every solve used then (`config.pin_stored_controller`). An older
+mpnode would ignore the new key and integrate differently, hence the new version.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
 leaves the previous checkpoint intact.
@@ -50,13 +53,13 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from mpnode_cli import __version__
-from mpnode_cli.config import upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.config import pin_stored_controller, upgrade_solver_fields, upgrade_train_fields
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 
 
 class CheckpointFormatError(ValueError):
@@ -156,6 +159,8 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         _upgrade_v2(payload)
     if version < 4 and isinstance(payload.get("train_config"), dict):
         payload["train_config"] = upgrade_solver_fields(payload["train_config"])
+    if version < 5 and isinstance(payload.get("train_config"), dict):
+        payload["train_config"] = pin_stored_controller(payload["train_config"])
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],
