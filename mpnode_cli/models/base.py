@@ -15,7 +15,6 @@ from typing import Any, ClassVar, Self
 import torch
 from torch import nn
 
-from mpnode_cli.models.fused import FusedMLP
 from mpnode_cli.models.options import ModelOptions
 from mpnode_cli.solver.options import SolverOptions
 
@@ -180,12 +179,10 @@ class NeuralModel(nn.Module):
         return BatchLoss(loss, out.status, out.n_f_evals)
 
 
-def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) -> FusedMLP:
+def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) -> nn.Sequential:
     """`layers` hidden layers of width `hidden` with `activation`, then a linear output.
 
-    Weights are Glorot-uniform and biases zero, as Flux's `Dense` (the authors' init). The
-    result is an `nn.Sequential` (same parameters and state-dict keys) whose forward and
-    backward are fused where the activation allows (`mpnode_cli.models.fused`).
+    Weights are Glorot-uniform and biases zero, as Flux's `Dense` (the authors' init).
     """
     if activation not in ACTIVATIONS:
         raise ValueError(f"unknown activation '{activation}' (choose from: "
@@ -201,7 +198,7 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) ->
         if isinstance(module, nn.Linear):
             nn.init.xavier_uniform_(module.weight)
             nn.init.zeros_(module.bias)
-    return FusedMLP(*modules)
+    return nn.Sequential(*modules)
 
 
 def zoh_controls(controls: torch.Tensor, ts: torch.Tensor):
