@@ -413,10 +413,27 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
     n_f += (tab.stages - 1) * n_steps
     stats = {"n_steps": n_steps, "n_accepted": n_acc, "n_rejected": n_steps - n_acc,
              "n_f_evals": n_f}
-    cols = torch.cat(out_cols, dim=1)
-    ys = torch.full((batch, n_out + 1, feat), math.nan, dtype=y.dtype, device=dev).scatter(
-        1, cols[:, :, None].expand(-1, -1, feat), torch.cat(out_vals, dim=1))
-    return ys[:, :n_out], status, stats
+    return _gather_outputs(out_cols, out_vals, n_out), status, stats
+
+
+def _gather_outputs(cols: list[torch.Tensor], vals: list[torch.Tensor], n_out: int):
+    """`[B, T, F]` outputs from the steps' `(cols [B, W], values [B, W, F])`, NaN where none.
+
+    Whole rows are copied into a flat `[B·T + B·L, F]` buffer (`index_copy`, whose backward
+    is one `index_select`); each masked-out lane gets a row of its own past `B·T`, so no
+    index repeats.
+    """
+    cols_all = torch.cat(cols, dim=1)  # (B, L)
+    vals_all = torch.cat(vals, dim=1)  # (B, L, F)
+    batch, lanes, feat = vals_all.shape
+    dev = cols_all.device
+    rows = torch.arange(batch, device=dev)[:, None] * n_out + cols_all
+    spare = batch * n_out + torch.arange(batch * lanes, device=dev).view(batch, lanes)
+    rows = torch.where(cols_all < n_out, rows, spare).reshape(-1)
+    out = torch.full((batch * (n_out + lanes), feat), math.nan, dtype=vals_all.dtype,
+                     device=dev)
+    out = out.index_copy(0, rows, vals_all.reshape(batch * lanes, feat))
+    return out[: batch * n_out].view(batch, n_out, feat)
 
 
 def _compiled_step():
