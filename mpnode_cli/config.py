@@ -35,8 +35,9 @@ def generate_solver() -> SolverOptions:
 
 def train_solver() -> SolverOptions:
     """The solver of training rollouts: the paper's rtol = atol = 1e-4, with the integral
-    step-size controller (fewer steps than PI at these tolerances: docs/solver.md)."""
-    return SolverOptions(rtol=1e-4, atol=1e-4, controller="i")
+    step-size controller (fewer steps than PI at these tolerances: docs/solver.md), compiled
+    for long runs (`mpnode_cli.training.loop.resolve_compile`)."""
+    return SolverOptions(rtol=1e-4, atol=1e-4, controller="i", compile="auto")
 
 
 def _over(defaults: Callable[[], SolverOptions], value: Any) -> Any:
@@ -294,22 +295,25 @@ def stored_solver(fields: dict[str, Any], defaults: Callable[[], SolverOptions])
         fields: e.g. a checkpoint's `train_config` or a dataset's stored config.
         defaults: the verb's defaults, `train_solver` or `generate_solver`.
     """
-    fields = pin_stored_controller(upgrade_solver_fields(fields))
+    fields = pin_stored_solver(upgrade_solver_fields(fields))
     return SolverOptions(**_over(defaults, fields.get("solver", {})))
 
 
-def pin_stored_controller(fields: dict[str, Any]) -> dict[str, Any]:
+def pin_stored_solver(fields: dict[str, Any]) -> dict[str, Any]:
     """A config that mpnode stored before `SolverOptions.controller` existed ran with the
-    PI controller: say so, so that a resumed or re-evaluated run integrates as it did (the
-    train default is now "i"). Only for stored configs (run folders, checkpoints, datasets):
-    a user's config file that leaves it out gets the verb's default.
+    PI controller, and one stored without `compile` ran uncompiled: say so, so that a
+    resumed or re-evaluated run integrates as it did (the train defaults are now "i" and
+    "auto"). Only for stored configs (run folders, checkpoints, datasets): a user's config
+    file that leaves them out gets the verb's defaults.
 
     Args:
         fields: a stored config as JSON fields, after `upgrade_solver_fields`.
     """
     solver = fields.get("solver")
-    if solver is None or (isinstance(solver, dict) and "controller" not in solver):
-        fields = {**fields, "solver": {**(solver or {}), "controller": "pi"}}
+    if solver is None or isinstance(solver, dict):
+        pinned = {"controller": "pi", "compile": False} | (solver or {})
+        if pinned != solver:
+            fields = {**fields, "solver": pinned}
     return fields
 
 

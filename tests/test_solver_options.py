@@ -18,7 +18,7 @@ from mpnode_cli.config import (
     GenerateConfig,
     TrainConfig,
     generate_solver,
-    pin_stored_controller,
+    pin_stored_solver,
     stored_solver,
     train_solver,
     upgrade_solver_fields,
@@ -66,7 +66,8 @@ def test_each_verb_has_its_defaults_and_a_partial_table_fills_from_them():
     assert TrainConfig(dataset="d.h5").solver == train_solver()
     assert (train_solver().rtol, train_solver().atol) == (1e-4, 1e-4)
     config = TrainConfig(dataset="d.h5", solver={"method": "dopri5", "rtol": 1e-5})
-    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i")
+    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i",
+                                          compile="auto")
     assert GenerateConfig(system="lorenz", solver={"atol": 1e-9}).solver.rtol == 1e-8
 
 
@@ -84,7 +85,7 @@ def test_an_old_flat_train_config_is_upgraded(tmp_path):
     del fields["solver"]
     old = fields | FLAT
     # A stored config from before the controller option ran PI; a user's file gets the default.
-    assert TrainConfig(**pin_stored_controller(upgrade_train_fields(old))).solver == (
+    assert TrainConfig(**pin_stored_solver(upgrade_train_fields(old))).solver == (
         SolverOptions(rtol=1e-3, atol=1e-6, controller="pi"))
     assert TrainConfig(**upgrade_train_fields(old)).solver.controller == "i"
     (tmp_path / "config.json").write_text(json.dumps(old | {"fixed_dt": 0.02}))
@@ -104,7 +105,8 @@ def test_an_old_checkpoint_is_upgraded(tmp_path):
                "dataset": {}, "epoch": 0}
     torch.save(payload, tmp_path / "v3.pt")
     ckpt = load_checkpoint(tmp_path / "v3.pt")
-    assert ckpt.train_config["solver"] == FLAT | {"fixed_dt": 0.1, "controller": "pi"}
+    assert ckpt.train_config["solver"] == FLAT | {"fixed_dt": 0.1, "controller": "pi",
+                                                  "compile": False}
     assert "rtol" not in ckpt.train_config
     assert stored_solver(ckpt.train_config, train_solver) == SolverOptions(
         rtol=1e-3, atol=1e-6, fixed_dt=0.1)
@@ -126,16 +128,58 @@ def test_an_old_dataset_config_is_upgraded_on_reading(tmp_path):
 
 def test_cli_flags_fill_the_solver_table(tmp_path):
     config = _config(None, {"dataset": "d.h5", "method": "dopri5", "rtol": 1e-5})
-    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i")
+    assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i",
+                                          compile="auto")
     assert "solver" in config.model_fields_set
     # A config file's table (or its old flat fields) lies beneath the options given.
     (tmp_path / "c.toml").write_text('rtol = 1e-3\n[solver]\natol = 1e-6\n')
     config = _config(tmp_path / "c.toml", {"dataset": "d.h5", "fixed_dt": 0.1, "method": "rk4"})
     assert config.solver == SolverOptions(method="rk4", rtol=1e-3, atol=1e-6, fixed_dt=0.1,
-                                          controller="i")
+                                          controller="i", compile="auto")
     for verb in (["train", "d.h5"], ["generate", "lorenz"]):
         result = runner.invoke(app, [*verb, "--method", "rk4"])
         assert result.exit_code == 2, result.output
         assert "Error: solver: method 'rk4' has no error estimate" in result.output
     result = runner.invoke(app, ["train", "d.h5", "--method", "rk5"])
     assert result.exit_code == 2 and "solver.method: Input should be 'tsit5'" in result.output
+
+
+def test_training_compiles_long_fixed_shape_runs_only(monkeypatch):
+    from mpnode_cli.training import loop
+
+    monkeypatch.setattr(loop, "_have_cxx", lambda: True)
+    # 2 batches of 32 per epoch: 1500 epochs = 3000 optimizer steps.
+    long = TrainConfig(dataset="d.h5", epochs=1500, batch_size=32)
+    assert loop.resolve_compile(long, 64).solver.compile is True
+    assert loop.resolve_compile(long, 64).solver.controller == "i"  # the rest is kept
+    assert loop.resolve_compile(long.model_copy(update={"epochs": 1499}), 64).solver.compile \
+        is False
+    curriculum = long.model_copy(update={"horizon_curriculum": True})
+    assert loop.resolve_compile(curriculum, 64).solver.compile is False  # shapes change
+    explicit = TrainConfig(dataset="d.h5", epochs=10, solver={"compile": True})
+    assert loop.resolve_compile(explicit, 64).solver.compile is True
+    monkeypatch.setattr(loop, "_have_cxx", lambda: False)
+    assert loop.resolve_compile(long, 64).solver.compile is False
+    # "auto" that nothing settles means no compile.
+    assert SolverOptions(compile="auto").solve_kwargs()["compile"] is False
+
+
+def test_a_failed_compile_falls_back_to_the_eager_step(monkeypatch):
+    import importlib
+
+    import torch
+
+    solve_module = importlib.import_module("mpnode_cli.solver.solve")
+
+    def broken():
+        def step(*args):
+            raise RuntimeError("no C++ compiler\nmore detail")
+        return step
+
+    monkeypatch.setattr(solve_module, "_compiled_step", broken)
+    monkeypatch.setattr(solve_module, "_COMPILE_FAILED", False)
+    y0 = torch.tensor([[1.0]], dtype=torch.float64)
+    ts = torch.linspace(0.0, 1.0, 5, dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler"):
+        sol = solve_module.solve(lambda t, y: -y, y0, ts, compile=True)
+    assert torch.allclose(sol.ys[0, :, 0], torch.exp(-ts), rtol=1e-6)

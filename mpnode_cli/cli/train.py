@@ -291,6 +291,8 @@ class _Display:
                                f"epochs {event['first_epoch']}–{event['epochs']}")
             if threads := applied_threads():
                 self.console.print(f"threads: {threads.describe()}")
+            if "solver" in event:
+                self.console.print(f"solver: {event['solver']}")
         elif kind == "batch":
             self.bar.update(self.batches, completed=event["batch"],
                             info=f"loss {event['loss']:.4g}")

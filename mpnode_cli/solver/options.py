@@ -29,7 +29,9 @@ class SolverOptions(BaseModel):
         rtol, atol: per-element tolerances of adaptive steps.
         fixed_dt: take fixed steps of at most this size instead (no error control).
         max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
-        compile: run the adaptive step through `torch.compile`.
+        compile: run the adaptive step through `torch.compile`; "auto" lets the verb decide
+            (training compiles long runs: `mpnode_cli.training.loop.resolve_compile`), and
+            stands for False where nothing decides.
         controller: adaptive step-size control, "pi" or "i" (`controller.PIController`).
     """
 
@@ -41,7 +43,9 @@ class SolverOptions(BaseModel):
     fixed_dt: float | None = Field(
         None, gt=0, description="Fixed steps of at most this size instead of adaptive ones.")
     max_steps: int = Field(100_000, ge=1, description="Attempted steps per trajectory.")
-    compile: bool = Field(False, description="torch.compile the adaptive step.")
+    compile: bool | Literal["auto"] = Field(
+        False, description="torch.compile the adaptive step (auto: training decides by the "
+        "run's length).")
     controller: Literal["pi", "i"] = Field(
         "pi", description="Adaptive step-size control: pi (proportional-integral) or i "
         "(integral; fewer steps at loose tolerances).")
@@ -52,5 +56,5 @@ class SolverOptions(BaseModel):
         return self
 
     def solve_kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of `solve` these options stand for."""
-        return self.model_dump()
+        """The keyword arguments of `solve` these options stand for ("auto" compile: no)."""
+        return self.model_dump() | {"compile": self.compile is True}

@@ -384,9 +384,17 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
     consts = (tab, ctrl, stages, ts, stops_pad, n_stops, rtol, atol, max_steps)
     state = (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
              out_idx)
-    step = _compiled_step() if compile else _step
+    step = _compiled_step() if compile and not _COMPILE_FAILED else _step
     while True:
-        state, flags, extra = step(fun, consts, state)
+        if step is _step:
+            state, flags, extra = step(fun, consts, state)
+        else:
+            try:
+                state, flags, extra = step(fun, consts, state)
+            except Exception as exc:  # any compiler failure: run eagerly (f errors recur)
+                _compile_failed(exc)
+                step = _step
+                state, flags, extra = step(fun, consts, state)
         any_running, width, any_jumped, any_failed = flags.tolist()  # the step's one sync
         jumped, n_cross, failed, code, (t_old, h, y_old, hk) = extra
         if any_failed:  # rare: record why those samples stopped
@@ -445,6 +453,20 @@ def _compiled_step():
 
 
 _STEP_COMPILED = None
+_COMPILE_FAILED = False
+
+
+def _compile_failed(exc: Exception) -> None:
+    """Compiling failed (no C++ compiler, an unsupported op, ...): warn once, then every
+    later solve of this process runs the eager step, which computes the same thing."""
+    global _COMPILE_FAILED
+    if not _COMPILE_FAILED:
+        import warnings
+
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        warnings.warn(f"torch.compile of the solver step failed ({first[:200]}); "
+                      "running it uncompiled", RuntimeWarning, stacklevel=3)
+    _COMPILE_FAILED = True
 
 
 def _step(fun, consts, state):

@@ -34,7 +34,7 @@ Version 4 moved the solver fields `rtol`, `atol` and `fixed_dt` of `train_config
 reading. The version changed because an older mpnode would read a version 4 file without
 complaint but evaluate it with its default solver, not the one it was trained with.
 Version 5 added the step-size `controller` to the `solver` table; a version 4 file's table
-gets "pi", the controller every solve used then (`config.pin_stored_controller`). An older
+gets "pi", the controller every solve used then (`config.pin_stored_solver`). An older
 mpnode would ignore the new key and integrate differently, hence the new version.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
@@ -53,7 +53,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from mpnode_cli import __version__
-from mpnode_cli.config import pin_stored_controller, upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.config import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
@@ -160,7 +160,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     if version < 4 and isinstance(payload.get("train_config"), dict):
         payload["train_config"] = upgrade_solver_fields(payload["train_config"])
     if version < 5 and isinstance(payload.get("train_config"), dict):
-        payload["train_config"] = pin_stored_controller(payload["train_config"])
+        payload["train_config"] = pin_stored_solver(payload["train_config"])
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],

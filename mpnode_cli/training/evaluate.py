@@ -278,7 +278,9 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     if len(subset) == 0:
         raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
-    options = {"solver": stored_solver(ckpt.train_config, train_solver), "device": device}
+    # One pass over the data does not pay for compiling the step, whatever training did.
+    solver = stored_solver(ckpt.train_config, train_solver).model_copy(update={"compile": False})
+    options = {"solver": solver, "device": device}
     result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
     train, note = train_reference(ckpt, data)
     baselines = {k: _finite(v) for k, v in baseline_mse(train, subset, normalizer).items()}

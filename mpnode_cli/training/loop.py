@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -94,6 +95,7 @@ def train(config: TrainConfig, *, resume: bool = False,
     if not resume:  # a resumed run's config.json is already resolved
         config = resolve_config(config, data)
     device = _device(config.device)
+    config = resolve_compile(config, len(data.subset("train")))
     loss_fn = LOSSES[config.loss]
     train_set, val_set = data.subset("train"), data.subset("validation")
     if config.trajectories is not None:
@@ -180,7 +182,8 @@ def train(config: TrainConfig, *, resume: bool = False,
     if config.schedule == "cosine" and last is None:
         _set_lr(optimizer, _cosine_lr(config, 1))
     emit({"event": "start", "run_dir": str(run_dir), "first_epoch": state.epoch + 1,
-          "epochs": config.epochs, "batches": batches, "parameters": _count(model)})
+          "epochs": config.epochs, "batches": batches, "parameters": _count(model),
+          "solver": _describe_solver(config)})
     try:
         if state.epoch == 0 and last is None:  # epoch 0: how good the starting weights are
             val = validate()
@@ -349,6 +352,43 @@ def resolve_config(config: TrainConfig, data: TrajectoryData) -> TrainConfig:
         return config
     options = resolve_options(config.model, config.model_options)
     return config.model_copy(update={"model_options": options.model_dump()})
+
+
+# Compile the solver's step when a run takes at least this many optimizer steps. Compiling
+# costs 10–60 s on 2 CPU cores (less from inductor's on-disk cache) and saves about 30% of
+# each training step (bench/results/train.md), so it pays from a few thousand steps on.
+COMPILE_MIN_STEPS = 3000
+
+
+def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
+    """Settle `solver.compile = "auto"`: compile when the run is long (≥ `COMPILE_MIN_STEPS`
+    optimizer steps), its shapes are fixed (equal batches, no horizon curriculum, whose
+    growing horizon would recompile) and a C++ compiler is there for inductor on CPU."""
+    if config.solver.compile != "auto":
+        return config
+    n = min(n_train, config.trajectories or n_train)
+    steps = config.epochs * -(-n // config.batch_size)
+    decide = (steps >= COMPILE_MIN_STEPS and config.even_batches
+              and not config.horizon_curriculum and config.solver.fixed_dt is None
+              and (config.device != "cpu" or _have_cxx()))
+    return config.model_copy(update={"solver": config.solver.model_copy(
+        update={"compile": decide})})
+
+
+def _describe_solver(config: TrainConfig) -> str:
+    """One line for the run's header: the method, tolerances, controller and compile."""
+    o = config.solver
+    steps = f"fixed dt {o.fixed_dt:g}" if o.fixed_dt is not None else (
+        f"rtol {o.rtol:g}, atol {o.atol:g}, {o.controller.upper()} controller")
+    compiled = ("compiled (first epoch slower)" if o.compile is True
+                else f"not compiled (compiles from {COMPILE_MIN_STEPS} optimizer steps)")
+    return f"{o.method}, {steps}, {compiled}"
+
+
+def _have_cxx() -> bool:
+    import shutil
+
+    return shutil.which(os.environ.get("CXX", "g++")) is not None
 
 
 def _horizon(config: TrainConfig, epoch: int, t: int) -> int:

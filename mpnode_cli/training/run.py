@@ -19,7 +19,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from mpnode_cli.config import TrainConfig, pin_stored_controller, upgrade_train_fields
+from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
 
 CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
 
@@ -94,7 +94,7 @@ def read_config(run_dir: str | Path) -> TrainConfig:
     path = Path(run_dir) / CONFIG
     if not path.is_file():
         raise ValueError(f"{run_dir} is not a run folder (no {CONFIG})")
-    return TrainConfig(**pin_stored_controller(upgrade_train_fields(json.loads(path.read_text()))))
+    return TrainConfig(**pin_stored_solver(upgrade_train_fields(json.loads(path.read_text()))))
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
