@@ -380,8 +380,7 @@ def _describe_solver(config: TrainConfig) -> str:
     o = config.solver
     steps = f"fixed dt {o.fixed_dt:g}" if o.fixed_dt is not None else (
         f"rtol {o.rtol:g}, atol {o.atol:g}, {o.controller.upper()} controller")
-    compiled = ("compiled (first epoch slower)" if o.compile is True
-                else f"not compiled (compiles from {COMPILE_MIN_STEPS} optimizer steps)")
+    compiled = "compiled (the first epochs compile)" if o.compile is True else "not compiled"
     return f"{o.method}, {steps}, {compiled}"
 
 
