@@ -116,7 +116,10 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         emit({"event": "step", "index": index, "total": total, "id": step.id,
               "verb": step.verb, "status": status, "folder": str(folder)})
         if done is not None:
-            record = StepRecord(**{**done, "status": "skipped"})
+            # What the step is called and the paper's numbers come from today's spec.
+            record = StepRecord(**{**done, "status": "skipped", "label": step.label or step.id,
+                                   "reported": dict(step.reported),
+                                   "reported_in": step.reported_in})
         else:
             record = _run_step(step, options, fingerprint, folder, records, status, emit)
         records[step.id] = record
@@ -342,7 +345,13 @@ def _message_pca(ckpt, data, step, path: Path) -> dict[str, Any]:
     explained = (s**2 / (s**2).sum()).tolist()
     plot_components(pred.time, scores, path, dpi=FIGURE_DPI,
                     title=f"PCA of {nodes}×{m} messages, {b} trajectories")
-    return {"trajectories": b, "messages": nodes * m, "explained": explained[:k]}
+    # How far the components have moved from where each trajectory started, early and
+    # late in the horizon: the paper reads growth as the messages countering drift.
+    moved = (scores - scores[:, :1]).abs().mean(dim=(0, 2))  # (T,)
+    quarter = max(1, t // 4)
+    return {"trajectories": b, "messages": nodes * m, "explained": explained[:k],
+            "spread_first": float(moved[:quarter].mean()),
+            "spread_last": float(moved[-quarter:].mean())}
 
 
 def _compare(step, options, folder: Path, inputs, status, emit):

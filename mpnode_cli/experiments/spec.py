@@ -361,14 +361,17 @@ def _validated(model: type[BaseModel], fields: dict[str, Any]) -> Any:
 
 
 def shrink_generate(fields: dict[str, Any]) -> dict[str, Any]:
-    """The tiny scale of a generate step: a few trajectories of a few samples."""
+    """The tiny scale of a generate step: a few trajectories of a few samples (a quadrotor
+    flight keeps the horizon it needs to pass the doorway)."""
     from mpnode_cli.data.presets import SYSTEM_DEFAULTS
+    from mpnode_cli.systems.quadrotor_flight import MIN_HORIZON
 
     defaults = SYSTEM_DEFAULTS.get(fields["system"], {})
     dt = fields.get("dt", defaults.get("dt", 0.1))
     t_end = fields.get("t_end", defaults.get("t_end", 1.0))
+    shortest = MIN_HORIZON if fields["system"] == "quadrotor" else 0.0
     trajectories = fields.get("trajectories", defaults.get("trajectories", 100))
-    return {**fields, "t_end": min(t_end, (TINY_SAMPLES - 1) * dt),
+    return {**fields, "t_end": min(t_end, max((TINY_SAMPLES - 1) * dt, shortest)),
             "trajectories": max(fields.get("graphs", 1), min(trajectories, TINY_TRAJECTORIES))}
 
 
