@@ -18,7 +18,7 @@ from mpnode_cli.cli.app import app
 from mpnode_cli.data.presets import PRESETS
 from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.report import write_report
-from mpnode_cli.experiments.runner import STEP_JSON, run_experiment
+from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
 
 runner = CliRunner()
 # The experiments (the paper's §4 and App. B), each one command.
@@ -158,5 +158,15 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     (Path(zeroed.folder) / STEP_JSON).unlink()
     again = run(experiment)
     assert [k for k, v in _statuses(again).items() if v != "skipped"] == ["zeroed"]
+    # A training interrupted after some epochs (its last.pt saved) continues from there.
+    messages = next(s for s in again.steps if s.id == "messages")
+    folder = Path(messages.folder)
+    (folder / STEP_JSON).unlink()
+    (folder / "run" / "summary.json").unlink()
+    (folder / PENDING_JSON).write_text(json.dumps({"fingerprint": messages.fingerprint}))
+    resumed = run(experiment)
+    assert [k for k, v in _statuses(resumed).items() if v != "skipped"] == ["messages"]
+    assert _statuses(resumed)["messages"] == "resumed"
+    assert resumed.steps[1].result["best_epoch"] == messages.result["best_epoch"]
     saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
     assert saved["scale"] == "tiny" and len(saved["claims"]) == len(experiment.claims)

@@ -95,9 +95,8 @@ def _section(run: dict[str, Any]) -> list[str]:
     ran = [s["id"] for s in run["steps"] if s["status"] != "skipped"]
     lines = [
         f"## `--scale {run['scale']} --recipe {run['recipe']}`", "",
-        f"Run `{run['command']}` on {run['started']}: {run['wall_seconds'] / 60:.1f} min wall "
-        f"({len(ran)} of {len(run['steps'])} steps ran this time; the others were reused "
-        f"from earlier runs; their own times are in the steps table). Machine: "
+        f"Run `{run['command']}` on {run['started']}: {run['wall_seconds'] / 60:.1f} min wall"
+        f"{_reused(len(ran), len(run['steps']))}. Machine: "
         f"{m['cores']} cores, torch {m['torch']} on {m['threads']} thread(s), Python "
         f"{m['python']}, {m['platform']}, mpnode {m['mpnode']} at git {m['commit']}; load "
         f"average (1/5/15 min) {m['load_before']} before, {m.get('load_after', '?')} after.",
@@ -133,6 +132,13 @@ def _section(run: dict[str, Any]) -> list[str]:
     if seeds:
         lines += [f"Seeds: {seeds}.", ""]
     return lines
+
+
+def _reused(ran: int, total: int) -> str:
+    if ran == total:
+        return ""
+    return (f" ({ran} of {total} steps ran; the others were reused from earlier runs, and "
+            "the steps table gives the seconds each took when it ran)")
 
 
 def _errors(steps: list[dict[str, Any]]) -> list[str]:
@@ -274,6 +280,8 @@ def _f(value: Any, digits: int = 4) -> str:
         return "—"
     if isinstance(value, int) and not isinstance(value, bool):
         return str(value)
+    if 1e3 <= abs(value) < 1e7:  # Table-2 figures: 12800, not 1.28e+04
+        return f"{value:.0f}"
     return f"{value:.{digits}g}"
 
 

@@ -367,8 +367,11 @@ def _compare(step, options, folder: Path, inputs, status, emit):
                            ("best_epoch", "min_val_loss", "table2", "min_train_loss")}
                        for i in step.runs}}
     if step.groups:
-        bars = folder / f"{step.id}-table2.png"
-        plot_bars({group: {labels[i]: inputs[i].result.get("table2") for i in members}
+        bars = folder / f"{step.id}-bars.png"
+        first = next(iter(step.groups.values()))
+        series = step.series or [labels[i] for i in first]
+        plot_bars({group: {series[j] if j < len(series) else labels[i]:
+                           inputs[i].result.get("table2") for j, i in enumerate(members)}
                    for group, members in step.groups.items()}, bars, dpi=FIGURE_DPI,
                   ylabel="best epoch × min validation loss",
                   title="Table-2 figure (lower is better)")

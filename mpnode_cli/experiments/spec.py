@@ -149,11 +149,14 @@ class CompareStep(_Step):
         runs: train or finetune steps.
         groups: label → the runs compared in it, e.g. `"ds=50" = ["finetune-50",
             "scratch-50"]`.
+        series: what the runs at each position of a group are, e.g. `["finetuned",
+            "scratch"]` (default: the labels of the first group's runs).
     """
 
     verb: Literal["compare"]
     runs: list[str] = Field(min_length=1)
     groups: dict[str, list[str]] = Field(default_factory=dict)
+    series: list[str] = Field(default_factory=list)
 
     def inputs(self) -> list[str]:
         return list(self.runs)
