@@ -32,18 +32,21 @@ def _complete_name(incomplete: str) -> list[str]:
 
 
 def list_command() -> None:
-    """List the experiments: name, what of the paper it reproduces, steps."""
+    """List the experiments: name, what of the paper it reproduces, steps, and the
+    expected minutes at the small scale (one core; steps done earlier are skipped)."""
     from rich.table import Table
 
     from mpnode_cli.experiments.spec import load, names
 
     table = Table(title="mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper]",
                   title_justify="left")
-    for column in ("name", "the paper", "title", "steps"):
+    for column in ("name", "the paper", "title", "steps", "small, min"):
         table.add_column(column)
     for name in names():
         experiment = load(name)
-        table.add_row(name, experiment.paper, experiment.title, str(len(experiment.steps)))
+        minutes = experiment.small_minutes
+        table.add_row(name, experiment.paper, experiment.title, str(len(experiment.steps)),
+                      "—" if minutes is None else f"~{minutes:g}")
     console().print(table)
 
 

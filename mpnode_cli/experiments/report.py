@@ -71,6 +71,10 @@ def _runs(out: Path, name: str) -> list[dict[str, Any]]:
 def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     lines = [f"# {experiment.name}: {experiment.title}", "",
              f"The paper: {experiment.paper}.", ""]
+    if experiment.small_minutes:
+        lines += [f"Expected time at `--scale small`: about {experiment.small_minutes:g} "
+                  "minutes on one core, without steps shared with experiments already run.",
+                  ""]
     if experiment.summary:
         lines += [experiment.summary.strip(), ""]
     lines += [

@@ -90,7 +90,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
 
     Args:
         work: the folder of step folders (shared by experiments).
-        command: the command line to record.
+        command: the command line to record (default: the `mpnode experiment run` that
+            does the same).
 
     Raises:
         StepFailed: a step failed (its message names the step).
@@ -98,6 +99,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
             training resumes from its last epoch on the next run.
     """
     emit = progress or (lambda event: None)
+    command = command or (f"mpnode experiment run {experiment.name} --scale {scale} "
+                          f"--recipe {recipe} --work {work}")
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     machine = machine_facts()
@@ -167,6 +170,7 @@ def _resumable(folder: Path, fingerprint: str) -> bool:
 
 def _run_step(step, options: dict[str, Any], fingerprint: str, folder: Path,
               records: dict[str, StepRecord], status: str, emit: Progress) -> StepRecord:
+    from mpnode_cli.data.generate import GenerateError
     from mpnode_cli.training.run import write_json
 
     if status != "resumed":
@@ -178,7 +182,7 @@ def _run_step(step, options: dict[str, Any], fingerprint: str, folder: Path,
     try:
         runner = _VERBS[step.verb]
         result, outputs, cmds, figures = runner(step, options, folder, inputs, status, emit)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, GenerateError) as exc:
         raise StepFailed(f"step '{step.id}' ({step.verb}): {exc}") from None
     record = StepRecord(
         id=step.id, verb=step.verb, label=step.label or step.id, status=status,

@@ -68,8 +68,8 @@ class _Step(BaseModel):
 
     def options(self, scale: Scale) -> dict[str, Any]:
         """The step's verb options at `scale` (before `shrink` for tiny)."""
-        base = self.model_dump(exclude=set(_Step.model_fields) | {"verb"}, by_alias=True)
-        base |= dict(self.model_extra or {})
+        # model_dump holds the verb's declared fields and the extra (config) fields.
+        base = self.model_dump(exclude=set(_Step.model_fields) | {"verb"})
         return base if scale == "paper" else deep_merge(base, self.small)
 
 
@@ -192,6 +192,9 @@ class Experiment(BaseModel):
     Attributes:
         name: the file's stem (set by `load`).
         title: one line. paper: the sections and figures it reproduces.
+        small_minutes: the small scale's expected wall time on one core of a 2-core
+            machine, from seconds per epoch measured on this repository's runs
+            (bench/results/quality.md and the first epochs of each training).
         summary: what it does and what to look for (Markdown).
         steps: in order; a step reads only steps before it.
         claims: what the index (`reports/README.md`) checks.
@@ -202,6 +205,7 @@ class Experiment(BaseModel):
     name: str = Field("", pattern=r"^$|" + _ID)
     title: str
     paper: str
+    small_minutes: float | None = Field(None, gt=0)
     summary: str = ""
     steps: list[Step] = Field(min_length=1)
     claims: list[Claim] = Field(default_factory=list)
@@ -292,9 +296,8 @@ def check(experiment: Experiment) -> None:
 
 def _wanted(step: Any, ref: str) -> tuple[str, ...]:
     """The verbs a step's reference `ref` may name."""
-    if step.verb in ("train", "finetune") and ref == step.data:
-        return ("generate",)
-    if step.verb in ("zeroshot", "evaluate") and (ref == step.data or ref in step.data):
+    data = getattr(step, "data", None)
+    if ref == data or (isinstance(data, list) and ref in data):
         return ("generate",)
     return TRAINING
 
