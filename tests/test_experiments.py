@@ -45,7 +45,7 @@ def test_shipped_experiment_validates(name):
         if step.reported:
             assert step.reported_in, f"{name}: step {step.id} gives no source for its numbers"
         for scale in spec.SCALES:
-            options = spec.resolve(experiment, step, scale, "paper")
+            options = spec.resolve(step, scale, "paper")
             if step.verb in spec.TRAINING and scale == "paper":
                 assert options["config"]["epochs"] == 4000  # the authors' config
 
@@ -146,7 +146,7 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     assert [s.result for s in second.steps] == [s.result for s in first.steps]
 
     # A changed step reruns, with every step after it that reads it; the rest is reused.
-    fields = tomllib.loads(Path(str(spec._folder() / "messages-pendulum.toml")).read_text())
+    fields = tomllib.loads(spec.shipped("messages-pendulum").read_text())
     next(s for s in fields["steps"] if s["id"] == "no-messages")["seed"] = 1
     changed = run(spec.Experiment(**{**fields, "name": "messages-pendulum"}))
     assert _statuses(changed) == {

@@ -109,7 +109,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     records: dict[str, StepRecord] = {}
     total = len(experiment.steps)
     for index, step in enumerate(experiment.steps, start=1):
-        options = resolve(experiment, step, scale, recipe)
+        options = resolve(step, scale, recipe)
         fingerprint = _fingerprint(step.verb, options, [records[i].fingerprint
                                                         for i in step.inputs()])
         folder = work / f"{step.id}-{fingerprint[:12]}"
@@ -427,7 +427,7 @@ def _line(record: StepRecord) -> str:
     r = record.result
     if record.verb in TRAINING:
         return (f"best epoch {r['best_epoch']}/{r['epochs']}, min val loss "
-                f"{r['min_val_loss']:.4g}, test MSE {_g(r['test'].get('mse'))}")
+                f"{_g(r['min_val_loss'])}, test MSE {_g(r['test'].get('mse'))}")
     if record.verb == "generate":
         return f"{r['trajectories']} trajectories × {r['samples']} samples"
     if record.verb == "evaluate":

@@ -210,9 +210,6 @@ class Experiment(BaseModel):
     steps: list[Step] = Field(min_length=1)
     claims: list[Claim] = Field(default_factory=list)
 
-    def step(self, step_id: str) -> Any:
-        return next(s for s in self.steps if s.id == step_id)
-
 
 # ------------------------------------------------------------------------------ loading
 
@@ -235,7 +232,7 @@ def load(name_or_path: str | Path) -> Experiment:
         if str(name_or_path) not in names():
             raise ValueError(f"unknown experiment '{name_or_path}' (choose from: "
                              f"{', '.join(names())})")
-        path = Path(str(_folder() / f"{name_or_path}.toml"))
+        path = shipped(str(name_or_path))
     try:
         fields = tomllib.loads(path.read_text())
     except OSError as exc:
@@ -255,6 +252,11 @@ def load(name_or_path: str | Path) -> Experiment:
 
 def _folder():
     return resources.files("mpnode_cli.experiments")
+
+
+def shipped(name: str) -> Path:
+    """The TOML file of a shipped experiment."""
+    return Path(str(_folder() / f"{name}.toml"))
 
 
 def check(experiment: Experiment) -> None:
@@ -283,7 +285,7 @@ def check(experiment: Experiment) -> None:
         seen[step.id] = step.verb
         for scale in SCALES:
             try:
-                resolve(experiment, step, scale, "mpnode")
+                resolve(step, scale, "mpnode")
             except ValueError as exc:
                 raise ValueError(f"{where} at scale {scale}: {exc}") from None
     for claim in experiment.claims:
@@ -305,7 +307,7 @@ def _wanted(step: Any, ref: str) -> tuple[str, ...]:
 # ----------------------------------------------------------------------------- resolving
 
 
-def resolve(experiment: Experiment, step: Any, scale: Scale, recipe: str) -> dict[str, Any]:
+def resolve(step: Any, scale: Scale, recipe: str) -> dict[str, Any]:
     """A step's verb options at `scale`, checked, as plain JSON: what the step does and what
     its fingerprint hashes (with its inputs' fingerprints).
 
