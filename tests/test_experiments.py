@@ -168,5 +168,12 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     assert [k for k, v in _statuses(resumed).items() if v != "skipped"] == ["messages"]
     assert _statuses(resumed)["messages"] == "resumed"
     assert resumed.steps[1].result["best_epoch"] == messages.result["best_epoch"]
+    # The index shows a non-tiny run's comparisons (here the same records, relabelled).
+    resumed.scale = "small"
+    write_report(resumed, experiment, tmp_path / "index")
+    rows = [line for line in (tmp_path / "index" / "README.md").read_text().splitlines()
+            if "(small)" in line]
+    assert len(rows) == len(experiment.claims)
+    assert all(" < " in row or " > " in row for row in rows)
     saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
     assert saved["scale"] == "tiny" and len(saved["claims"]) == len(experiment.claims)
