@@ -19,6 +19,7 @@ from typer.core import TyperCommand
 from mpnode_cli import __version__
 from mpnode_cli.cli.common import fail
 from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
+from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
 from mpnode_cli.cli.generate import generate_command
 from mpnode_cli.cli.info import info_command
 from mpnode_cli.cli.train import finetune_command, train_command
@@ -82,6 +83,9 @@ app.command("finetune", no_args_is_help=True, cls=_Computing)(finetune_command)
 app.command("evaluate", no_args_is_help=True, cls=_Computing)(evaluate_command)
 app.command("zeroshot", no_args_is_help=True, cls=_Computing)(zeroshot_command)
 app.command("compare", no_args_is_help=True)(compare_command)
+experiment_app.command("list")(list_command)
+experiment_app.command("run", no_args_is_help=True, cls=_Computing)(run_command)
+app.add_typer(experiment_app, name="experiment")
 
 
 def main() -> None:

@@ -19,12 +19,6 @@ from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.config import generate_solver
 from mpnode_cli.threads import applied_threads
 
-# Fields that exclude each other: one given by a later layer drops the other from earlier
-# layers, so `--preset gene-ba-4x4 --nodes 25` means 25 nodes rather than a conflict.
-_EXCLUSIVE = (("nodes", "grid"), ("topology", "edge_list"))
-# Tables whose entries merge key by key across layers.
-_TABLES = ("params", "solver")
-
 
 def _complete_system(incomplete: str) -> list[str]:
     from mpnode_cli.systems.registry import SYSTEMS
@@ -94,7 +88,7 @@ def generate_command(
 ) -> None:
     """Simulate ground truth on graphs and write an HDF5 dataset."""
     from mpnode_cli.config import GenerateConfig, read_config_file, upgrade_solver_fields
-    from mpnode_cli.data.presets import get_preset
+    from mpnode_cli.data.presets import get_preset, merge_layers
 
     options = {
         "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
@@ -120,7 +114,7 @@ def generate_command(
              upgrade_solver_fields(read_config_file(config_file)) if config_file else {}),
             ("command line", options),
         ]
-        fields = _merge(layers)
+        fields = merge_layers(layers)
         if "system" not in fields:
             from mpnode_cli.systems.registry import SYSTEMS
 
@@ -210,38 +204,3 @@ def _parse_params(items: list[str]) -> dict[str, float | str]:
         except ValueError:
             params[name] = value
     return params
-
-
-def _merge(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
-    """Later layers override earlier ones; `params` and `solver` merge key by key.
-
-    Args:
-        layers: `(where it came from, fields)`, lowest precedence first.
-
-    Raises:
-        ValueError: two layers name different systems, or `params` or `solver` is not a
-            table.
-    """
-    fields: dict[str, Any] = {}
-    source = ""
-    for where, layer in layers:
-        layer = dict(layer)
-        if "system" in layer and fields.get("system") not in (None, layer["system"]):
-            raise ValueError(
-                f"system '{layer['system']}' ({where}) disagrees with '{fields['system']}' "
-                f"({source})"
-            )
-        source = where if "system" in layer else source
-        for a, b in _EXCLUSIVE:
-            for given, other in ((a, b), (b, a)):
-                if given in layer and other not in layer:
-                    fields.pop(other, None)
-        tables = {name: layer.pop(name, {}) for name in _TABLES}
-        for name, table in tables.items():
-            if not isinstance(table, dict):
-                raise ValueError(f"{name} ({where}) must be a table of NAME = value")
-        fields.update(layer)
-        for name, table in tables.items():
-            if merged := {**fields.get(name, {}), **table}:
-                fields[name] = merged
-    return fields

@@ -98,6 +98,13 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# Fields that exclude each other: one given by a later layer drops the other from earlier
+# layers, so `--preset gene-ba-4x4 --nodes 25` means 25 nodes rather than a conflict.
+EXCLUSIVE = (("nodes", "grid"), ("topology", "edge_list"))
+# Tables whose entries merge key by key across layers.
+TABLES = ("params", "solver")
+
+
 def get_preset(name: str) -> dict[str, Any]:
     """A copy of the preset called `name`, safe to modify.
 
@@ -110,3 +117,40 @@ def get_preset(name: str) -> dict[str, Any]:
     if "params" in preset:
         preset["params"] = dict(preset["params"])
     return preset
+
+
+def merge_layers(layers: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
+    """Generate config fields from layers (a preset, a config file, options, an experiment's
+    overrides): later layers override earlier ones; `params` and `solver` merge key by key;
+    a field given drops the one it excludes (`EXCLUSIVE`) from earlier layers.
+
+    Args:
+        layers: `(where it came from, fields)`, lowest precedence first.
+
+    Raises:
+        ValueError: two layers name different systems, or `params` or `solver` is not a
+            table.
+    """
+    fields: dict[str, Any] = {}
+    source = ""
+    for where, layer in layers:
+        layer = dict(layer)
+        if "system" in layer and fields.get("system") not in (None, layer["system"]):
+            raise ValueError(
+                f"system '{layer['system']}' ({where}) disagrees with '{fields['system']}' "
+                f"({source})"
+            )
+        source = where if "system" in layer else source
+        for a, b in EXCLUSIVE:
+            for given, other in ((a, b), (b, a)):
+                if given in layer and other not in layer:
+                    fields.pop(other, None)
+        tables = {name: layer.pop(name, {}) for name in TABLES}
+        for name, table in tables.items():
+            if not isinstance(table, dict):
+                raise ValueError(f"{name} ({where}) must be a table of NAME = value")
+        fields.update(layer)
+        for name, table in tables.items():
+            if merged := {**fields.get(name, {}), **table}:
+                fields[name] = merged
+    return fields

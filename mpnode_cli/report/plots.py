@@ -17,10 +17,11 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 MAX_NODES = 6  # columns of a rollout figure; larger graphs show their first nodes
+DPI = 110
 
 
 def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: str | Path,
-                 *, title: str = "") -> Path:
+                 *, title: str = "", dpi: int = DPI) -> Path:
     """Predicted vs true states per node, message norms beneath (the paper's Fig. 2).
 
     Args:
@@ -30,6 +31,7 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
         state_names: `[D]` labels of the rows.
         path: PNG to write (its folder is created).
         title: figure title.
+        dpi: resolution of the PNG.
 
     Returns:
         The path written.
@@ -57,11 +59,11 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
     axes[0, 0].legend(fontsize=7, loc="best")
     if title:
         fig.suptitle(title, fontsize=10)
-    return _save(fig, path)
+    return _save(fig, path, dpi)
 
 
 def plot_error_vs_time(time, mse_vs_time, path: str | Path, *, labels: Sequence[str] = (),
-                       title: str = "rollout error vs time") -> Path:
+                       title: str = "rollout error vs time", dpi: int = DPI) -> Path:
     """Normalized MSE against time, log scale; t₀ (exact by construction) is left out.
 
     Args:
@@ -81,17 +83,78 @@ def plot_error_vs_time(time, mse_vs_time, path: str | Path, *, labels: Sequence[
     ax.grid(alpha=0.3, which="both")
     if labels:
         ax.legend(fontsize=8)
-    return _save(fig, path)
+    return _save(fig, path, dpi)
+
+
+def plot_curves(runs: dict[str, Sequence[dict]], path: str | Path, *, dpi: int = DPI) -> Path:
+    """Training loss and validation MSE against epoch, one line per run (the paper's
+    Fig. 3a, 4, 5, 7, 8, 9), log scale.
+
+    Args:
+        runs: label → a run's `metrics.jsonl` rows (`epoch`, `train_loss`, `val_mse`).
+    """
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.4))
+    for label, rows in runs.items():
+        for ax, key in zip(axes, ("train_loss", "val_mse"), strict=True):
+            points = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
+            if points:
+                ax.plot(*zip(*points, strict=True), lw=1.2, label=label)
+    for ax, name in zip(axes, ("training loss", "validation MSE (normalized)"), strict=True):
+        ax.set_yscale("log")
+        ax.set_xlabel("epoch")
+        ax.set_title(name, fontsize=10)
+        ax.grid(alpha=0.3, which="both")
+    axes[0].legend(fontsize=7)
+    return _save(fig, path, dpi)
+
+
+def plot_bars(groups: dict[str, dict[str, float | None]], path: str | Path, *, ylabel: str,
+              title: str = "", dpi: int = DPI) -> Path:
+    """Grouped bars on a log scale: group → {bar label → value} (a missing value: no bar)."""
+    fig, ax = plt.subplots(figsize=(1.2 + 1.4 * max(len(groups), 1), 3.4))
+    labels = list(dict.fromkeys(k for bars in groups.values() for k in bars))
+    width = 0.8 / max(len(labels), 1)
+    for j, label in enumerate(labels):
+        xs = [i + (j - (len(labels) - 1) / 2) * width for i in range(len(groups))]
+        ys = [bars.get(label) for bars in groups.values()]
+        ax.bar([x for x, y in zip(xs, ys, strict=True) if y],
+               [y for y in ys if y], width, label=label)
+    ax.set_xticks(range(len(groups)), list(groups))
+    ax.set_yscale("log")
+    ax.set_ylabel(ylabel, fontsize=8)
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3, axis="y", which="both")
+    ax.legend(fontsize=7)
+    return _save(fig, path, dpi)
+
+
+def plot_components(time, scores, path: str | Path, *, title: str = "",
+                    dpi: int = DPI) -> Path:
+    """Principal components against time, one line per trajectory (the paper's Fig. 12).
+
+    Args:
+        time: `[T]`. scores: `[B, T, k]` the first k components of B trajectories.
+    """
+    time, scores = _np(time), _np(scores)
+    k = scores.shape[-1]
+    fig, axes = plt.subplots(1, k, figsize=(3.2 * k, 2.8), squeeze=False)
+    for i, ax in enumerate(axes[0]):
+        ax.plot(time, scores[:, :, i].T, lw=0.6, alpha=0.5, color="tab:blue")
+        ax.set_title(f"PC {i + 1}", fontsize=10)
+        ax.set_xlabel("t")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return _save(fig, path, dpi)
 
 
 def _np(x) -> np.ndarray:
     return x.detach().cpu().numpy() if hasattr(x, "detach") else np.asarray(x, dtype=float)
 
 
-def _save(fig, path: str | Path) -> Path:
+def _save(fig, path: str | Path, dpi: int = DPI) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path

@@ -1,0 +1,174 @@
+"""`mpnode experiment list` and `mpnode experiment run NAME`: the paper's experiments, one
+command each.
+
+`run` executes the experiment's steps through the library (`mpnode_cli.experiments.runner`),
+skipping those finished by an earlier run, and writes `reports/<name>/report.md` and the
+index `reports/README.md`. Exit codes: 2 for usage errors (unknown experiment, scale or
+recipe), 1 when a step fails, 130 for Ctrl-C (finished steps are kept; the same command
+resumes).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from mpnode_cli.cli.common import THREADS, console, error_message, fail
+
+experiment_app = typer.Typer(
+    help="The paper's experiments, one command each, with reports beside the paper's numbers.",
+    no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+
+_SCALES = ("tiny", "small", "paper")
+_RECIPES = {"mpnode": "mpnode", "ours": "mpnode", "paper": "paper"}
+
+
+def _complete_name(incomplete: str) -> list[str]:
+    from mpnode_cli.experiments.spec import names
+
+    return [name for name in names() if name.startswith(incomplete)]
+
+
+def list_command() -> None:
+    """List the experiments: name, what of the paper it reproduces, steps, and the
+    expected minutes at the small scale (one core; steps done earlier are skipped)."""
+    from rich.table import Table
+
+    from mpnode_cli.experiments.spec import load, names
+
+    table = Table(title="mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper]",
+                  title_justify="left")
+    for column in ("name", "the paper", "title", "steps", "small, min"):
+        table.add_column(column)
+    for name in names():
+        experiment = load(name)
+        minutes = experiment.small_minutes
+        table.add_row(name, experiment.paper, experiment.title, str(len(experiment.steps)),
+                      "—" if minutes is None else f"~{minutes:g}")
+    console().print(table)
+
+
+def run_command(
+    name: str = typer.Argument(..., help="An experiment (mpnode experiment list), or a .toml "
+                               "file of one.", autocompletion=_complete_name,
+                               show_default=False),
+    scale: str = typer.Option(
+        "small", help="small (about 30 minutes on 2 cores), paper (the paper's sizes and "
+        "epochs) or tiny (a smoke test: a few trajectories, two epochs)."),
+    recipe: str = typer.Option(
+        "mpnode", help="Training recipe: mpnode (default; alias ours) or paper."),
+    out: Path = typer.Option(Path("reports"), help="Where reports go (<out>/<name>/report.md)."),
+    work: Path = typer.Option(
+        Path("runs/experiments"), help="Step folders (datasets, runs); finished steps found "
+        "here are reused."),
+    threads: str | None = THREADS,
+) -> None:
+    """Run (or resume) an experiment and write its report."""
+    import shlex
+
+    from mpnode_cli.experiments.spec import load
+
+    if scale not in _SCALES:
+        fail(f"unknown scale '{scale}' (choose from: {', '.join(_SCALES)})")
+    if recipe not in _RECIPES:
+        fail(f"unknown recipe '{recipe}' (choose from: mpnode (or ours), paper)")
+    try:
+        experiment = load(name)
+    except ValueError as exc:
+        fail(error_message(exc))
+    command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
+                          _RECIPES[recipe], *_given_paths(out, work)])
+    _run(experiment, scale, _RECIPES[recipe], out, work, command)
+
+
+def _given_paths(out: Path, work: Path) -> list[str]:
+    """`--out`/`--work` for the recorded command, when not the defaults."""
+    extra = []
+    if out != Path("reports"):
+        extra += ["--out", str(out)]
+    if work != Path("runs/experiments"):
+        extra += ["--work", str(work)]
+    return extra
+
+
+def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: str) -> None:
+    from mpnode_cli.experiments.report import write_report
+    from mpnode_cli.experiments.runner import StepFailed, run_experiment
+    from mpnode_cli.training.loop import TrainingInterrupted
+
+    display = _Steps(console(stderr=True))
+    try:
+        record = run_experiment(experiment, scale=scale, recipe=recipe, work=work,
+                                command=command, progress=display.on_event)
+    except StepFailed as exc:
+        display.close()
+        fail(str(exc), code=1)
+    except (TrainingInterrupted, KeyboardInterrupt):
+        display.close()
+        typer.echo(f"Interrupted: finished steps are kept in {work}, and an interrupted "
+                   f"training continues from its last epoch; run the same command again to "
+                   f"resume", err=True)
+        raise typer.Exit(code=130) from None
+    path = write_report(record, experiment, out)
+    ran = sum(step.status != "skipped" for step in record.steps)
+    typer.echo(f"{experiment.name}: {ran} of {len(record.steps)} steps ran, "
+               f"{record.wall_seconds / 60:.1f} min; wrote {path} and {out / 'README.md'}")
+
+
+class _Steps:
+    """A line per step, and the verb's own progress display while it runs."""
+
+    def __init__(self, out):
+        self.console = out
+        self.inner: Any = None
+
+    def close(self) -> None:
+        if self.inner is not None:
+            self.inner.__exit__(None, None, None)
+            self.inner = None
+
+    def on_event(self, event: dict[str, Any]) -> None:
+        kind = event["event"]
+        if kind == "step":
+            verb = {"skipped": "done earlier, skipped", "resumed": "resuming",
+                    "ran": "running"}[event["status"]]
+            self.console.print(f"[bold][{event['index']}/{event['total']}] {event['verb']} "
+                               f"{event['id']}[/bold]: {verb} ({event['folder']})")
+            if event["status"] != "skipped" and event["verb"] in ("train", "finetune"):
+                from mpnode_cli.cli.train import _Display
+
+                self.inner = _Display(self.console).__enter__()
+            elif event["status"] != "skipped" and event["verb"] == "generate":
+                self.inner = _GenerateBar(self.console).__enter__()
+        elif kind == "train" and self.inner is not None:
+            self.inner.on_event(event["event_data"])
+        elif kind == "generate" and self.inner is not None:
+            self.inner.update(event["done"], event["total"])
+        elif kind == "step-done":
+            self.close()
+            if event["status"] != "skipped":
+                self.console.print(f"    {event['seconds']:.1f} s: {event['line']}")
+
+
+class _GenerateBar:
+    """`mpnode generate`'s progress bar (none when stderr is not a terminal)."""
+
+    def __init__(self, out):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+        self.bar = Progress("[progress.description]{task.description}", BarColumn(),
+                            MofNCompleteColumn(), TimeElapsedColumn(), console=out,
+                            transient=True, disable=not out.is_terminal)
+        self.task = self.bar.add_task("solving", total=None)
+
+    def __enter__(self):
+        self.bar.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        return self.bar.__exit__(*exc)
+
+    def update(self, done: int, total: int) -> None:
+        self.bar.update(self.task, completed=done, total=total)

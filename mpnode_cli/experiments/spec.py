@@ -1,0 +1,460 @@
+"""An experiment as data: the pydantic models of `mpnode_cli/experiments/<name>.toml`.
+
+An experiment is a list of steps, each a verb of the CLI (generate, train, finetune,
+zeroshot, evaluate, compare) with its options, and the paper's claims it measures. A step
+names the steps it uses by id (`data = "lorenz3"`, `checkpoint = "pretrain"`), which must
+come before it. Its options are those of the paper's scale; a `small` table overrides some
+of them at the small scale:
+
+    [[steps]]
+    id = "pretrain"
+    verb = "train"
+    data = "lorenz3"
+    epochs = 4000          # the paper's
+    small.epochs = 300     # about 30 minutes for the whole experiment on 2 cores
+
+`tiny` is a third scale, derived from `small` by `shrink`: a smoke test of every step.
+
+A claim compares two numbers of the results (`holds = "a.min_train_loss < b.min_train_loss"`,
+each side `[FACTOR *] STEP.PATH` or a number); the paper's figure for it is text, with the
+place in the paper it comes from.
+"""
+
+from __future__ import annotations
+
+import re
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+SCALES = ("tiny", "small", "paper")
+Scale = Literal["tiny", "small", "paper"]
+_ID = r"^[a-z0-9][a-z0-9-]*$"
+# Fields of a train config that the runner sets: the data, the run folder, the recipe, the
+# parent checkpoint (from the step's `data`, its folder, `--recipe`, `checkpoint`).
+RUNNER_FIELDS = ("dataset", "run_dir", "recipe", "init_checkpoint")
+TINY_TRAJECTORIES = 24  # per generated dataset at the tiny scale
+TINY_SAMPLES = 5  # sample times per trajectory at the tiny scale
+TINY_EPOCHS = 2
+
+
+class _Step(BaseModel):
+    """What every step has.
+
+    Attributes:
+        id: the step's name; later steps and claims refer to it.
+        small: options that differ at the small scale (merged over the step's own, tables
+            key by key).
+        reported: the paper's numbers for this step's rows, by row (`test`, `val`, a
+            zero-shot data id, ...), shown beside ours.
+        reported_in: where in the paper `reported` comes from.
+        label: a short name for tables and figures (default: the id).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    id: str = Field(pattern=_ID)
+    small: dict[str, Any] = Field(default_factory=dict)
+    reported: dict[str, float] = Field(default_factory=dict)
+    reported_in: str | None = None
+    label: str | None = None
+
+    def inputs(self) -> list[str]:
+        """Ids of the steps this one reads."""
+        return []
+
+    def options(self, scale: Scale) -> dict[str, Any]:
+        """The step's verb options at `scale` (before `shrink` for tiny)."""
+        # model_dump holds the verb's declared fields and the extra (config) fields.
+        base = self.model_dump(exclude=set(_Step.model_fields) | {"verb"})
+        return base if scale == "paper" else deep_merge(base, self.small)
+
+
+class GenerateStep(_Step):
+    """`mpnode generate`: a preset and generate config fields over it (`trajectories`,
+    `t_end`, `params.coupling`, ...), checked against `GenerateConfig`."""
+
+    model_config = ConfigDict(extra="allow")
+    verb: Literal["generate"]
+    preset: str | None = None
+
+
+class TrainStep(_Step):
+    """`mpnode train` on a generated dataset; train config fields (`epochs`, `model`,
+    `model_options`, `trajectories`, `seed`, ...) as in `TrainConfig`."""
+
+    model_config = ConfigDict(extra="allow")
+    verb: Literal["train"]
+    data: str
+
+    def inputs(self) -> list[str]:
+        return [self.data]
+
+
+class FinetuneStep(TrainStep):
+    """`mpnode finetune`: train from the best checkpoint of the step `checkpoint`."""
+
+    verb: Literal["finetune"]  # type: ignore[assignment]
+    checkpoint: str
+
+    def inputs(self) -> list[str]:
+        return [self.checkpoint, self.data]
+
+
+class ZeroshotStep(_Step):
+    """`mpnode zeroshot`: a trained model on other datasets, without training."""
+
+    verb: Literal["zeroshot"]
+    checkpoint: str
+    data: list[str] = Field(min_length=1)
+    split: Literal["train", "validation", "test", "all"] = "all"
+    plot: bool = True
+
+    def inputs(self) -> list[str]:
+        return [self.checkpoint, *self.data]
+
+
+class EvaluateStep(_Step):
+    """`mpnode evaluate`, and what the CLI cannot do: messages zeroed at test time (the
+    same weights with `messages=False`, the paper's Fig. 3b) and the PCA of the messages
+    over time (Fig. 12).
+
+    Attributes:
+        plot: draw the first trajectory with its message norms (Fig. 2).
+        pca: principal components of all nodes' messages to draw (0: none).
+        trajectories: how many trajectories of the split the PCA uses (the paper: 100).
+    """
+
+    verb: Literal["evaluate"]
+    checkpoint: str
+    data: str
+    split: Literal["train", "validation", "test", "all"] = "test"
+    zero_messages: bool = False
+    plot: bool = True
+    pca: int = Field(0, ge=0)
+    trajectories: int = Field(100, ge=1)
+
+    def inputs(self) -> list[str]:
+        return [self.checkpoint, self.data]
+
+
+class CompareStep(_Step):
+    """`mpnode compare`: runs side by side, their loss curves, and (with `groups`) the
+    paper's Table-2 figure, epochs to the best validation loss × that loss, per group.
+
+    Attributes:
+        runs: train or finetune steps.
+        groups: label → the runs compared in it, e.g. `"ds=50" = ["finetune-50",
+            "scratch-50"]`.
+        series: what the runs at each position of a group are, e.g. `["finetuned",
+            "scratch"]` (default: the labels of the first group's runs).
+    """
+
+    verb: Literal["compare"]
+    runs: list[str] = Field(min_length=1)
+    groups: dict[str, list[str]] = Field(default_factory=dict)
+    series: list[str] = Field(default_factory=list)
+
+    def inputs(self) -> list[str]:
+        return list(self.runs)
+
+
+Step = Annotated[GenerateStep | TrainStep | FinetuneStep | ZeroshotStep | EvaluateStep
+                 | CompareStep, Field(discriminator="verb")]
+TRAINING = ("train", "finetune")
+
+
+class Claim(BaseModel):
+    """One claim of the paper and how our results test its direction.
+
+    Attributes:
+        claim: what the paper says, in a sentence.
+        paper: the paper's number or figure for it, as text.
+        where: where in the paper.
+        holds: `LEFT OP RIGHT`, OP one of < > <= >=, each side a number or `[FACTOR *]
+            STEP.PATH` (a value in the step's results, e.g. `finetune-50.table2`).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    claim: str
+    paper: str
+    where: str
+    holds: str
+
+
+class Experiment(BaseModel):
+    """One of the paper's experiments.
+
+    Attributes:
+        name: the file's stem (set by `load`).
+        title: one line. paper: the sections and figures it reproduces.
+        small_minutes: the small scale's expected wall time on one core of a 2-core
+            machine, from seconds per epoch measured on this repository's runs
+            (bench/results/quality.md and the first epochs of each training).
+        summary: what it does and what to look for (Markdown).
+        steps: in order; a step reads only steps before it.
+        claims: what the index (`reports/README.md`) checks.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field("", pattern=r"^$|" + _ID)
+    title: str
+    paper: str
+    small_minutes: float | None = Field(None, gt=0)
+    summary: str = ""
+    steps: list[Step] = Field(min_length=1)
+    claims: list[Claim] = Field(default_factory=list)
+
+
+# ------------------------------------------------------------------------------ loading
+
+
+def names() -> list[str]:
+    """The shipped experiments, sorted."""
+    return sorted(p.name.removesuffix(".toml") for p in _folder().iterdir()
+                  if p.name.endswith(".toml"))
+
+
+def load(name_or_path: str | Path) -> Experiment:
+    """A shipped experiment by name, or a TOML file by path, parsed and checked.
+
+    Raises:
+        ValueError: unknown name, a file that does not parse, or a spec that does not
+            validate (one line).
+    """
+    path = Path(name_or_path)
+    if not str(name_or_path).endswith(".toml"):
+        if str(name_or_path) not in names():
+            raise ValueError(f"unknown experiment '{name_or_path}' (choose from: "
+                             f"{', '.join(names())})")
+        path = shipped(str(name_or_path))
+    try:
+        fields = tomllib.loads(path.read_text())
+    except OSError as exc:
+        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path.name} does not parse: {exc}") from None
+    fields.setdefault("name", path.stem)
+    try:
+        experiment = Experiment(**fields)
+    except ValidationError as exc:
+        from mpnode_cli.config import error_line
+
+        raise ValueError(f"{path.name}: {error_line(exc)}") from None
+    check(experiment)
+    return experiment
+
+
+def _folder():
+    return resources.files("mpnode_cli.experiments")
+
+
+def shipped(name: str) -> Path:
+    """The TOML file of a shipped experiment."""
+    return Path(str(_folder() / f"{name}.toml"))
+
+
+def check(experiment: Experiment) -> None:
+    """Check what the models cannot: ids, references, presets, options at every scale,
+    and the claims' references.
+
+    Raises:
+        ValueError: one line naming the experiment and the step.
+    """
+    seen: dict[str, str] = {}
+    for step in experiment.steps:
+        where = f"{experiment.name}: step '{step.id}'"
+        if step.id in seen:
+            raise ValueError(f"{where} is defined twice")
+        for ref in step.inputs():
+            want = _wanted(step, ref)
+            if ref not in seen:
+                raise ValueError(f"{where} reads '{ref}', which is no earlier step")
+            if seen[ref] not in want:
+                raise ValueError(f"{where} reads '{ref}' ({seen[ref]}), not a "
+                                 f"{' or '.join(want)} step")
+        for group, members in getattr(step, "groups", {}).items():
+            missing = [m for m in members if m not in step.runs]
+            if missing:
+                raise ValueError(f"{where}: group '{group}' names {missing[0]}, not in runs")
+        seen[step.id] = step.verb
+        for scale in SCALES:
+            try:
+                resolve(step, scale, "mpnode")
+            except ValueError as exc:
+                raise ValueError(f"{where} at scale {scale}: {exc}") from None
+    for claim in experiment.claims:
+        for side in parse_claim(claim.holds)[::2]:
+            ref = side[1]
+            if ref is not None and ref.split(".", 1)[0] not in seen:
+                raise ValueError(f"{experiment.name}: claim '{claim.holds}' names an unknown "
+                                 f"step '{ref.split('.', 1)[0]}'")
+
+
+def _wanted(step: Any, ref: str) -> tuple[str, ...]:
+    """The verbs a step's reference `ref` may name."""
+    data = getattr(step, "data", None)
+    if ref == data or (isinstance(data, list) and ref in data):
+        return ("generate",)
+    return TRAINING
+
+
+# ----------------------------------------------------------------------------- resolving
+
+
+def resolve(step: Any, scale: Scale, recipe: str) -> dict[str, Any]:
+    """A step's verb options at `scale`, checked, as plain JSON: what the step does and what
+    its fingerprint hashes (with its inputs' fingerprints).
+
+    - generate: `{"config": GenerateConfig fields}`, the preset merged in (no `out`).
+    - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}`.
+    - others: their options.
+
+    Raises:
+        ValueError: an unknown preset, config field or model option, or a bad value.
+    """
+    options = step.options("small" if scale == "tiny" else scale)
+    if step.verb == "generate":
+        from mpnode_cli.config import GenerateConfig
+        from mpnode_cli.data.generate import resolve_config
+        from mpnode_cli.data.presets import get_preset, merge_layers
+
+        preset = options.pop("preset", None)
+        layers = [(f"preset {preset}", get_preset(preset) if preset else {}),
+                  (f"step {step.id}", options)]
+        fields = merge_layers(layers)
+        if "out" in fields:
+            raise ValueError("'out' is the runner's (the step's folder)")
+        if scale == "tiny":
+            fields = shrink_generate(fields)
+        config = resolve_config(_validated(GenerateConfig, {**fields, "out": "data.h5"}))
+        return {"config": config.model_dump(mode="json", exclude={"out"})}
+    if step.verb in TRAINING:
+        from mpnode_cli.config import TrainConfig
+        from mpnode_cli.models.registry import OPTIONS, resolve_options
+
+        for key in ("data", "checkpoint"):
+            options.pop(key, None)
+        taken = [k for k in RUNNER_FIELDS if k in options]
+        if taken:
+            raise ValueError(f"'{taken[0]}' is set by the runner, not the step")
+        if scale == "tiny":
+            options = shrink_train(options)
+        if step.verb == "finetune" and ("model" in options or "model_options" in options):
+            raise ValueError("a finetune keeps its checkpoint's model (no model options)")
+        _validated(TrainConfig, {**options, "dataset": "data.h5"})
+        model = options.get("model", "mpnode")
+        if model in OPTIONS:
+            resolve_options(model, options.get("model_options", {}))
+        else:
+            raise ValueError(f"unknown model '{model}' (choose from: {', '.join(OPTIONS)})")
+        return {"config": options, "recipe": recipe}
+    if scale == "tiny" and step.verb == "evaluate":
+        options["trajectories"] = min(options["trajectories"], 4)
+    return options
+
+
+def _validated(model: type[BaseModel], fields: dict[str, Any]) -> Any:
+    from mpnode_cli.config import error_line
+
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        raise ValueError(error_line(exc)) from None
+
+
+def shrink_generate(fields: dict[str, Any]) -> dict[str, Any]:
+    """The tiny scale of a generate step: a few trajectories of a few samples (a quadrotor
+    flight keeps the horizon it needs to pass the doorway)."""
+    from mpnode_cli.data.presets import SYSTEM_DEFAULTS
+    from mpnode_cli.systems.quadrotor_flight import MIN_HORIZON
+
+    defaults = SYSTEM_DEFAULTS.get(fields["system"], {})
+    dt = fields.get("dt", defaults.get("dt", 0.1))
+    t_end = fields.get("t_end", defaults.get("t_end", 1.0))
+    shortest = MIN_HORIZON if fields["system"] == "quadrotor" else 0.0
+    trajectories = fields.get("trajectories", defaults.get("trajectories", 100))
+    return {**fields, "t_end": min(t_end, max((TINY_SAMPLES - 1) * dt, shortest)),
+            "trajectories": max(fields.get("graphs", 1), min(trajectories, TINY_TRAJECTORIES))}
+
+
+def shrink_train(options: dict[str, Any]) -> dict[str, Any]:
+    """The tiny scale of a train or finetune step: two epochs on a few trajectories, and
+    the smallest L2S (it is the slowest model per epoch)."""
+    out = {**options, "epochs": min(options.get("epochs", TINY_EPOCHS), TINY_EPOCHS),
+           "batch_size": 8}
+    if "trajectories" in out:
+        out["trajectories"] = max(2, min(out["trajectories"] // 50, 8))
+    if out.get("model") == "l2s":
+        out["model_options"] = {**out.get("model_options", {}), "latent": 8, "hidden": 8,
+                                "steps": 1}
+    return out
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """`over` on `base`; tables merge key by key."""
+    out = dict(base)
+    for key, value in over.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+# -------------------------------------------------------------------------------- claims
+
+_NUMBER = r"[-+0-9.eE]+"
+_REF = r"[a-z0-9][a-z0-9-]*(?:\.[A-Za-z0-9_-]+)+"  # STEP.PATH
+_SIDE = rf"\s*(?:(?P<{{0}}f>{_NUMBER})\s*\*\s*)?(?P<{{0}}>{_NUMBER}|{_REF})\s*"
+_CLAIM = re.compile(_SIDE.format("a") + r"(?P<op><=|>=|<|>)" + _SIDE.format("b") + "$")
+_OPS = {"<": float.__lt__, ">": float.__gt__, "<=": float.__le__, ">=": float.__ge__}
+
+
+def parse_claim(text: str) -> tuple[tuple[float, str | None], str, tuple[float, str | None]]:
+    """`"2 * a.x < b.y"` → `((2.0, "a.x"), "<", (1.0, "b.y"))`; a number side has ref None
+    and the number as its factor.
+
+    Raises:
+        ValueError: text that is not `LEFT OP RIGHT`.
+    """
+    match = _CLAIM.match(text)
+    if not match:
+        raise ValueError(f"claim '{text}' is not LEFT OP RIGHT (e.g. 'a.test.mse < b.test.mse')")
+
+    def side(name: str) -> tuple[float, str | None]:
+        factor, value = match[name + "f"], match[name]
+        try:
+            return float(value) * float(factor or 1), None
+        except ValueError:
+            return float(factor or 1), value
+
+    return side("a"), match["op"], side("b")
+
+
+def judge(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str]:
+    """Whether a claim holds on `results` (step id → its results), and the numbers shown.
+
+    Returns:
+        (True/False, or None when a number is missing; e.g. "0.025 < 0.62").
+    """
+    left, op, right = parse_claim(text)
+    values = []
+    for factor, ref in (left, right):
+        if ref is None:
+            values.append(factor)
+            continue
+        step, _, path = ref.partition(".")
+        value: Any = results.get(step)
+        for key in path.split("."):
+            value = value.get(key) if isinstance(value, dict) else None
+        values.append(None if not isinstance(value, int | float) else factor * float(value))
+    shown = f" {op} ".join("—" if v is None else f"{v:.4g}" for v in values)
+    if None in values:
+        return None, shown
+    return _OPS[op](float(values[0]), float(values[1])), shown

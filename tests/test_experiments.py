@@ -1,0 +1,179 @@
+"""The paper's experiments as data (`mpnode_cli/experiments/*.toml`) and their runner.
+
+Every shipped experiment parses and validates at every scale; one runs end to end at the
+tiny scale, then resumes (every step skipped), reruns exactly the steps downstream of a
+changed one, and reruns a step whose folder an interruption left unfinished.
+"""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from mpnode_cli.cli.app import app
+from mpnode_cli.data.presets import PRESETS
+from mpnode_cli.experiments import spec
+from mpnode_cli.experiments.report import write_report
+from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
+
+runner = CliRunner()
+# The issue's experiments (the paper's §4 and App. B), each one command.
+PAPER_EXPERIMENTS = {
+    "messages-pendulum", "messages-kuramoto", "finetune-lorenz", "finetune-lorenz-high",
+    "finetune-lorenz-long", "finetune-gene", "finetune-kuramoto", "zeroshot-gene",
+    "zeroshot-lorenz", "message-size", "finetune-quad", "message-pca",
+}
+
+
+def test_every_paper_experiment_is_shipped():
+    assert set(spec.names()) == PAPER_EXPERIMENTS
+
+
+@pytest.mark.parametrize("name", sorted(PAPER_EXPERIMENTS))
+def test_shipped_experiment_validates(name):
+    """Parses, names existing presets, options and steps at every scale (`spec.check`),
+    and says where the paper's numbers come from."""
+    experiment = spec.load(name)
+    assert experiment.name == name and experiment.claims
+    for step in experiment.steps:
+        if step.verb == "generate" and step.preset:
+            assert step.preset in PRESETS
+        if step.reported:
+            assert step.reported_in, f"{name}: step {step.id} gives no source for its numbers"
+        for scale in spec.SCALES:
+            options = spec.resolve(step, scale, "paper")
+            if step.verb in spec.TRAINING and scale == "paper":
+                assert options["config"]["epochs"] == 4000  # the authors' config
+
+
+def _experiment(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    return path
+
+
+GOOD = """
+title = "t"
+paper = "p"
+[[steps]]
+id = "data"
+verb = "generate"
+preset = "lorenz3"
+[[steps]]
+id = "run"
+verb = "train"
+data = "data"
+epochs = 3
+[[claims]]
+claim = "c"
+paper = "p"
+where = "w"
+holds = "run.test.mse < 1"
+"""
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    (('preset = "lorenz3"', 'preset = "lorenz4"'), "unknown preset 'lorenz4'"),
+    (("epochs = 3", "epoch = 3"), "unknown config field 'epoch'"),
+    (("epochs = 3", "model_options.message_size = 3"), "has no option 'message_size'"),
+    (('data = "data"', 'data = "nothing"'), "reads 'nothing', which is no earlier step"),
+    (("epochs = 3", "run_dir = 'x'"), "'run_dir' is set by the runner"),
+    (("run.test.mse < 1", "other.test.mse < 1"), "unknown step 'other'"),
+    (("run.test.mse < 1", "run.test.mse about 1"), "is not LEFT OP RIGHT"),
+    (('verb = "train"', 'verb = "fly"'), "steps.1"),
+])
+def test_bad_spec_is_one_line(tmp_path, change, message):
+    spec.load(_experiment(tmp_path, GOOD))  # the good one loads
+    with pytest.raises(ValueError, match=message) as err:
+        spec.load(_experiment(tmp_path, GOOD.replace(*change)))
+    assert "\n" not in str(err.value)
+
+
+def test_claims_are_judged_on_results():
+    results = {"a": {"test": {"mse": 0.1}}, "b-c": {"test": {"mse": 0.3}}}
+    assert spec.judge("a.test.mse < b-c.test.mse", results) == (True, "0.1 < 0.3")
+    assert spec.judge("a.test.mse > 0.5 * b-c.test.mse", results) == (False, "0.1 > 0.15")
+    assert spec.judge("a.val.mse < 1", results) == (None, "— < 1")
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["nope"], "unknown experiment 'nope'"),
+    (["messages-pendulum", "--scale", "huge"], "unknown scale 'huge'"),
+    (["messages-pendulum", "--recipe", "theirs"], "unknown recipe 'theirs'"),
+])
+def test_cli_refuses_bad_input_in_one_line(args, message, tmp_path):
+    result = runner.invoke(app, ["experiment", "run", *args, "--work", str(tmp_path)])
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("Error:")]
+    assert len(errors) == 1 and message in errors[0]
+
+
+def test_cli_lists_the_experiments():
+    result = runner.invoke(app, ["experiment", "list"])
+    assert result.exit_code == 0, result.output
+    assert all(name in result.output for name in PAPER_EXPERIMENTS)
+
+
+def _statuses(record) -> dict[str, str]:
+    return {step.id: step.status for step in record.steps}
+
+
+def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
+    work, out = tmp_path / "work", tmp_path / "reports"
+    experiment = spec.load("messages-pendulum")
+
+    def run(exp):
+        record = run_experiment(exp, scale="tiny", recipe="mpnode", work=work)
+        write_report(record, exp, out)
+        return record
+
+    first = run(experiment)
+    assert set(_statuses(first).values()) == {"ran"}
+    report = (out / "messages-pendulum" / "report.md").read_text()
+    assert "| MSE | hold x(0) | time mean | hold ÷ ours | mean ÷ ours |" in report
+    assert "messages zeroed" in report and "mpnode train " in report
+    figures = list((out / "messages-pendulum" / "tiny-mpnode").glob("*.png"))
+    assert figures and all(f.stat().st_size < 200_000 for f in figures)
+    index = (out / "README.md").read_text()
+    assert "not run" in index  # tiny runs measure nothing and stay out of the index
+
+    second = run(experiment)
+    assert set(_statuses(second).values()) == {"skipped"}
+    assert [s.result for s in second.steps] == [s.result for s in first.steps]
+
+    # A changed step reruns, with every step after it that reads it; the rest is reused.
+    fields = tomllib.loads(spec.shipped("messages-pendulum").read_text())
+    next(s for s in fields["steps"] if s["id"] == "no-messages")["seed"] = 1
+    changed = run(spec.Experiment(**{**fields, "name": "messages-pendulum"}))
+    assert _statuses(changed) == {
+        "pendulum": "skipped", "messages": "skipped", "no-messages": "ran", "test": "skipped",
+        "zeroed": "skipped", "no-messages-test": "ran", "curves": "ran"}
+
+    # A step an interruption left without its step.json runs again, alone.
+    zeroed = next(s for s in changed.steps if s.id == "zeroed")
+    (Path(zeroed.folder) / STEP_JSON).unlink()
+    again = run(experiment)
+    assert [k for k, v in _statuses(again).items() if v != "skipped"] == ["zeroed"]
+    # A training interrupted after some epochs (its last.pt saved) continues from there.
+    messages = next(s for s in again.steps if s.id == "messages")
+    folder = Path(messages.folder)
+    (folder / STEP_JSON).unlink()
+    (folder / "run" / "summary.json").unlink()
+    (folder / PENDING_JSON).write_text(json.dumps({"fingerprint": messages.fingerprint}))
+    resumed = run(experiment)
+    assert [k for k, v in _statuses(resumed).items() if v != "skipped"] == ["messages"]
+    assert _statuses(resumed)["messages"] == "resumed"
+    assert resumed.steps[1].result["best_epoch"] == messages.result["best_epoch"]
+    # The index shows a non-tiny run's comparisons (here the same records, relabelled).
+    resumed.scale = "small"
+    write_report(resumed, experiment, tmp_path / "index")
+    rows = [line for line in (tmp_path / "index" / "README.md").read_text().splitlines()
+            if "(small)" in line]
+    assert len(rows) == len(experiment.claims)
+    assert all(" < " in row or " > " in row for row in rows)
+    saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
+    assert saved["scale"] == "tiny" and len(saved["claims"]) == len(experiment.claims)
