@@ -51,6 +51,9 @@ def test_curriculum_by_default_only_for_long_trajectories():
     assert resolved(samples=CURRICULUM_MIN_SAMPLES).horizon_curriculum
     assert not resolved(samples=CURRICULUM_MIN_SAMPLES - 1).horizon_curriculum
     assert not resolved(samples=500, horizon_curriculum=False).horizon_curriculum
+    # Lorenz recommends it at 51 samples (its escape from the origin: the recipe docs).
+    assert resolved(system="lorenz", samples=51).horizon_curriculum
+    assert not resolved(system="lorenz", samples=51, horizon_curriculum=False).horizon_curriculum
 
 
 def test_a_stored_recipe_wins_over_the_system_declaration():
