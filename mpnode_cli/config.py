@@ -23,6 +23,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mpnode_cli.solver.options import SolverOptions
 
+# Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
+SEED_MAX = 2**63 - 1
+
 # Relative slack when checking that t_end is a whole number of dt steps (0.3 / 0.1 is not
 # exactly 3 in binary floating point).
 _GRID_TOL = 1e-9
@@ -75,7 +78,8 @@ class GenerateConfig(BaseModel):
         chunk_size: trajectories solved together in one batch (bounds memory).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # No inf or NaN in any number (`--t-end inf` would never end).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     system: str
     params: dict[str, float | str] = Field(default_factory=dict)
@@ -83,12 +87,12 @@ class GenerateConfig(BaseModel):
     grid: int | None = Field(None, ge=1)
     topology: str | None = None
     graphs: int = Field(1, ge=1)
-    graph_seed: int = 0
+    graph_seed: int = Field(0, ge=0, le=SEED_MAX)
     edge_list: Path | None = None
     trajectories: int | None = Field(None, ge=1)
     t_end: float | None = Field(None, gt=0)
     dt: float | None = Field(None, gt=0)
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=SEED_MAX)
     split: tuple[float, float, float] = (0.7, 0.15, 0.15)
     solver: SolverOptions = Field(default_factory=generate_solver)
     dtype: Literal["float32", "float64"] = "float32"
@@ -211,7 +215,8 @@ class TrainConfig(BaseModel):
             reusing the checkpoint's.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # No inf or NaN in any number (`--t-end inf` would never end).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     dataset: Path
     model: str = "mpnode"
@@ -227,8 +232,8 @@ class TrainConfig(BaseModel):
     clip: float = Field(500.0, gt=0)
     patience: int = Field(50, ge=1)
     noise: float = Field(1e-4, ge=0)
-    epochs: int = Field(4000, ge=0)
-    seed: int = 0
+    epochs: int = Field(4000, ge=1)
+    seed: int = Field(0, ge=0, le=SEED_MAX)
     device: Literal["cpu", "cuda"] = "cpu"
     run_dir: Path | None = None
     solver: SolverOptions = Field(default_factory=train_solver)

@@ -32,7 +32,7 @@ class SolverOptions(BaseModel):
         compile: run the adaptive step through `torch.compile`.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     method: Method = Field("tsit5", description=_METHOD_HELP)
     rtol: float = Field(1e-6, gt=0, lt=1, description="Solver relative tolerance.")
