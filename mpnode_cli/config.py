@@ -64,7 +64,9 @@ class GenerateConfig(BaseModel):
             coupling, kuramoto ω) are drawn from `default_rng([graph_seed, g])`, so datasets
             that share a graph seed share their systems whatever their trajectory seed.
         edge_list: a user's graph as a text file of `i j` lines (then `topology` is
-            `"edgelist"`).
+            `"edgelist"`; see `mpnode_cli.graphs.read_edge_list`).
+        directed: read the edge list's `i j` as one edge from i to j, not an undirected
+            edge.
         trajectories: K.
         t_end: last sample time; samples are `0, dt, ..., t_end`.
         dt: sample spacing.
@@ -89,6 +91,7 @@ class GenerateConfig(BaseModel):
     graphs: int = Field(1, ge=1)
     graph_seed: int = Field(0, ge=0, le=SEED_MAX)
     edge_list: Path | None = None
+    directed: bool = False
     trajectories: int | None = Field(None, ge=1)
     t_end: float | None = Field(None, gt=0)
     dt: float | None = Field(None, gt=0)
@@ -144,6 +147,8 @@ class GenerateConfig(BaseModel):
                 f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of side "
                 f"{self.grid} has {self.grid**2} nodes; give only one of them"
             )
+        if self.directed and self.edge_list is None:
+            raise ValueError("directed applies to an edge list only (--edge-list)")
         if self.edge_list is not None and self.topology not in (None, "edgelist"):
             raise ValueError(f"give either a topology ({self.topology}) or an edge list, not both")
         if self.trajectories is not None and self.trajectories < self.graphs:
@@ -213,6 +218,8 @@ class TrainConfig(BaseModel):
         trajectories: use only the first K trajectories of the train split.
         renormalize: finetune: fit the normalization on the new train split instead of
             reusing the checkpoint's.
+        allow_other_system: finetune: accept a dataset whose `system` differs from the
+            checkpoint's (refused by default: the model learned another system).
     """
 
     # No inf or NaN in any number (`--t-end inf` would never end).
@@ -245,6 +252,7 @@ class TrainConfig(BaseModel):
     init_checkpoint: Path | None = None
     trajectories: int | None = Field(None, ge=1)
     renormalize: bool = False
+    allow_other_system: bool = False
 
     @field_validator("solver", mode="before")
     @classmethod

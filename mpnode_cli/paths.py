@@ -19,7 +19,7 @@ def describe(path: Path) -> str | None:
     ...), None for a regular file or nothing."""
     try:
         mode = os.lstat(path).st_mode
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # nothing there (the folder says why)
         return None
     except OSError as exc:
         return f"unreadable ({exc.strerror})"
