@@ -10,6 +10,7 @@ it prints the size and memory it will take and, above `CONFIRM_BYTES`, asks to g
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -58,17 +59,17 @@ def generate_command(
     config_file: Path | None = typer.Option(
         None, "--config", help="TOML (or JSON) file of config fields; options override it."
     ),
-    nodes: int | None = typer.Option(None, help="Number of nodes N."),
-    grid: int | None = typer.Option(None, help="Square grid side: N = grid² (gene)."),
+    nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
+    grid: str | None = typer.Option(None, metavar="N", help="Square grid side: N = grid² (gene)."),
     topology: str | None = typer.Option(None, help="complete, chain, er, ba or ws."),
-    graphs: int | None = typer.Option(None, help="Distinct graphs G; trajectories spread evenly."),
+    graphs: str | None = typer.Option(None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
     graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
     edge_list: Path | None = typer.Option(
         None, help="Your own graph: text file of 'i j' lines, undirected unless --directed "
         "(docs/dataset-format.md)."),
     directed: bool = typer.Option(
         False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
-    trajectories: int | None = typer.Option(None, help="Number of trajectories K."),
+    trajectories: str | None = typer.Option(None, metavar="N", help="Number of trajectories K."),
     t_end: float | None = typer.Option(None, help="Last sample time (samples 0, dt, ..)."),
     dt: float | None = typer.Option(None, help="Sample spacing."),
     seed: int | None = typer.Option(None, help="Seed of initial states and split."),
@@ -89,8 +90,8 @@ def generate_command(
         False, "--yes", "-y", help="Go ahead with a big job without asking."),
     json_out: bool = typer.Option(
         False, "--json", help="Print the summary as one JSON object on stdout."),
-    chunk_size: int | None = typer.Option(
-        None, help="Trajectories per solver batch (default 1024)."
+    chunk_size: str | None = typer.Option(
+        None, metavar="N", help="Trajectories per solver batch (default 1024)."
     ),
     coupling: float | None = typer.Option(
         None, help="lorenz: ‖H‖_F (default 0.01; the paper's high is 1.0)."
@@ -117,6 +118,12 @@ def generate_command(
         "chunk_size": chunk_size, "directed": directed or None,
     }  # fmt: skip
     options = {key: value for key, value in options.items() if value is not None}
+    try:
+        for key in ("nodes", "grid", "graphs", "trajectories", "chunk_size"):
+            if key in options:
+                options[key] = _whole(options[key], "--" + key.replace("_", "-"))
+    except ValueError as exc:
+        _usage_error(str(exc))
     solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
     solver = {key: value for key, value in solver.items() if value is not None}
     if solver:  # the config's `solver` table, merged over a config file's
@@ -260,6 +267,21 @@ def _print_summary(config: Any, summary: Any) -> None:
     Console().print(table)
     if threads := applied_threads():
         typer.echo(f"threads: {threads.describe()}")
+
+
+def _whole(text: str, option: str) -> int:
+    """A count given as `1000`, `1_000` or `1e3` (a whole number however it is written)."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or not value.is_integer():
+        raise ValueError(f"{option} expects a whole number, got {text!r}")
+    return int(value)
 
 
 def _parse_params(items: list[str]) -> dict[str, float | str]:

@@ -265,10 +265,11 @@ class _Checker:
             return
         if dt_ok and len(steps):
             slack = _DT_RTOL * dt + 1e-9 * float(np.abs(ts).max())
-            worst = int(np.argmax(np.abs(steps - dt)))
-            if abs(steps[worst] - dt) > slack:
-                self.problem(f"attribute dt is {dt:g} but time steps by {steps[worst]:g} "
-                             f"(between samples {worst} and {worst + 1}); samples must be "
+            off = np.abs(steps - dt) > slack
+            if off.any():
+                first = int(np.argmax(off))
+                self.problem(f"attribute dt is {dt:g} but time steps by {steps[first]:g} "
+                             f"(between samples {first} and {first + 1}); samples must be "
                              "evenly spaced by dt")
         self.summary["dt"] = dt
         self.summary["t_end"] = float(ts[-1])
