@@ -62,7 +62,8 @@ def generate_command(
     nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
     grid: str | None = typer.Option(None, metavar="N", help="Square grid side: N = grid² (gene)."),
     topology: str | None = typer.Option(None, help="complete, chain, er, ba or ws."),
-    graphs: str | None = typer.Option(None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
+    graphs: str | None = typer.Option(
+        None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
     graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
     edge_list: Path | None = typer.Option(
         None, help="Your own graph: text file of 'i j' lines, undirected unless --directed "
