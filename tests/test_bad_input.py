@@ -237,18 +237,24 @@ def test_numbers_out_of_range_name_their_option(data, run, tmp_path, args, words
     assert not (tmp_path / "r").exists()
 
 
-def test_big_jobs_print_their_size_and_ask(tmp_path):
-    # 100 000 trajectories of 3 lorenz nodes × 1001 samples: about 6.7 GB in float64.
-    args = ["generate", "lorenz", "--nodes", 3, "--trajectories", 100_000, "--t-end", 10,
-            "--dt", 0.01, "--out", tmp_path / "big.h5"]
+def test_big_jobs_print_their_size_and_ask(tmp_path, monkeypatch):
+    # Thresholds lowered so that a small job counts as big (the real ones are GiB).
+    monkeypatch.setattr("mpnode_cli.cli.generate.SHOW_BYTES", 2**10)
+    monkeypatch.setattr("mpnode_cli.cli.generate.CONFIRM_BYTES", 2**20)
+    out = tmp_path / "big.h5"
+    args = ["generate", "lorenz", "--nodes", 3, "--trajectories", 2000, "--t-end", 1,
+            "--dt", 0.1, "--out", out]
     result = invoke(*args, input="")  # stdin is no terminal: no one to ask
     line = one_line_error(result)
-    assert "pass --yes" in line and "this job: 100000 trajectories" in result.output
-    assert not (tmp_path / "big.h5").exists()
-    config = resolve_config(GenerateConfig(system="lorenz", nodes=3, trajectories=100_000,
-                                           t_end=10, dt=0.01), dry_run=False)
+    assert "pass --yes" in line and "this job: 2000 trajectories × 11 samples" in result.output
+    assert not out.exists()
+    result = invoke(*args, "--yes")
+    assert result.exit_code == 0, result.output
+    assert "this job: 2000 trajectories" in result.output and out.exists()
+    config = resolve_config(GenerateConfig(system="lorenz", nodes=3, trajectories=2000,
+                                           t_end=1, dt=0.1), dry_run=False)
     size = estimate(config)
-    assert size.values == 100_000 * 1001 * 3 * 3
+    assert size.values == 2000 * 11 * 3 * 3
     assert size.file_bytes == size.values * 4 + 3 * 3  # float32 states and a uint8 graph
     assert size.memory_bytes >= size.values * (8 + 4)  # float64 solve and its float32 cast
 
