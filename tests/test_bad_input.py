@@ -95,7 +95,12 @@ def test_a_failed_train_leaves_no_husk(data, tmp_path, monkeypatch):
         m.setattr(loop, "evaluate", broken)
         assert "validation rollout failed" in one_line_error(
             invoke("train", data["lorenz"], "--epochs", 1, "--run-dir", folder, *FAST))
-    assert not folder.exists()
+        assert not folder.exists()
+        empty = tmp_path / "made-by-the-user"
+        empty.mkdir()
+        one_line_error(invoke("train", data["lorenz"], "--epochs", 1, "--run-dir", empty,
+                              *FAST))
+        assert empty.is_dir() and list(empty.iterdir()) == []  # emptied, not removed
     result = invoke("train", data["lorenz"], "--epochs", 1, "--run-dir", folder, *FAST)
     assert result.exit_code == 0, result.output  # the name is free again
 

@@ -354,7 +354,7 @@ def _root_attrs(f: h5py.File) -> dict[str, Any]:
 def _py(value: Any) -> Any:
     """numpy scalars and bytes from h5py attributes → plain Python values."""
     if isinstance(value, bytes):
-        return value.decode()
+        return value.decode(errors="replace")
     if isinstance(value, np.generic):
         return value.item()
     return value

@@ -28,6 +28,7 @@ from mpnode_cli.data.hdf5 import (
     REQUIRED_ATTRS,
     SPLIT_NAMES,
     DatasetFormatError,
+    _py,
 )
 
 # Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
@@ -366,12 +367,3 @@ def _json_list(raw: Any) -> list:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _py(value: Any) -> Any:
-    """numpy scalars and bytes from h5py attributes → plain Python values."""
-    if isinstance(value, bytes):
-        return value.decode(errors="replace")
-    if isinstance(value, np.generic):
-        return value.item()
-    return value

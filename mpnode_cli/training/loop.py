@@ -98,18 +98,18 @@ def train(config: TrainConfig, *, resume: bool = False,
             `summary.json`).
         TrainingDiverged: bad steps persisted down to `min_lr`.
     """
-    made: list[Path] = []  # the run folder, once this call has made it
+    made: list[tuple[Path, bool]] = []  # the new run folder, and whether it existed
     try:
         return _train(config, resume, progress or (lambda event: None), made)
     except BaseException:
-        for run_dir in made:  # a husk could neither be resumed nor reused
-            runs.remove_unstarted(run_dir)
+        for run_dir, existed in made:  # a husk could neither be resumed nor reused
+            runs.remove_unstarted(run_dir, keep_folder=existed)
         raise
 
 
 def _train(config: TrainConfig, resume: bool, emit: Progress,
-           made: list[Path]) -> runs.TrainSummary:
-    """`train`'s body; it appends the run folder to `made` when it creates one."""
+           made: list[tuple[Path, bool]]) -> runs.TrainSummary:
+    """`train`'s body; it appends a new run folder to `made` (and whether it existed)."""
     if not resume:  # where the run folder goes must be writable before any work starts
         check_writable_dir(config.run_dir or runs.default_root())
 
@@ -188,8 +188,7 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
         state = LoopState(**last.loop)
         runs.truncate_metrics(run_dir, state.epoch)
     else:
-        runs.create(run_dir)
-        made.append(run_dir)
+        made.append((run_dir, not runs.create(run_dir)))
     runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
 
     facts = {"fingerprint": data.fingerprint, "path": str(config.dataset), "system": data.system,

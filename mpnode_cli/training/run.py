@@ -78,20 +78,35 @@ def default_run_dir(dataset: Path, model: str, root: Path | None = None) -> Path
     return path
 
 
-def create(run_dir: Path) -> None:
-    """Make a new run folder; refuse to train over an existing run."""
+def create(run_dir: Path) -> bool:
+    """Make a new run folder; refuse to train over an existing run.
+
+    Returns:
+        Whether the folder itself was made (an existing empty folder is used as it is).
+    """
     if run_dir.exists() and any(run_dir.iterdir()):
         raise ValueError(f"run folder {run_dir} already exists: continue it with "
                          f"--resume {run_dir}, or choose another --run-dir")
+    made = not run_dir.exists()
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    return made
 
 
-def remove_unstarted(run_dir: Path) -> None:
-    """Remove a new run folder that has no `last.pt` yet (a run that failed before its
-    first checkpoint), so that its name can be used again. A folder with one is kept: it
+def remove_unstarted(run_dir: Path, *, keep_folder: bool = False) -> None:
+    """Empty a new run folder that has no `last.pt` yet (a run that failed before its
+    first checkpoint), so that its name can be used again, and remove it unless
+    `keep_folder` (it existed, empty, before the run). A folder with `last.pt` is kept: it
     can be resumed."""
-    if not checkpoint_path(run_dir, "last").exists():
+    if checkpoint_path(run_dir, "last").exists():
+        return
+    if not keep_folder:
         shutil.rmtree(run_dir, ignore_errors=True)
+        return
+    for child in Path(run_dir).iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child, ignore_errors=True)
+        else:
+            child.unlink(missing_ok=True)
 
 
 def write_interrupted(run_dir: Path, epoch: int, signal: str) -> None:
