@@ -114,6 +114,7 @@ def write_interrupted(run_dir: Path, epoch: int, signal: str) -> None:
     continue it."""
     path = Path(run_dir) / SUMMARY
     path.unlink(missing_ok=True)  # read_summary would return a previous (finished) one
+    truncate_metrics(run_dir, epoch)  # a row may precede its checkpoint
     summary = read_summary(run_dir)
     write_json(path, {**summary, "epochs": epoch, "finished": False, "interrupted": signal,
                       "resume": f"mpnode train --resume {run_dir}"})
