@@ -243,9 +243,12 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
             save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
             emit({"event": "epoch", **row})
     except KeyboardInterrupt as exc:
-        with deferred_signals():  # a second signal must not cut the save short
-            save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
-            runs.write_interrupted(run_dir, snapshot.epoch, signal_name(exc))
+        try:
+            with deferred_signals():  # a second signal must not cut the save short
+                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+                runs.write_interrupted(run_dir, snapshot.epoch, signal_name(exc))
+        except KeyboardInterrupt:
+            pass  # it came during the save, which finished: stop, as both signals asked
         raise TrainingInterrupted(run_dir, snapshot.epoch, exc) from None
 
     # 4. The best weights on the test split (if the dataset has one), plots, summary.json.
