@@ -100,6 +100,8 @@ CORRUPTIONS = {
                           "only 0 and 1"),
     "another format": (_attr("format", "something-else"), "format 'something-else'"),
     "a newer version": (_attr("format_version", 99), "newer than this mpnode reads"),
+    "split of strings": (_replace("split", np.array(["a"] * K, dtype="S1")), "must hold numbers"),
+    "system not a string": (_attr("system", np.array([1, 2])), "system must be a non-empty"),
     "lorenz with 2 states": (_replace("states", np.zeros((K, T, N, 2), np.float32)),
                              "name your own data system \"custom\""),
 }

@@ -91,7 +91,10 @@ def check_dataset(path: str | Path) -> Report:
         report.problems.append(f"{path} is not an HDF5 file")
         return report
     with f:
-        _Checker(f, report).run()
+        try:
+            _Checker(f, report).run()
+        except (OSError, ValueError, TypeError, KeyError) as exc:  # h5py on a damaged file
+            report.problems.append(f"{path} could not be read completely: {exc}")
     return report
 
 
@@ -139,7 +142,7 @@ class _Checker:
 
     def _format(self, attrs: dict[str, Any]) -> bool:
         name, version = attrs.get("format"), attrs.get("format_version")
-        if name != FORMAT:
+        if not isinstance(name, str) or name != FORMAT:
             what = f"format '{name}'" if name is not None else "no 'format' attribute"
             self.problem(f"not an {FORMAT} file ({what})")
             return False
@@ -324,7 +327,7 @@ class _Checker:
         from mpnode_cli.systems.registry import SYSTEMS, get_system
 
         system = attrs.get("system")
-        if system not in SYSTEMS:
+        if not isinstance(system, str) or system not in SYSTEMS:
             return
         try:
             want = tuple(get_system(system).state_names)
