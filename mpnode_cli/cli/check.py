@@ -24,7 +24,7 @@ def check_command(
     """Check a dataset or checkpoint: shapes, indices, attributes, finite values, format."""
     report = _check(path)
     if json_out:
-        typer.echo(json.dumps(report.to_dict()))
+        typer.echo(json.dumps(report.to_dict(), default=str))
     elif report.ok:
         console().print(f"{report.path}: valid {report.kind}")
         for key, value in report.summary.items():

@@ -123,7 +123,9 @@ class _Checker:
             self.problem(f"states must be [K, T, N, D], got shape {states.shape}")
             return
         k, t, n, d = states.shape
-        self.summary.update({"system": attrs.get("system"), "trajectories": k, "samples": t,
+        system = attrs.get("system")
+        self.summary.update({"system": system if isinstance(system, str) else None,
+                             "trajectories": k, "samples": t,
                              "nodes": n, "node_dim": d})
         if k < 1 or t < 2 or n < 1 or d < 1:
             self.problem(f"states has shape {states.shape}: a dataset needs at least one "
