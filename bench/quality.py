@@ -201,12 +201,12 @@ def epochs_for(case: Case, scale: float) -> int:
 
 
 def default_aggregate(args) -> str:
-    """The aggregation `mpnode train` picks for gene-ba-4x4 when none is given (a 0-epoch
+    """The aggregation `mpnode train` picks for gene-ba-4x4 when none is given (a 1-epoch
     run resolves the CLI's defaults)."""
     probe = args.runs / ".probe"
     shutil.rmtree(probe, ignore_errors=True)
     probe.mkdir(parents=True)
-    mpnode("train", dataset(args, "gene-ba-4x4"), "--epochs", 0, "--no-plots", "--run-dir",
+    mpnode("train", dataset(args, "gene-ba-4x4"), "--epochs", 1, "--no-plots", "--run-dir",
            probe / "run", log=probe / "log")
     summary = json.loads((probe / "run" / "summary.json").read_text())
     shutil.rmtree(probe, ignore_errors=True)

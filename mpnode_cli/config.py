@@ -23,6 +23,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mpnode_cli.solver.options import SolverOptions
 
+# Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
+SEED_MAX = 2**63 - 1
+
 # Relative slack when checking that t_end is a whole number of dt steps (0.3 / 0.1 is not
 # exactly 3 in binary floating point).
 _GRID_TOL = 1e-9
@@ -63,7 +66,9 @@ class GenerateConfig(BaseModel):
             coupling, kuramoto ω) are drawn from `default_rng([graph_seed, g])`, so datasets
             that share a graph seed share their systems whatever their trajectory seed.
         edge_list: a user's graph as a text file of `i j` lines (then `topology` is
-            `"edgelist"`).
+            `"edgelist"`; see `mpnode_cli.graphs.read_edge_list`).
+        directed: read the edge list's `i j` as one edge from i to j, not an undirected
+            edge.
         trajectories: K.
         t_end: last sample time; samples are `0, dt, ..., t_end`.
         dt: sample spacing.
@@ -77,7 +82,8 @@ class GenerateConfig(BaseModel):
         chunk_size: trajectories solved together in one batch (bounds memory).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # No inf or NaN in any number (`--t-end inf` would never end).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     system: str
     params: dict[str, float | str] = Field(default_factory=dict)
@@ -85,12 +91,13 @@ class GenerateConfig(BaseModel):
     grid: int | None = Field(None, ge=1)
     topology: str | None = None
     graphs: int = Field(1, ge=1)
-    graph_seed: int = 0
+    graph_seed: int = Field(0, ge=0, le=SEED_MAX)
     edge_list: Path | None = None
+    directed: bool = False
     trajectories: int | None = Field(None, ge=1)
     t_end: float | None = Field(None, gt=0)
     dt: float | None = Field(None, gt=0)
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=SEED_MAX)
     split: tuple[float, float, float] = (0.7, 0.15, 0.15)
     solver: SolverOptions = Field(default_factory=generate_solver)
     dtype: Literal["float32", "float64"] = "float32"
@@ -142,6 +149,8 @@ class GenerateConfig(BaseModel):
                 f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of side "
                 f"{self.grid} has {self.grid**2} nodes; give only one of them"
             )
+        if self.directed and self.edge_list is None:
+            raise ValueError("directed applies to an edge list only (--edge-list)")
         if self.edge_list is not None and self.topology not in (None, "edgelist"):
             raise ValueError(f"give either a topology ({self.topology}) or an edge list, not both")
         if self.trajectories is not None and self.trajectories < self.graphs:
@@ -211,9 +220,12 @@ class TrainConfig(BaseModel):
         trajectories: use only the first K trajectories of the train split.
         renormalize: finetune: fit the normalization on the new train split instead of
             reusing the checkpoint's.
+        allow_other_system: finetune: accept a dataset whose `system` differs from the
+            checkpoint's (refused by default: the model learned another system).
     """
 
-    model_config = ConfigDict(extra="forbid")
+    # No inf or NaN in any number (`--t-end inf` would never end).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     dataset: Path
     model: str = "mpnode"
@@ -229,8 +241,8 @@ class TrainConfig(BaseModel):
     clip: float = Field(500.0, gt=0)
     patience: int = Field(50, ge=1)
     noise: float = Field(1e-4, ge=0)
-    epochs: int = Field(4000, ge=0)
-    seed: int = 0
+    epochs: int = Field(4000, ge=1)
+    seed: int = Field(0, ge=0, le=SEED_MAX)
     device: Literal["cpu", "cuda"] = "cpu"
     run_dir: Path | None = None
     solver: SolverOptions = Field(default_factory=train_solver)
@@ -242,6 +254,7 @@ class TrainConfig(BaseModel):
     init_checkpoint: Path | None = None
     trajectories: int | None = Field(None, ge=1)
     renormalize: bool = False
+    allow_other_system: bool = False
 
     @field_validator("solver", mode="before")
     @classmethod

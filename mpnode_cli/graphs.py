@@ -103,47 +103,67 @@ def _require(kw: dict[str, float], name: str, topology: str) -> float:
     return kw[name]
 
 
-def read_edge_list(path: str | Path) -> np.ndarray:
-    """Read an undirected graph from a text file of `i j` lines.
+def read_edge_list(path: str | Path, *, directed: bool = False) -> np.ndarray:
+    """Read a graph from a text file of `i j` lines.
 
-    Node ids are 0-based integers; the graph has `max id + 1` nodes (so the largest node
-    must appear in some edge). Blank lines and `#` comments are skipped; duplicate edges
-    are merged. Each line may separate the ids by spaces, tabs or a comma.
+    Each line `i j` is an edge between nodes i and j: undirected by default (messages go
+    both ways, `A[i, j] = A[j, i] = 1`), or with `directed` one edge from sender i to
+    receiver j (`A[j, i] = 1`). A line holding one id `i` declares a node without edges.
+    Node ids are 0-based integers and must be contiguous: the graph has `max id + 1`
+    nodes, and every id below the largest must appear on some line (a gap is refused, as
+    it is more often a typo or a 1-based file than a wanted isolated node; declare an
+    isolated node on a line of its own). Blank lines and `#` comments are skipped;
+    duplicate edges are merged. Ids may be separated by spaces, tabs or a comma.
 
     Args:
         path: the text file.
+        directed: read `i j` as the one edge i → j instead of an undirected edge.
 
     Returns:
-        uint8 `[n, n]`, symmetric, zero diagonal.
+        uint8 `[n, n]`, zero diagonal; symmetric unless `directed`.
 
     Raises:
-        ValueError: a malformed line, a negative id, a self-loop, or no edges at all.
+        ValueError: a malformed line, a negative id, a self-loop, a gap in the ids, or no
+            edges at all.
     """
     pairs: list[tuple[int, int]] = []
+    nodes: set[int] = set()
     for lineno, raw in enumerate(Path(path).read_text().splitlines(), start=1):
         line = raw.split("#", 1)[0].replace(",", " ").strip()
         if not line:
             continue
         fields = line.split()
         where = f"{path}:{lineno}"
-        if len(fields) != 2:
-            raise ValueError(f"{where}: expected two node ids 'i j', got {raw.strip()!r}")
+        if len(fields) not in (1, 2):
+            raise ValueError(f"{where}: expected two node ids 'i j' (or one, for a node "
+                             f"without edges), got {raw.strip()!r}")
         try:
-            i, j = int(fields[0]), int(fields[1])
+            ids = [int(x) for x in fields]
         except ValueError:
             raise ValueError(f"{where}: node ids must be integers, got {raw.strip()!r}") from None
-        if i < 0 or j < 0:
-            raise ValueError(f"{where}: node ids are 0-based and non-negative, got {i} {j}")
-        if i == j:
-            raise ValueError(f"{where}: self-loop {i} {i} is not allowed")
-        pairs.append((i, j))
+        if min(ids) < 0:
+            raise ValueError(f"{where}: node ids are 0-based and non-negative, got "
+                             f"{' '.join(fields)}")
+        nodes.update(ids)
+        if len(ids) == 1:
+            continue
+        if ids[0] == ids[1]:
+            raise ValueError(f"{where}: self-loop {ids[0]} {ids[0]} is not allowed")
+        pairs.append((ids[0], ids[1]))
     if not pairs:
         raise ValueError(f"{path}: no edges found (expected lines of 'i j')")
-    ij = np.asarray(pairs, dtype=np.int64)  # [E, 2]
-    n = int(ij.max()) + 1
+    n = max(nodes) + 1
+    gaps = sorted(set(range(n)) - nodes)
+    if gaps:
+        shown = ", ".join(map(str, gaps[:5])) + (" ..." if len(gaps) > 5 else "")
+        raise ValueError(f"{path}: node ids {shown} appear on no line, yet the largest id is "
+                         f"{n - 1}; ids are 0-based and contiguous (list a node without edges "
+                         "on a line of its own)")
+    ij = np.asarray(pairs, dtype=np.int64)  # [E, 2], sender i, receiver j
     adjacency = np.zeros((n, n), dtype=np.uint8)
-    adjacency[ij[:, 0], ij[:, 1]] = 1
-    adjacency[ij[:, 1], ij[:, 0]] = 1
+    adjacency[ij[:, 1], ij[:, 0]] = 1  # row j lists the senders of j
+    if not directed:
+        adjacency[ij[:, 0], ij[:, 1]] = 1
     return adjacency
 
 

@@ -176,7 +176,7 @@ def test_model_options_from_the_command_line_and_a_config_file(data, tmp_path):
                                      'depth = 2\n')
     run = tmp_path / "run"
     result = invoke("train", data["l3"], "--config", tmp_path / "c.toml", "--depth", 3,
-                    "--epochs", 0, "--run-dir", run, *FAST)
+                    "--epochs", 1, "--run-dir", run, *FAST)
     assert result.exit_code == 0, result.output
     config = json.loads((run / "config.json").read_text())
     assert config["model"] == "gnode"

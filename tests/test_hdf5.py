@@ -116,8 +116,8 @@ def test_refuses_to_overwrite_unless_asked(tmp_path):
 def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch, error):
     real_write = hdf5._write
 
-    def write_then_fail(f, ds):
-        real_write(f, ds)  # a fully written temp file, then the interruption
+    def write_then_fail(f, ds, *check):
+        real_write(f, ds, *check)  # a fully written temp file, then the interruption
         raise error("interrupted")
 
     monkeypatch.setattr(hdf5, "_write", write_then_fail)
@@ -129,7 +129,7 @@ def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch, error):
 def test_interrupted_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
     path = write_dataset(tmp_path / "d.h5", _dataset(seed=1))
 
-    def fail(f, ds):
+    def fail(f, ds, *check):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(hdf5, "_write", fail)

@@ -105,7 +105,7 @@ def test_zero_order_hold_controls_switch_at_sample_times():
 
 def test_controlled_model_integrates_a_held_input():
     """With a net that is exactly ẋ = u, the rollout is the integral of the held controls."""
-    net = model(node_dim=1, control_dim=1, message_dim=0, hidden=2, layers=1)
+    net = model(node_dim=1, control_dim=1, message_dim=1, hidden=2, layers=1)
     with torch.no_grad():
         for p in net.parameters():
             p.zero_()

@@ -119,7 +119,7 @@ def test_validation_does_not_depend_on_its_batch_size(gene, tmp_path):
     losses = []
     for vb in (1, 1024):
         torch.manual_seed(0)
-        train(TrainConfig(dataset=gene, run_dir=tmp_path / f"v{vb}", epochs=0, plots=False,
+        train(TrainConfig(dataset=gene, run_dir=tmp_path / f"v{vb}", epochs=1, plots=False,
                           val_batch_size=vb, solver={"fixed_dt": 0.05}))
         losses.append(read_metrics(tmp_path / f"v{vb}")[0]["val_loss"])
     assert losses[0] == pytest.approx(losses[1], rel=1e-5)

@@ -12,7 +12,7 @@ import torch
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.cli.info import _rows
+from mpnode_cli.cli.info import _facts, _rows
 from mpnode_cli.cli.train import _config
 from mpnode_cli.config import (
     GenerateConfig,
@@ -123,7 +123,8 @@ def test_an_old_dataset_config_is_upgraded_on_reading(tmp_path):
         f.attrs["config"] = json.dumps(flat)
     upgraded = read_dataset(path).config
     assert GenerateConfig(**upgraded).solver == SolverOptions(rtol=1e-7, atol=1e-9)
-    assert dict(_rows(read_header(path)))["solver"].startswith("tsit5, rtol 1e-07, atol 1e-09")
+    solver = dict(_rows(_facts(read_header(path))))["solver"]
+    assert solver.startswith("tsit5, rtol 1e-07, atol 1e-09")
 
 
 def test_cli_flags_fill_the_solver_table(tmp_path):

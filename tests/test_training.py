@@ -193,7 +193,7 @@ def test_finetune_starts_from_the_checkpoint_with_its_normalization(gene, tmp_pa
     # Epoch 0 of the finetune is the parent's own validation loss.
     assert read_metrics(tmp_path / "ft")[0]["val_loss"] == pytest.approx(
         ckpt.metrics["val_loss"], rel=1e-6)
-    renorm = train(config(gene, tmp_path / "renorm", epochs=0, init_checkpoint=parent,
+    renorm = train(config(gene, tmp_path / "renorm", epochs=1, init_checkpoint=parent,
                           renormalize=True, trajectories=5))
     assert renorm.parent_sha256 == summary.parent_sha256
     assert load_checkpoint(checkpoint_path(tmp_path / "renorm", "last")).normalizer != (
@@ -228,18 +228,18 @@ def test_a_model_that_is_not_transferable_refuses_another_size(gene):
 
 
 def test_model_options_come_from_the_model_unless_given(gene, tmp_path):
-    train(config(gene, tmp_path / "mp", epochs=0))
+    train(config(gene, tmp_path / "mp", epochs=1))
     resolved = json.loads((tmp_path / "mp" / "config.json").read_text())["model_options"]
     assert (resolved["hidden"], resolved["layers"], resolved["message_dim"]) == (32, 2, 3)
-    train(config(gene, tmp_path / "gnode", epochs=0, model="gnode",
+    train(config(gene, tmp_path / "gnode", epochs=1, model="gnode",
                  model_options={"hidden": 8, "graph": "full"}))
     ckpt = load_checkpoint(checkpoint_path(tmp_path / "gnode", "last"))
     assert ckpt.model_kind == "gnode" and ckpt.model_config["hidden"] == 8
     with pytest.raises(ValueError, match="model 'gnode' has no option 'message_dim'"):
-        train(config(gene, tmp_path / "bad", epochs=0, model="gnode",
+        train(config(gene, tmp_path / "bad", epochs=1, model="gnode",
                      model_options={"message_dim": 2}))
     with pytest.raises(ValueError, match=r"model 'mpnode' option hidden: .*greater than or"):
-        train(config(gene, tmp_path / "bad", epochs=0, model_options={"hidden": 0}))
+        train(config(gene, tmp_path / "bad", epochs=1, model_options={"hidden": 0}))
     assert not (tmp_path / "bad").exists()  # refused before anything was written
 
 

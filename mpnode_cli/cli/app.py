@@ -17,7 +17,8 @@ import typer
 from typer.core import TyperCommand
 
 from mpnode_cli import __version__
-from mpnode_cli.cli.common import fail
+from mpnode_cli.cli.check import check_command
+from mpnode_cli.cli.common import fail, hide_flag_types
 from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
 from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
 from mpnode_cli.cli.generate import generate_command
@@ -33,9 +34,10 @@ app = typer.Typer(
         "and reuse it on graphs of other sizes and shapes."
     ),
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,
     pretty_exceptions_enable=False,
 )
+hide_flag_types()
 _THREADS = "mpnode.threads"  # where the root leaves `--threads` for the verb in click's context
 
 
@@ -78,6 +80,7 @@ class _Computing(TyperCommand):
 # compare only reads JSON, so it has no threads to size.
 app.command("generate", no_args_is_help=True, cls=_Computing)(generate_command)
 app.command("info")(info_command)
+app.command("check", no_args_is_help=True)(check_command)
 app.command("train", cls=_Computing)(train_command)
 app.command("finetune", no_args_is_help=True, cls=_Computing)(finetune_command)
 app.command("evaluate", no_args_is_help=True, cls=_Computing)(evaluate_command)

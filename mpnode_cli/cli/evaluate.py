@@ -5,7 +5,8 @@ on datasets of other sizes and topologies, with the training normalization and n
 compare: runs side by side from their `summary.json` (or, unfinished, their metrics).
 Every MSE is shown beside two naive predictors (hold x(0) and the train split's time mean;
 `mpnode_cli.training.evaluate.baseline_mse`).
-Exit code 2 for anything the user can fix (a missing file, incompatible sizes).
+Exit code 2 for anything the user can fix (a missing or invalid file, incompatible sizes,
+another system's data without `--allow-other-system`, an unwritable plot folder).
 """
 
 from __future__ import annotations
@@ -19,10 +20,14 @@ import typer
 from mpnode_cli.cli.common import THREADS, console, error_message, fail
 
 _SPLITS = "train, validation, test or all"
+_CHECKPOINT = typer.Argument(..., help="A checkpoint (.pt), or a run folder (its best.pt).")
+_OTHER_SYSTEM = typer.Option(
+    False, "--allow-other-system",
+    help="Accept datasets of another system than the checkpoint was trained on.")
 
 
 def evaluate_command(
-    checkpoint: Path = typer.Argument(..., help="A checkpoint (.pt)."),
+    checkpoint: Path = _CHECKPOINT,
     dataset: Path = typer.Argument(..., help="An mpnode dataset (.h5)."),
     split: str = typer.Option("test", help=f"Which trajectories: {_SPLITS}."),
     plot: bool = typer.Option(False, "--plot", help="Draw the Fig. 2 rollout and error plots."),
@@ -31,14 +36,24 @@ def evaluate_command(
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
+    allow_other_system: bool = _OTHER_SYSTEM,
     threads: str | None = THREADS,
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
+    from mpnode_cli.paths import check_writable_dir
     from mpnode_cli.report.tables import baselines_note, metrics_table
 
+    _check_batch_size(batch_size)
     ckpt = _load_checkpoint(checkpoint)
+    checkpoint = ckpt.path or checkpoint
     where = (plot_dir or _default_plot_dir(checkpoint)) if plot else None
-    row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where)
+    if where is not None:
+        try:
+            check_writable_dir(where)
+        except ValueError as exc:
+            fail(f"--plot-dir: {exc}")
+    row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
+                    allow_other_system)
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
         return
@@ -51,20 +66,22 @@ def evaluate_command(
 
 
 def zeroshot_command(
-    checkpoint: Path = typer.Argument(..., help="A checkpoint (.pt)."),
+    checkpoint: Path = _CHECKPOINT,
     datasets: list[Path] = typer.Argument(..., help="Datasets of unseen graphs (.h5)."),
     split: str = typer.Option("all", help=f"Which trajectories: {_SPLITS}."),
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
+    allow_other_system: bool = _OTHER_SYSTEM,
     threads: str | None = THREADS,
 ) -> None:
     """Run a trained node network on graphs it never saw, without training."""
     from mpnode_cli.report.tables import baselines_note, zeroshot_table
 
+    _check_batch_size(batch_size)
     ckpt = _load_checkpoint(checkpoint)
-    rows = [_evaluate(ckpt, path, split, "zeroshot", batch_size, device, None)
-            for path in datasets]
+    rows = [_evaluate(ckpt, path, split, "zeroshot", batch_size, device, None,
+                      allow_other_system) for path in datasets]
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), "trained_on": ckpt.dataset,
                                "datasets": rows}, indent=2))
@@ -105,8 +122,13 @@ def _load_checkpoint(path: Path):
         fail(error_message(exc))
 
 
+def _check_batch_size(batch_size: int) -> None:
+    if batch_size < 1:
+        fail(f"--batch-size must be at least 1, got {batch_size}")
+
+
 def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, device: str,
-              plot_dir: Path | None) -> dict[str, Any]:
+              plot_dir: Path | None, allow_other_system: bool = False) -> dict[str, Any]:
     import torch
 
     from mpnode_cli.data.dataset import TrajectoryData
@@ -119,9 +141,12 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
     try:
         data = TrajectoryData.load(dataset)
         return evaluate_checkpoint(ckpt, data, split=split, verb=verb, batch_size=batch_size,
-                                   device=device, plot_dir=plot_dir)
+                                   device=device, plot_dir=plot_dir,
+                                   allow_other_system=allow_other_system)
     except (FileNotFoundError, ValueError) as exc:
         fail(error_message(exc))
+    except OSError as exc:  # a plot that could not be written after all
+        fail(f"cannot write {exc.filename or 'a plot'}: {exc.strerror or exc}")
     except KeyboardInterrupt:
         typer.echo("Interrupted", err=True)
         raise typer.Exit(code=130) from None

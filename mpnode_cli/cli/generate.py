@@ -3,11 +3,14 @@
 The command only parses: it layers a preset, a config file and the options given (later
 wins), builds a `GenerateConfig`, calls `mpnode_cli.data.generate.generate`, and turns the
 result or the error into output and an exit code (2 for usage errors, 1 for numerical
-failure, 130 for Ctrl-C). torch and h5py are imported inside the function.
+failure, 130 for Ctrl-C, 143 for SIGTERM; either leaves nothing behind). Before a big job
+it prints the size and memory it will take and, above `CONFIRM_BYTES`, asks to go on
+(`--yes` answers for a script). torch and h5py are imported inside the function.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +22,9 @@ from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.config import generate_solver
 from mpnode_cli.threads import applied_threads
 
+# Jobs whose memory estimate passes these sizes get the estimate printed, and a question.
+SHOW_BYTES = 256 * 2**20
+CONFIRM_BYTES = 4 * 2**30
 
 def _complete_system(incomplete: str) -> list[str]:
     from mpnode_cli.systems.registry import SYSTEMS
@@ -47,13 +53,18 @@ def generate_command(
     config_file: Path | None = typer.Option(
         None, "--config", help="TOML (or JSON) file of config fields; options override it."
     ),
-    nodes: int | None = typer.Option(None, help="Number of nodes N."),
-    grid: int | None = typer.Option(None, help="Square grid side: N = grid² (gene)."),
+    nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
+    grid: str | None = typer.Option(None, metavar="N", help="Square grid side: N = grid² (gene)."),
     topology: str | None = typer.Option(None, help="complete, chain, er, ba or ws."),
-    graphs: int | None = typer.Option(None, help="Distinct graphs G; trajectories spread evenly."),
+    graphs: str | None = typer.Option(
+        None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
     graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
-    edge_list: Path | None = typer.Option(None, help="Your own graph: text file of 'i j' lines."),
-    trajectories: int | None = typer.Option(None, help="Number of trajectories K."),
+    edge_list: Path | None = typer.Option(
+        None, help="Your own graph: text file of 'i j' lines, undirected unless --directed "
+        "(docs/dataset-format.md)."),
+    directed: bool = typer.Option(
+        False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
+    trajectories: str | None = typer.Option(None, metavar="N", help="Number of trajectories K."),
     t_end: float | None = typer.Option(None, help="Last sample time (samples 0, dt, ..)."),
     dt: float | None = typer.Option(None, help="Sample spacing."),
     seed: int | None = typer.Option(None, help="Seed of initial states and split."),
@@ -68,9 +79,14 @@ def generate_command(
     out: Path | None = typer.Option(
         None, help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5)."
     ),
-    force: bool = typer.Option(False, "--force", help="Overwrite an existing output file."),
-    chunk_size: int | None = typer.Option(
-        None, help="Trajectories per solver batch (default 1024)."
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing output file (regular files only)."),
+    yes: bool = typer.Option(
+        False, "--yes", "-y", help="Go ahead with a big job without asking."),
+    json_out: bool = typer.Option(
+        False, "--json", help="Print the summary as one JSON object on stdout."),
+    chunk_size: str | None = typer.Option(
+        None, metavar="N", help="Trajectories per solver batch (default 1024)."
     ),
     coupling: float | None = typer.Option(
         None, help="lorenz: ‖H‖_F (default 0.01; the paper's high is 1.0)."
@@ -94,9 +110,15 @@ def generate_command(
         "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
         "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
-        "chunk_size": chunk_size,
+        "chunk_size": chunk_size, "directed": directed or None,
     }  # fmt: skip
     options = {key: value for key, value in options.items() if value is not None}
+    try:
+        for key in ("nodes", "grid", "graphs", "trajectories", "chunk_size"):
+            if key in options:
+                options[key] = _whole(options[key], "--" + key.replace("_", "-"))
+    except ValueError as exc:
+        _usage_error(str(exc))
     solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
     solver = {key: value for key, value in solver.items() if value is not None}
     if solver:  # the config's `solver` table, merged over a config file's
@@ -122,19 +144,24 @@ def generate_command(
         config = GenerateConfig(**fields)
     except ValueError as exc:
         _usage_error(_message(exc))
-    _run(config, force)
+    _run(config, force, yes, json_out)
 
 
-def _run(config: Any, force: bool) -> None:
-    """Generate with a progress bar, then print the summary table."""
+def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
+    """Check the job and its output, generate with a progress bar, then print the summary."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
     from mpnode_cli.data.generate import GenerateError, generate, resolve_config
+    from mpnode_cli.paths import check_output_file
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
     try:
+        config = resolve_config(config, dry_run=False)
+        _confirm_size(config, yes)
+        check_output_file(config.out, overwrite=force)
         config = resolve_config(config)
-    except ValueError as exc:
+    except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))
     columns = (
         "[progress.description]{task.description}",
@@ -144,12 +171,12 @@ def _run(config: Any, force: bool) -> None:
     )
     console = Console(stderr=True)
     # No bar when stderr is not a terminal (pipes, logs, tests): it would only add noise.
-    with Progress(
+    with interrupt_on_signals(), Progress(
         *columns, console=console, transient=True, disable=not console.is_terminal
     ) as bar:
         task = bar.add_task(f"solving {config.system}", total=config.trajectories)
 
-        def progress(done: int, total: int) -> None:
+        def progress(done: float, total: int) -> None:
             bar.update(task, completed=done, total=total)
 
         try:
@@ -161,11 +188,56 @@ def _run(config: Any, force: bool) -> None:
             bar.stop()
             typer.echo(f"Error: {exc}", err=True)
             raise typer.Exit(code=1) from None
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             bar.stop()
-            typer.echo(f"Interrupted: nothing written to {config.out}", err=True)
-            raise typer.Exit(code=130) from None
-    _print_summary(config, summary)
+            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written to {config.out}",
+                       err=True)
+            raise typer.Exit(code=exit_code(exc)) from None
+    if json_out:
+        _print_json(config, summary)
+    else:
+        _print_summary(config, summary)
+
+
+def _confirm_size(config: Any, yes: bool) -> None:
+    """Print the size of a big job; above `CONFIRM_BYTES` ask (or refuse without a terminal).
+
+    Raises:
+        ValueError: the user said no, or could not be asked and did not pass --yes.
+    """
+    import sys
+
+    from mpnode_cli.data.generate import estimate, format_bytes
+
+    size = estimate(config)
+    if size.memory_bytes < SHOW_BYTES:
+        return
+    typer.echo(f"this job: {config.trajectories} trajectories × {config.num_steps + 1} "
+               f"samples × {config.nodes} nodes; file about {format_bytes(size.file_bytes)}, "
+               f"memory about {format_bytes(size.memory_bytes)}", err=True)
+    if size.memory_bytes < CONFIRM_BYTES or yes:
+        return
+    if not sys.stdin.isatty():
+        raise ValueError(f"a job this big (about {format_bytes(size.memory_bytes)} of memory) "
+                         "needs confirmation: pass --yes to go ahead")
+    if not typer.confirm("Go ahead?", default=False, err=True):
+        raise ValueError("not confirmed; nothing done")
+
+
+def _print_json(config: Any, summary: Any) -> None:
+    import json
+
+    train, val, test = summary.split_counts
+    typer.echo(json.dumps({
+        "path": str(summary.path), "system": config.system, "nodes": config.nodes,
+        "topology": config.topology, "graphs": config.graphs,
+        "trajectories": summary.trajectories,
+        "split": {"train": train, "validation": val, "test": test},
+        "samples": config.num_steps + 1, "dt": config.dt, "t_end": config.t_end,
+        "failed": summary.failed, "rejected": summary.rejected,
+        "n_f_evals": summary.n_f_evals, "seconds": summary.seconds,
+        "solve_seconds": summary.solve_seconds,
+    }))
 
 
 def _print_summary(config: Any, summary: Any) -> None:
@@ -190,6 +262,21 @@ def _print_summary(config: Any, summary: Any) -> None:
     Console().print(table)
     if threads := applied_threads():
         typer.echo(f"threads: {threads.describe()}")
+
+
+def _whole(text: str, option: str) -> int:
+    """A count given as `1000`, `1_000` or `1e3` (a whole number however it is written)."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or not value.is_integer():
+        raise ValueError(f"{option} expects a whole number, got {text!r}")
+    return int(value)
 
 
 def _parse_params(items: list[str]) -> dict[str, float | str]:

@@ -10,29 +10,38 @@ import typer
 
 def info_command(
     path: Path = typer.Argument(..., metavar="FILE", help="An mpnode dataset (.h5)."),
+    json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
 ) -> None:
-    """Print a dataset's summary."""
+    """Print a dataset's summary (after checking the file, as `mpnode check` does)."""
+    import json
+
     from rich.console import Console
     from rich.table import Table
 
     from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
+    from mpnode_cli.data.validate import require_valid
 
     try:
+        require_valid(path)
         header = read_header(path)
     except (FileNotFoundError, DatasetFormatError) as exc:
         typer.echo(f"Error: {exc}", err=True)
         raise typer.Exit(code=2) from None
 
+    facts = _facts(header)
+    if json_out:
+        typer.echo(json.dumps({"path": str(path), **facts}))
+        return
     table = Table(title=str(path), show_header=False, title_justify="left")
     table.add_column(style="bold")
     table.add_column()
-    for name, value in _rows(header):
+    for name, value in _rows(facts):
         table.add_row(name, value)
     Console().print(table)
 
 
-def _rows(header: dict[str, Any]) -> list[tuple[str, str]]:
-    """(label, text) rows of the summary table."""
+def _facts(header: dict[str, Any]) -> dict[str, Any]:
+    """The summary as JSON-able facts (what `--json` prints and the table shows)."""
     import numpy as np
 
     from mpnode_cli.config import generate_solver, stored_solver
@@ -40,44 +49,73 @@ def _rows(header: dict[str, Any]) -> list[tuple[str, str]]:
     attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
     (k, t, n, d), states_dtype = shapes["states"]
     adjacency = header["adjacency"]  # [G, N, N]
-    train, val, test = np.bincount(header["split"], minlength=3)[:3]
-    edges = adjacency.reshape(len(adjacency), -1).sum(axis=1) / 2  # undirected edges per graph
-    failed = int(np.count_nonzero(header["solver_status"]))
-    scalars = ", ".join(f"{key}={value:g}" for key, value in header["scalar_params"].items())
-    solver = stored_solver(config, generate_solver)
-    steps = (f"fixed dt {solver.fixed_dt:g}" if solver.fixed_dt is not None
-             else f"rtol {solver.rtol:g}, atol {solver.atol:g}")
-    per_graph = ", ".join(
-        f"{name.removeprefix('params/')} {list(shape)}"
-        for name, (shape, _) in shapes.items()
-        if name.startswith("params/")
-    )
+    train, val, test = (int(c) for c in np.bincount(header["split"], minlength=3)[:3])
+    directed = not all(np.array_equal(a, a.T) for a in adjacency)
+    # An undirected edge is two messages (i → j and j → i); a directed one is one.
+    edges = adjacency.reshape(len(adjacency), -1).sum(axis=1) / (1 if directed else 2)
+    facts = {
+        "format": f"{attrs['format']} v{attrs['format_version']}",
+        "system": attrs["system"], "nodes": n, "node_dim": d,
+        "state_names": attrs["state_names"], "control_names": attrs["control_names"],
+        "trajectories": k, "split": {"train": train, "validation": val, "test": test},
+        "samples": t, "dt": attrs["dt"], "t_end": attrs["dt"] * (t - 1),
+        "graphs": len(adjacency), "topology": config.get("topology"),
+        "directed": directed, "edges_mean": float(edges.mean()),
+        "parameters": header["scalar_params"],
+        "per_graph_parameters": {name.removeprefix("params/"): list(shape)
+                                 for name, (shape, _) in shapes.items()
+                                 if name.startswith("params/")},
+        "states_dtype": states_dtype, "seed": attrs["seed"],
+        "graph_seed": config.get("graph_seed"),
+        "solver": stored_solver(config, generate_solver).model_dump(),
+        "unfinished": int(np.count_nonzero(header["solver_status"])),
+        "hidden": [name.removeprefix("hidden/") for name in shapes
+                   if name.startswith("hidden/")],
+        "created_utc": attrs["created_utc"], "mpnode_version": attrs["mpnode_version"],
+    }  # fmt: skip
+    if "n_rejected" in attrs:
+        facts["redrawn"] = {"failed": attrs.get("n_failed", 0), "rejected": attrs["n_rejected"]}
+    return facts
+
+
+def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, text) rows of the summary table."""
+    solver = facts["solver"]
+    steps = (f"fixed dt {solver['fixed_dt']:g}" if solver["fixed_dt"] is not None
+             else f"rtol {solver['rtol']:g}, atol {solver['atol']:g}")
+    split = facts["split"]
+    scalars = ", ".join(f"{key}={value:g}" for key, value in facts["parameters"].items())
+    per_graph = ", ".join(f"{name} {shape}"
+                          for name, shape in facts["per_graph_parameters"].items())
+    kind = "directed" if facts["directed"] else "undirected"
     rows = [
-        ("format", f"{attrs['format']} v{attrs['format_version']}"),
-        ("system", attrs["system"]),
-        ("nodes × state", f"{n} × {d} ({', '.join(attrs['state_names'])})"),
-        ("controls", ", ".join(attrs["control_names"]) or "none"),
-        ("trajectories", f"{k} ({train} train / {val} val / {test} test)"),
-        ("samples", f"{t} (dt {attrs['dt']:g}, t_end {attrs['dt'] * (t - 1):g})"),
-        (
-            "graphs",
-            f"{len(adjacency)} × {config.get('topology', '?')}, {edges.mean():g} edges on average",
-        ),
+        ("format", facts["format"]),
+        ("system", facts["system"]),
+        ("nodes × state", f"{facts['nodes']} × {facts['node_dim']} "
+                          f"({', '.join(facts['state_names'])})"),
+        ("controls", ", ".join(facts["control_names"]) or "none"),
+        ("trajectories", f"{facts['trajectories']} ({split['train']} train / "
+                         f"{split['validation']} val / {split['test']} test)"),
+        ("samples", f"{facts['samples']} (dt {facts['dt']:g}, t_end {facts['t_end']:g})"),
+        ("graphs", f"{facts['graphs']} × {facts['topology'] or '?'}, "
+                   f"{facts['edges_mean']:g} {kind} edges on average"),
         ("parameters", scalars or "none"),
         ("per-graph parameters", per_graph or "none"),
-        ("states dtype", states_dtype),
-        ("seeds", f"trajectories {attrs['seed']}, graphs {config.get('graph_seed', '?')}"),
-        (
-            "solver",
-            f"{solver.method}, {steps}, {failed} unfinished in the file",
-        ),
+        ("states dtype", facts["states_dtype"]),
+        ("seeds", f"trajectories {_known(facts['seed'])}, "
+                  f"graphs {_known(facts['graph_seed'])}"),
+        ("solver", f"{solver['method']}, {steps}, {facts['unfinished']} unfinished in the file"),
     ]
-    if "n_rejected" in attrs:
-        rows.append(
-            ("redrawn", f"{attrs.get('n_failed', 0)} failed, {attrs['n_rejected']} rejected")
-        )
-    hidden = [name.removeprefix("hidden/") for name in shapes if name.startswith("hidden/")]
-    if hidden:
-        rows.append(("hidden states", ", ".join(hidden)))
-    rows.append(("written", f"{attrs['created_utc']} by mpnode {attrs['mpnode_version']}"))
+    if "redrawn" in facts:
+        rows.append(("redrawn", f"{facts['redrawn']['failed']} failed, "
+                                f"{facts['redrawn']['rejected']} rejected"))
+    if facts["hidden"]:
+        rows.append(("hidden states", ", ".join(facts["hidden"])))
+    version = facts["mpnode_version"]
+    writer = f"mpnode {version}" if version else "?"
+    rows.append(("written", f"{_known(facts['created_utc'])} by {writer}"))
     return rows
+
+
+def _known(value: Any) -> str:
+    return "?" if value is None else str(value)

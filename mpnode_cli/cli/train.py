@@ -5,8 +5,11 @@ declared options hold the only defaults; a `--config` TOML file sits beneath the
 The model options (`--hidden`, `--message-dim`, ...) are built from the registry's
 declarations (`mpnode_cli.models.options`), one per option any model declares; the chosen
 model refuses the ones it does not declare. `--resume RUN_DIR` rebuilds the
-run's own config (only `--epochs`, `--device` and `--plots` may change). Exit codes: 2 for
-usage errors, 1 when training diverged, 130 for Ctrl-C (after saving `last.pt`).
+run's own config (only `--epochs`, `--device` and `--plots` may change), from any folder:
+the run knows its dataset's absolute path, and a dataset given beside `--resume` is accepted
+when its fingerprint is the run's. Exit codes: 2 for usage errors, 1 when training diverged,
+130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt` and a `summary.json` that
+says the run was interrupted).
 """
 
 from __future__ import annotations
@@ -44,6 +47,8 @@ _PATIENCE = typer.Option(
     None, help="Plateau schedule: epochs without validation gain before the lr halves (50).")
 _NOISE = typer.Option(None, help="Gaussian noise std on normalized train data (1e-4).")
 _EPOCHS = typer.Option(None, help="Epochs to train (default 4000; on --resume, the total).")
+_FINETUNE_EPOCHS = typer.Option(None, help="Epochs to train (default 4000).")
+_JSON = typer.Option(False, "--json", help="Print the summary as one JSON object on stdout.")
 _SEED = typer.Option(None, help="Seed of initialization, shuffling and noise (default 0).")
 _DEVICE = typer.Option(None, help="cpu (default) or cuda.")
 _RUN_DIR = typer.Option(None, help="Run folder (default runs/<dataset>-<model>-<time>).")
@@ -79,11 +84,12 @@ def train_command(
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
     trajectories: int | None = _TRAJECTORIES, threads: str | None = THREADS,
+    json_out: bool = _JSON,
     **model_options: Any,
 ) -> None:
     """Train a model on a dataset's train split; results go to runs/<name>/."""
     options = _given(locals(), exclude=("dataset", "resume", "config_file", "model_options",
-                                        "threads"))
+                                        "threads", "json_out"))
     chosen = _given(model_options, exclude=())  # model options given
     try:
         if resume is not None:
@@ -94,7 +100,7 @@ def train_command(
             config = _config(config_file, {**options, "dataset": dataset}, chosen)
     except ValueError as exc:
         fail(error_message(exc))
-    _run(config, resume=resume is not None)
+    _run(config, resume=resume is not None, json_out=json_out)
 
 
 def _model_option_parameters() -> list[inspect.Parameter]:
@@ -156,28 +162,39 @@ def finetune_command(
     dataset: Path = typer.Argument(..., help="The dataset to finetune on (.h5)."),
     renormalize: bool = typer.Option(
         False, "--renormalize", help="Fit the normalization on the new data."),
+    allow_other_system: bool = typer.Option(
+        False, "--allow-other-system",
+        help="Accept a dataset of another system than the checkpoint was trained on."),
     config_file: Path | None = _CONFIG, recipe: str | None = _RECIPE,
     loss: str | None = _LOSS, lr: float | None = _LR,
     min_lr: float | None = _MIN_LR, schedule: str | None = _SCHEDULE,
     batch_size: int | None = _BATCH, even_batches: bool | None = _EVEN,
     val_batch_size: int | None = _VAL_BATCH,
     clip: float | None = _CLIP, patience: int | None = _PATIENCE,
-    noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
+    noise: float | None = _NOISE, epochs: int | None = _FINETUNE_EPOCHS,
+    seed: int | None = _SEED,
     device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
     method: str | None = _METHOD, rtol: float | None = _RTOL, atol: float | None = _ATOL,
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
     trajectories: int | None = _TRAJECTORIES, threads: str | None = THREADS,
+    json_out: bool = _JSON,
 ) -> None:
-    """Train from a checkpoint's weights and architecture on another dataset (a new run)."""
-    options = _given(locals(), exclude=("checkpoint", "dataset", "config_file", "threads"))
+    """Train from a checkpoint's weights and architecture on another dataset (a new run).
+
+    CHECKPOINT may be a run folder (its checkpoints/best.pt).
+    """
+    options = _given(locals(), exclude=("checkpoint", "dataset", "config_file", "threads",
+                                        "json_out"))
+    from mpnode_cli.training.checkpoint import resolve_path
+
     try:
         config = _config(config_file, {**options, "dataset": dataset,
-                                       "init_checkpoint": checkpoint})
-    except ValueError as exc:
+                                       "init_checkpoint": resolve_path(checkpoint)})
+    except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
-    _run(config, resume=False)
+    _run(config, resume=False, json_out=json_out)
 
 
 def _given(values: dict[str, Any], exclude: tuple[str, ...]) -> dict[str, Any]:
@@ -217,36 +234,46 @@ def _resume_config(run_dir: Path, dataset: Path | None, options: dict[str, Any])
         shown = ", ".join("--" + name.replace("_", "-") for name in changed)
         raise ValueError(f"--resume continues {run_dir} as configured; only --epochs, "
                          f"--device and --plots may change (got {shown})")
-    if dataset is not None and dataset.resolve() != Path(config.dataset).resolve():
-        raise ValueError(f"{run_dir} trained on {config.dataset}, not {dataset}")
-    return type(config)(**{**config.model_dump(), **options, "run_dir": run_dir})
+    if dataset is None and not Path(config.dataset).is_file():
+        raise ValueError(f"{run_dir} trained on {config.dataset}, which is not there any more: "
+                         f"give its new path, mpnode train DATASET --resume {run_dir}")
+    # A dataset given is taken if it is the same data: training compares fingerprints.
+    where = {"dataset": dataset.resolve()} if dataset is not None else {}
+    return type(config)(**{**config.model_dump(), **options, **where, "run_dir": run_dir})
 
 
-def _run(config: Any, resume: bool) -> None:
-    """Train with a progress display, then print the summary table."""
+def _run(config: Any, resume: bool, json_out: bool = False) -> None:
+    """Train with a progress display, then print the summary table (or JSON)."""
+    import json
     from dataclasses import asdict
 
     from mpnode_cli.report.tables import train_table
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
-    from mpnode_cli.training.run import add_to_summary
+    from mpnode_cli.training.run import add_to_summary, read_summary
 
     display_console = console(stderr=True)
     try:
-        with _Display(display_console) as display:
+        with interrupt_on_signals(), _Display(display_console) as display:
             summary = train(config, resume=resume, progress=display.on_event)
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
     except TrainingDiverged as exc:
         fail(f"training diverged: {exc}", code=1)
     except TrainingInterrupted as exc:
-        typer.echo(f"Interrupted: saved {exc.run_dir}/checkpoints/last.pt (epoch {exc.epoch}); "
-                   f"continue with: mpnode train --resume {exc.run_dir}", err=True)
-        raise typer.Exit(code=130) from None
-    except KeyboardInterrupt:
-        typer.echo("Interrupted before training started: nothing to resume", err=True)
-        raise typer.Exit(code=130) from None
+        typer.echo(f"Interrupted ({signal_name(exc.cause)}): saved {exc.run_dir}/checkpoints/"
+                   f"last.pt (epoch {exc.epoch}); continue with: mpnode train --resume "
+                   f"{exc.run_dir}", err=True)
+        raise typer.Exit(code=exit_code(exc.cause)) from None
+    except KeyboardInterrupt as exc:
+        typer.echo(f"Interrupted ({signal_name(exc)}) before training started: nothing to "
+                   "resume", err=True)
+        raise typer.Exit(code=exit_code(exc)) from None
     if threads := applied_threads():  # beside wall_seconds, which it explains
         add_to_summary(summary.run_dir, {"threads": threads.count})
+    if json_out:
+        typer.echo(json.dumps(read_summary(summary.run_dir)))
+        return
     console().print(train_table(asdict(summary)))
 
 

@@ -1,5 +1,6 @@
 """Datasets: the HDF5 format (`hdf5`), presets of the paper's data (`presets`), and the
-generator that turns a system, its graphs and the solver into a file (`generate`).
+generator that turns a system, its graphs and the solver into a file (`generate`), and the
+complete check of a file that every reader runs first (`validate`).
 
 Names are re-exported lazily so that importing `mpnode_cli.data.presets` (for the CLI's
 choices) does not pull in h5py or torch. The function `generate` shares its module's name,
@@ -17,6 +18,9 @@ _EXPORTS = {
     "read_dataset": "hdf5",
     "read_header": "hdf5",
     "write_dataset": "hdf5",
+    "Report": "validate",
+    "check_dataset": "validate",
+    "require_valid": "validate",
     "GenerateError": "generate",
     "GenerateSummary": "generate",
     "resolve_config": "generate",

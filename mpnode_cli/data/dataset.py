@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from mpnode_cli.data.hdf5 import read_dataset
+from mpnode_cli.data.validate import require_valid
 
 SPLITS = {"train": 0, "validation": 1, "test": 2}
 _STD_FLOOR = 1e-8  # a constant feature is centred, not divided by zero
@@ -112,7 +113,10 @@ class TrajectoryData:
 
     @staticmethod
     def load(path: str | Path) -> TrajectoryData:
-        """Read an mpnode dataset file (format errors propagate as `DatasetFormatError`)."""
+        """Read an mpnode dataset file after checking it completely
+        (`mpnode_cli.data.validate.require_valid`: a bad file raises `DatasetFormatError`
+        with one line, before any run starts)."""
+        require_valid(path)
         ds = read_dataset(path)
         states = np.ascontiguousarray(ds.states, dtype=np.float32)
         adjacency = ds.adjacency[ds.graph_index].astype(np.float32)  # [K, N, N]

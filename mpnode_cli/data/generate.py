@@ -20,6 +20,7 @@ an optional callback.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -40,7 +41,12 @@ from mpnode_cli.systems.registry import SYSTEMS, get_system
 # rounds only run out when something is systematically wrong.
 MAX_REDRAW_ROUNDS = 50
 
-Progress = Callable[[int, int], None]  # (trajectories solved, trajectories to solve)
+# (trajectories solved, trajectories to solve); within a chunk, "solved" counts fractions.
+Progress = Callable[[float, int], None]
+
+# Bytes per float64 value a chunk's solve holds besides its output (the stages and the
+# step's temporaries, for a 7-stage method), per node state.
+_SOLVE_WORK = 16 * 8
 
 
 class GenerateError(RuntimeError):
@@ -73,15 +79,59 @@ class GenerateSummary:
     seconds: float
 
 
-def resolve_config(config: GenerateConfig) -> GenerateConfig:
+@dataclass(frozen=True)
+class Estimate:
+    """What a generate job will take, before it runs.
+
+    Attributes:
+        file_bytes: the dataset file (states, controls, graphs).
+        memory_bytes: peak memory: the float64 states of every trajectory, their cast for
+            storage, the graphs, and one chunk's solve.
+        values: numbers in `states` (K·T·N·D).
+    """
+
+    file_bytes: int
+    memory_bytes: int
+    values: int
+
+
+def estimate(config: GenerateConfig) -> Estimate:
+    """The size of the file and the memory a resolved config will take (approximate)."""
+    system = get_system(config.system, **config.params)
+    k, t, n, g = config.trajectories, config.num_steps + 1, config.nodes, config.graphs
+    d, u = len(system.state_names), len(system.control_names)
+    store = 4 if config.dtype == "float32" else 8
+    values = k * t * n * (d + u)
+    chunk = min(config.chunk_size, k)
+    # Chunks over several graphs carry one float64 copy of the adjacency per trajectory.
+    chunk_graphs = chunk if g > 1 else 1
+    memory = (values * (8 + store) + g * n * n * 9 + chunk_graphs * n * n * 8
+              + chunk * n * d * _SOLVE_WORK)
+    return Estimate(file_bytes=values * store + g * n * n, memory_bytes=memory,
+                    values=k * t * n * d)
+
+
+def physical_memory() -> int | None:
+    """This machine's memory in bytes (None where the OS does not say)."""
+    import os
+
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateConfig:
     """Fill in every system-dependent default and check the system can be built as asked.
 
-    Builds the first graph and draws one initial state as a dry run, so that a topology
-    that cannot exist at this size, or an option that does not fit it, fails here with one
-    clear message rather than after minutes of solving.
+    A job whose memory estimate exceeds this machine's memory is refused before anything
+    is built. With `dry_run`, the first graph is built and one initial state drawn, so that
+    a topology that cannot exist at this size, or an option that does not fit it, fails
+    here with one clear message rather than after minutes of solving.
 
     Raises:
-        ValueError: unknown system, parameter, topology or size; an unreadable edge list.
+        ValueError: unknown system, parameter, topology or size; an unreadable edge list;
+            a job too large for this machine.
     """
     if config.system not in SYSTEMS:
         raise ValueError(f"unknown system '{config.system}' (choose from: {', '.join(SYSTEMS)})")
@@ -92,7 +142,7 @@ def resolve_config(config: GenerateConfig) -> GenerateConfig:
             fields[key] = value
 
     if config.edge_list is not None:
-        n = _read_edge_list(config.edge_list).shape[0]
+        n = _read_edge_list(config.edge_list, config.directed).shape[0]
         asked = config.nodes or (config.grid**2 if config.grid else None)
         if asked not in (None, n):
             raise ValueError(f"{asked} nodes asked for, but the edge list has {n}")
@@ -109,6 +159,14 @@ def resolve_config(config: GenerateConfig) -> GenerateConfig:
             f"{config.system}-n{fields['nodes']}-{fields['topology']}-s{config.seed}.h5",
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
+    need, have = estimate(resolved).memory_bytes, physical_memory()
+    if have is not None and need > have:
+        raise ValueError(
+            f"this dataset needs about {format_bytes(need)} of memory, more than this "
+            f"machine's {format_bytes(have)}: lower --trajectories, --t-end or --nodes, or "
+            "raise --dt")
+    if not dry_run:
+        return resolved
 
     adjacency = _graph(system, resolved, 0)
     system.sample_initial(adjacency, 1, np.random.default_rng(0))
@@ -123,7 +181,8 @@ def generate(
     Args:
         config: a generate config (resolved here if it is not already).
         overwrite: replace an existing file at the output path.
-        progress: called as `progress(done, total)` after each solved chunk.
+        progress: called as `progress(done, total)` after each solved chunk, and within a
+            chunk as its solve moves (`done` then counts the chunk's fraction solved).
 
     Returns:
         A `GenerateSummary`.
@@ -131,6 +190,10 @@ def generate(
     Raises:
         ValueError: a config that does not resolve (see `resolve_config`).
         FileExistsError: the output exists and `overwrite` is False (checked before solving).
+        ValueError: an output path that is not a regular file or cannot be written (checked
+            before solving, `mpnode_cli.paths.check_output_file`).
+        KeyboardInterrupt: SIGINT (or SIGTERM, under `interrupt_on_signals`); nothing is
+            written.
         GenerateError: trajectories that keep failing after `MAX_REDRAW_ROUNDS` redraws.
     """
     import torch
@@ -138,10 +201,11 @@ def generate(
     from mpnode_cli.data.hdf5 import Dataset, write_dataset
 
     start = time.perf_counter()
+    from mpnode_cli.paths import check_output_file
+
     config = resolve_config(config)
     out = Path(config.out)
-    if out.exists() and not overwrite:
-        raise FileExistsError(f"{out} already exists (use --force to overwrite)")
+    check_output_file(out, overwrite=overwrite)
     system = get_system(config.system, **config.params)
     k, g = config.trajectories, config.graphs
 
@@ -181,9 +245,10 @@ def generate(
             which = slice(gi, gi + 1) if gi is not None else graph_index[chunk]
             chunk_params = {name: value[which] for name, value in params.items()}
             chunk_inputs = {name: value[chunk] for name, value in inputs.items()}
-            sim = _solve_chunk(
-                system, config, ts, adjacency[which], chunk_params, y0[chunk], chunk_inputs
-            )
+            within = None if progress is None else functools.partial(
+                _within_chunk, progress, done, len(chunk), total)
+            sim = _solve_chunk(system, config, ts, adjacency[which], chunk_params, y0[chunk],
+                               chunk_inputs, within)
             solve_seconds += time.perf_counter() - tic
             states[chunk] = sim.states.numpy()
             status[chunk] = sim.status.numpy()
@@ -266,14 +331,14 @@ def generate(
 def _graph(system: System, config: GenerateConfig, g: int) -> np.ndarray:
     """uint8 `[N, N]`: graph g, built with seed `graph_seed + g` (or the edge list)."""
     if config.edge_list is not None:
-        return _read_edge_list(config.edge_list)
+        return _read_edge_list(config.edge_list, config.directed)
     return system.graph(config.topology, config.nodes, config.graph_seed + g)
 
 
-def _read_edge_list(path: Path) -> np.ndarray:
+def _read_edge_list(path: Path, directed: bool = False) -> np.ndarray:
     """`graphs.read_edge_list` with a missing or unreadable file as a ValueError."""
     try:
-        return read_edge_list(path)
+        return read_edge_list(path, directed=directed)
     except OSError as exc:
         raise ValueError(f"cannot read edge list {path}: {exc.strerror or exc}") from None
 
@@ -293,12 +358,18 @@ def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):
         yield chunk, (int(graphs[0]) if len(graphs) == 1 else None)
 
 
-def _solve_chunk(system, config, ts, adjacency, params, y0, inputs):
+def _within_chunk(progress: Progress, done: int, size: int, total: int, frac: float) -> None:
+    """Progress inside a chunk: `frac` of its `size` trajectories solved after `done`."""
+    progress(done + frac * size, total)
+
+
+def _solve_chunk(system, config, ts, adjacency, params, y0, inputs, progress=None):
     """Simulate one chunk of trajectories in float64 (`System.simulate`).
 
     Args:
         adjacency: uint8 `[1, N, N]` shared or `[B, N, N]`; params: `[1, ...]` or `[B, ...]`;
         y0: `[B, N, D]`; ts: torch `[T]`; inputs: name → `[B, ...]`.
+        progress: called with the fraction of the chunk's horizon solved, or None.
 
     Returns:
         A `mpnode_cli.systems.base.Simulation`.
@@ -315,7 +386,17 @@ def _solve_chunk(system, config, ts, adjacency, params, y0, inputs):
         ts,
         {name: tensor(v) for name, v in inputs.items()},
         solver=config.solver,
+        progress=progress,
     )
+
+
+def format_bytes(n: float) -> str:
+    """`1.5 GiB`, `320 MiB`, `12 KiB`: a size for a person."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n:.3g} PiB"  # unreachable: the loop returns at TiB
 
 
 def _split(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:

@@ -30,24 +30,15 @@ FORMAT = "mpnode-dataset"
 FORMAT_VERSION = 1
 SPLIT_NAMES: tuple[str, ...] = ("train", "validation", "test")
 
-# Root attributes the format defines; any others a writer adds land in `Dataset.extra_attrs`.
-_ROOT_ATTRS = frozenset(
-    {
-        "format",
-        "format_version",
-        "system",
-        "num_nodes",
-        "node_dim",
-        "control_dim",
-        "dt",
-        "state_names",
-        "control_names",
-        "seed",
-        "config",
-        "mpnode_version",
-        "created_utc",
-    }
-)
+# Root attributes every file must have, and those a file may leave out (with the value a
+# reader then assumes): provenance that `mpnode generate` records, and the controls of a
+# system that has none. Any others a writer adds land in `Dataset.extra_attrs`.
+REQUIRED_ATTRS: tuple[str, ...] = (
+    "format", "format_version", "system", "num_nodes", "node_dim", "dt", "state_names")
+OPTIONAL_ATTRS: dict[str, Any] = {
+    "control_dim": 0, "control_names": "[]", "seed": None, "config": "{}",
+    "mpnode_version": None, "created_utc": None}
+_ROOT_ATTRS = frozenset(REQUIRED_ATTRS) | frozenset(OPTIONAL_ATTRS)
 
 
 class DatasetFormatError(ValueError):
@@ -63,8 +54,9 @@ class Dataset:
         dt: sample spacing.
         state_names: `[D]` names of a node's state components.
         control_names: `[U]` names of a node's control components (empty if none).
-        seed: seed of the initial states and split.
-        config: the resolved generate config (JSON-compatible dict).
+        seed: seed of the initial states and split (None when the file does not say).
+        config: the resolved generate config (JSON-compatible dict; empty when the file
+            holds none, e.g. data that mpnode did not generate).
         time: float64 `[T]`.
         states: `[K, T, N, D]` (float32 or float64).
         adjacency: uint8 `[G, N, N]`, `A[g, i, j] = 1` iff node j sends to node i.
@@ -84,7 +76,7 @@ class Dataset:
     dt: float
     state_names: tuple[str, ...]
     control_names: tuple[str, ...]
-    seed: int
+    seed: int | None
     config: dict[str, Any]
     time: np.ndarray
     states: np.ndarray
@@ -140,30 +132,41 @@ def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> 
 
     Raises:
         FileExistsError: `path` exists and `overwrite` is False.
-        ValueError: inconsistent shapes.
+        ValueError: inconsistent shapes, or a target that is not a regular file or cannot
+            be written (`mpnode_cli.paths.check_output_file`).
+        KeyboardInterrupt: SIGINT or SIGTERM during the write; nothing is left behind.
     """
+    from mpnode_cli.paths import check_output_file
+    from mpnode_cli.signals import deferred_signals
+
     path = Path(path)
     _check_shapes(ds)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} already exists (use --force to overwrite)")
+    check_output_file(path, overwrite=overwrite)
     path.parent.mkdir(parents=True, exist_ok=True)
     # A unique name beside the target (same filesystem, so the rename is atomic), created
     # by h5py itself so that the file gets the user's usual permissions.
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
-        with h5py.File(tmp, "x") as f:
-            _write(f, ds)
-        os.replace(tmp, path)
-    except BaseException:  # KeyboardInterrupt too: never leave a half-written temp behind
+        # h5py would swallow an interrupt raised inside its calls and finish the file; the
+        # signal is taken between fields instead, and the temporary file removed.
+        with deferred_signals() as pending:
+            with h5py.File(tmp, "x") as f:
+                _write(f, ds, pending.check)
+            pending.check()
+            os.replace(tmp, path)
+    except BaseException:  # an interrupt too: never leave a half-written temp behind
         tmp.unlink(missing_ok=True)
         raise
     return path
 
 
-def _write(f: h5py.File, ds: Dataset) -> None:
+def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None) -> None:
+    """Fill `f` with `ds`; `check()` between fields raises if the write should stop."""
     k, t, n, d = ds.states.shape
+    provenance = {} if ds.seed is None else {"seed": int(ds.seed)}
     f.attrs.update(
         {
+            **provenance,
             "format": FORMAT,
             "format_version": FORMAT_VERSION,
             "system": ds.system,
@@ -173,7 +176,6 @@ def _write(f: h5py.File, ds: Dataset) -> None:
             "dt": float(ds.dt),
             "state_names": json.dumps(list(ds.state_names)),
             "control_names": json.dumps(list(ds.control_names)),
-            "seed": int(ds.seed),
             "config": json.dumps(ds.config, sort_keys=True),
             "mpnode_version": ds.mpnode_version or __version__,
             "created_utc": ds.created_utc or datetime.now(UTC).isoformat(timespec="seconds"),
@@ -186,6 +188,7 @@ def _write(f: h5py.File, ds: Dataset) -> None:
     f.create_dataset("time", data=np.asarray(ds.time, dtype=np.float64))
     # One trajectory per chunk: training reads whole trajectories in random order.
     f.create_dataset("states", data=ds.states, chunks=(1, t, n, d))
+    check()
     if ds.controls is not None and len(ds.control_names) > 0:
         f.create_dataset("controls", data=ds.controls, chunks=(1, *ds.controls.shape[1:]))
     f.create_dataset("graph/adjacency", data=np.asarray(ds.adjacency, dtype=np.uint8))
@@ -197,6 +200,7 @@ def _write(f: h5py.File, ds: Dataset) -> None:
         params.attrs[name] = float(value)
     for name, value in ds.hidden.items():
         f.create_dataset(f"hidden/{name}", data=value, chunks=(1, *value.shape[1:]))
+        check()
     f.create_dataset("split", data=np.asarray(ds.split, dtype=np.uint8))
     status = np.zeros(k) if ds.solver_status is None else ds.solver_status
     n_f_evals = np.zeros(k) if ds.solver_n_f_evals is None else ds.solver_n_f_evals
@@ -251,10 +255,10 @@ def read_dataset(path: str | Path) -> Dataset:
             adjacency=f["graph/adjacency"][()],
             graph_index=f["graph_index"][()],
             split=f["split"][()],
-            params={name: value[()] for name, value in f["params"].items()},
-            scalar_params={name: float(v) for name, v in f["params"].attrs.items()},
-            solver_status=f["solver/status"][()],
-            solver_n_f_evals=f["solver/n_f_evals"][()],
+            params={name: value[()] for name, value in _group(f, "params").items()},
+            scalar_params=_scalar_params(f),
+            solver_status=f["solver/status"][()] if "solver/status" in f else None,
+            solver_n_f_evals=f["solver/n_f_evals"][()] if "solver/n_f_evals" in f else None,
             controls=f["controls"][()] if has_controls else None,
             hidden={name: v[()] for name, v in f["hidden"].items()} if "hidden" in f else {},
             extra_attrs={key: v for key, v in attrs.items() if key not in _ROOT_ATTRS},
@@ -287,14 +291,25 @@ def read_header(path: str | Path) -> dict[str, Any]:
                 else None
             )
         )
+        k = f["states"].shape[0]
         return {
             "attrs": attrs,
             "shapes": shapes,
             "split": f["split"][()],
-            "solver_status": f["solver/status"][()],
+            "solver_status": (f["solver/status"][()] if "solver/status" in f
+                              else np.zeros(k, dtype=np.int8)),
             "adjacency": f["graph/adjacency"][()],
-            "scalar_params": {name: float(v) for name, v in f["params"].attrs.items()},
+            "scalar_params": _scalar_params(f),
         }
+
+
+def _group(f: h5py.File, name: str) -> h5py.Group | dict:
+    """An optional group (`params`), or an empty mapping when the file has none."""
+    return f[name] if name in f else {}
+
+
+def _scalar_params(f: h5py.File) -> dict[str, float]:
+    return {name: float(v) for name, v in f["params"].attrs.items()} if "params" in f else {}
 
 
 def _config(text: str) -> dict[str, Any]:
@@ -330,16 +345,16 @@ def _root_attrs(f: h5py.File) -> dict[str, Any]:
             f"{f.filename} is mpnode-dataset version {version}, newer than this mpnode "
             f"reads (up to {FORMAT_VERSION}): upgrade mpnode"
         )
-    missing = sorted(_ROOT_ATTRS - set(attrs))
+    missing = [name for name in REQUIRED_ATTRS if name not in attrs]
     if missing:
         raise DatasetFormatError(f"{f.filename} lacks root attributes: {', '.join(missing)}")
-    return attrs
+    return {**OPTIONAL_ATTRS, **attrs}
 
 
 def _py(value: Any) -> Any:
     """numpy scalars and bytes from h5py attributes → plain Python values."""
     if isinstance(value, bytes):
-        return value.decode()
+        return value.decode(errors="replace")
     if isinstance(value, np.generic):
         return value.item()
     return value

@@ -23,6 +23,11 @@ Aggregate = Literal["mean", "sum", "pna"]
 Backend = Literal["auto", "dense", "scatter"]
 GraphMode = Literal["sys", "full"]
 
+# Upper bounds on sizes: far beyond what the paper's systems need (widths of 32 to 128),
+# and small enough that a typo (`--hidden 10000000`) is refused rather than exhausting memory.
+WIDTH_MAX = 8192
+DEPTH_MAX = 64
+
 _GRAPH = "Graph messages pass over: sys is the dataset's, full is complete with self-loops."
 _AGGREGATE = "Neighbour aggregation: mean is the paper's; sum and pna sense the in-degree."
 
@@ -31,7 +36,7 @@ class ModelOptions(BaseModel):
     """Base of every model's options: unknown names are refused, and a built model's
     options cannot change under it (they are its `config`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     @classmethod
     def parse(cls, given: Mapping[str, Any], model: str) -> Self:
@@ -58,9 +63,10 @@ class MPNODEOptions(ModelOptions):
     """MP-NODE (Gupta, Vemprala & Kapoor 2022, §3.2); defaults are the authors' shipped
     widths (MPNODE.jl, exps/models.jl:92-95)."""
 
-    message_dim: int = Field(3, ge=0, description="Message states per node (M).")
-    hidden: int = Field(32, ge=1, description="Width of the hidden layers.")
-    layers: int = Field(2, ge=1, description="Hidden layers of the MLP.")
+    message_dim: int = Field(3, ge=1, le=WIDTH_MAX, description=(
+        "Message states per node (M); --no-messages turns message passing off."))
+    hidden: int = Field(32, ge=1, le=WIDTH_MAX, description="Width of the hidden layers.")
+    layers: int = Field(2, ge=1, le=DEPTH_MAX, description="Hidden layers of the MLP.")
     activation: Activation = Field("tanh", description="Nonlinearity of the hidden layers.")
     graph: GraphMode = Field("sys", description=_GRAPH)
     messages: bool = Field(True, description=(
@@ -74,12 +80,14 @@ class MPNODEOptions(ModelOptions):
 class L2SOptions(ModelOptions):
     """Learning to Simulate (Sanchez-Gonzalez et al. 2020) without edge features."""
 
-    latent: int = Field(128, ge=1, description="Node and edge latent size.")
-    hidden: int = Field(128, ge=1, description="Width of the hidden layers.")
-    layers: int = Field(2, ge=1, description="Hidden layers of the MLP.")
-    steps: int = Field(10, ge=1, description="Message-passing steps (unshared weights).")
+    latent: int = Field(128, ge=1, le=WIDTH_MAX, description="Node and edge latent size.")
+    hidden: int = Field(128, ge=1, le=WIDTH_MAX, description="Width of the hidden layers.")
+    layers: int = Field(2, ge=1, le=DEPTH_MAX, description="Hidden layers of the MLP.")
+    steps: int = Field(
+        10, ge=1, le=DEPTH_MAX, description="Message-passing steps (unshared weights).")
     history: int = Field(
-        1, ge=1, description="Input states C (C > 1 starts rollouts from C data states).")
+        1, ge=1, le=DEPTH_MAX,
+        description="Input states C (C > 1 starts rollouts from C data states).")
     graph: GraphMode = Field("sys", description=_GRAPH)
     step_noise: float = Field(
         3e-3, ge=0,
@@ -89,9 +97,10 @@ class L2SOptions(ModelOptions):
 class GNODEOptions(ModelOptions):
     """The authors' GNN-ODE baseline (`gnnsc_de0`); defaults as they shipped it."""
 
-    hidden: int = Field(32, ge=1, description="Width of the hidden layers.")
+    hidden: int = Field(32, ge=1, le=WIDTH_MAX, description="Width of the hidden layers.")
     depth: int = Field(
-        1, ge=1, description="Message-passing steps per evaluation (shared weights).")
+        1, ge=1, le=DEPTH_MAX,
+        description="Message-passing steps per evaluation (shared weights).")
     graph: GraphMode = Field("sys", description=_GRAPH)
     aggregate: Aggregate = Field("sum", description=_AGGREGATE)
 
@@ -99,6 +108,6 @@ class GNODEOptions(ModelOptions):
 class NODEOptions(ModelOptions):
     """The authors' monolithic neural ODE (`ndeln4`)."""
 
-    hidden: int = Field(32, ge=1, description="Width of the hidden layers.")
-    layers: int = Field(2, ge=1, description="Hidden layers of the MLP.")
+    hidden: int = Field(32, ge=1, le=WIDTH_MAX, description="Width of the hidden layers.")
+    layers: int = Field(2, ge=1, le=DEPTH_MAX, description="Hidden layers of the MLP.")
     activation: Activation = Field("tanh", description="Nonlinearity of the hidden layers.")

@@ -38,6 +38,9 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
     """
     time, true, pred = _np(time), _np(true), _np(pred)
     nodes, dims = min(true.shape[1], MAX_NODES), true.shape[2]
+    shown = (f"all {nodes} nodes" if nodes == true.shape[1]
+             else f"nodes 0–{nodes - 1} of {true.shape[1]}")
+    title = f"{title} · {shown}" if title else shown
     has_msg = messages is not None and _np(messages).shape[-1] > 0
     rows = dims + int(has_msg)
     fig, axes = plt.subplots(rows, nodes, figsize=(2.6 * nodes + 0.8, 1.8 * rows + 0.6),

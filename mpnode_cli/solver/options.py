@@ -35,7 +35,7 @@ class SolverOptions(BaseModel):
         controller: adaptive step-size control, "pi" or "i" (`controller.PIController`).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     method: Method = Field("tsit5", description=_METHOD_HELP)
     rtol: float = Field(1e-6, gt=0, lt=1, description="Solver relative tolerance.")

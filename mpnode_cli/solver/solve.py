@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
@@ -110,6 +111,7 @@ def solve(
     tstops: torch.Tensor | Sequence[float] | None = None,
     compile: bool = False,
     controller: str = "pi",
+    progress: Callable[[float], None] | None = None,
 ) -> Solution:
     """Integrate `dy/dt = f(t, y)` for a batch of initial states with a Runge–Kutta method.
 
@@ -139,6 +141,9 @@ def solve(
         controller: adaptive step-size control, "pi" (proportional-integral, the default)
             or "i" (integral; fewer steps at loose tolerances on smooth solutions): see
             `controller.PIController`.
+        progress: if given, called now and then (at most every `PROGRESS_SECONDS`) with
+            the fraction of the time span covered so far, the mean over samples, so that a
+            long solve can show that it moves. Each call costs one host sync.
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
@@ -175,16 +180,34 @@ def solve(
 
     stops = _stop_times(ts, tstops)
     tab = _Tableau(tableau, y.dtype, device)
+    report = _Reporter(progress, ts)
     if fixed_dt is not None:
-        ys, status, stats = _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps)
+        ys, status, stats = _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps, report)
     else:
         ys, status, stats = _solve_adaptive(fun, tab, tableau.controller_order, y, ts, stops,
                                             rtol, atol, dt0, max_steps, compile,
-                                            controller)
+                                            controller, report)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
 
 
 _STAT_NAMES = ("n_steps", "n_accepted", "n_rejected", "n_f_evals")
+PROGRESS_SECONDS = 0.2  # shortest interval between two progress reports
+
+
+class _Reporter:
+    """Calls `progress(fraction)` at most every `PROGRESS_SECONDS` (a no-op without one)."""
+
+    def __init__(self, progress: Callable[[float], None] | None, ts: torch.Tensor):
+        self.progress, self.t0 = progress, ts[0]
+        self.span = ts[-1] - ts[0]
+        self.next = time.monotonic() + PROGRESS_SECONDS
+
+    def __call__(self, t: torch.Tensor) -> None:
+        """`t`: `[B]` each sample's time, or a scalar shared by all."""
+        if self.progress is None or time.monotonic() < self.next:
+            return
+        self.progress(float(((t - self.t0) / self.span).clamp(0.0, 1.0).mean()))
+        self.next = time.monotonic() + PROGRESS_SECONDS
 
 
 def _stop_times(ts: torch.Tensor, tstops) -> torch.Tensor:
@@ -342,7 +365,7 @@ def _initial_step(fun, t0, y, k1, rtol, atol, span, p):
 
 
 def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compile=False,
-                    controller="pi"):
+                    controller="pi", report=None):
     """The adaptive loop; p is the error estimate's order + 1 (the controller's exponent)."""
     batch, feat = y.shape
     dev, f64 = y.device, torch.float64
@@ -416,6 +439,8 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
             state = (*state[:3], k1_new, *state[4:])
         if not any_running:
             break
+        if report is not None:
+            report(state[0])
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
      out_idx) = state
     n_f += (tab.stages - 1) * n_steps
@@ -557,7 +582,7 @@ def _fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[
     return grid
 
 
-def _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps):
+def _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps, report=None):
     batch = y.shape[0]
     dev = y.device
     n_out = ts.numel()
@@ -601,6 +626,8 @@ def _solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps):
             # Samples that already failed report NaN from here on, like the adaptive solver.
             outs[j] = torch.where(running[:, None], y, nan_row)
             j += 1
+        if report is not None:
+            report(t)
     outs[j:] = [nan_row] * (n_out - j)
     ys = torch.stack(outs, dim=1)  # (B, T, F)
     stats = {"n_steps": n_steps, "n_accepted": n_steps.clone(),

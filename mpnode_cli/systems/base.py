@@ -213,6 +213,7 @@ class System(ABC):
         inputs: dict[str, torch.Tensor],
         *,
         solver: SolverOptions,
+        progress: Callable[[float], None] | None = None,
     ) -> Simulation:
         """Trajectories from `y0` sampled at `ts`; by default one float64 solve of `rhs`.
 
@@ -222,13 +223,15 @@ class System(ABC):
             ts: `[T]` float64 output times.
             inputs: `sample`'s per-trajectory inputs, each `[B, ...]` (none by default).
             solver: how to integrate (the generate config's `solver`).
+            progress: called now and then with the fraction of the horizon simulated.
 
         Returns:
             A `Simulation`.
         """
         from mpnode_cli.solver import solve
 
-        sol = solve(self.rhs(adjacency, params), y0, ts, **solver.solve_kwargs())
+        sol = solve(self.rhs(adjacency, params), y0, ts, **solver.solve_kwargs(),
+                    progress=progress)
         return Simulation(states=sol.ys, status=sol.status, n_f_evals=sol.stats["n_f_evals"])
 
     def reject(self, states: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ goal, or a rotor is saturated at 5 % or more of the control updates.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
@@ -124,8 +125,9 @@ class Quadrotor(System):
         inputs: dict[str, torch.Tensor],
         *,
         solver: SolverOptions,
+        progress: Callable[[float], None] | None = None,
     ) -> Simulation:
         """Fly B planned flights closed-loop; see `quadrotor_flight.fly`."""
         from mpnode_cli.systems.quadrotor_flight import fly
 
-        return fly(self.params, y0, ts, inputs, solver=solver)
+        return fly(self.params, y0, ts, inputs, solver=solver, progress=progress)

@@ -9,6 +9,7 @@ dataset at the output times and checks every control update (`clearances`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 
@@ -151,7 +152,8 @@ def clearances(r_quads: torch.Tensor, r_load: torch.Tensor) -> dict[str, torch.T
 
 
 def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
-        inputs: dict[str, torch.Tensor], *, solver: SolverOptions) -> Simulation:
+        inputs: dict[str, torch.Tensor], *, solver: SolverOptions,
+        progress: Callable[[float], None] | None = None) -> Simulation:
     """Fly B flights from their hover `y0 [B, N, 13]` and sample them at `ts [T]`.
 
     Args:
@@ -161,6 +163,7 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
             at most `CONTROL_DT`.
         inputs: `Quadrotor.sample`'s draws.
         solver: how each control hold is integrated (the generate config's `solver`).
+        progress: called at each sample time with the fraction of the horizon flown.
 
     Raises:
         ValueError: a horizon shorter than `MIN_HORIZON`.
@@ -217,6 +220,8 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
     for k in range(n_out):
         quads, load_now, tension_integral = split_state(y, n)
         states[:, k], load[:, k] = quads, load_now
+        if progress is not None:
+            progress(k / max(n_out - 1, 1))
         if k == n_out - 1:
             break
         t0, t1 = float(ts[k]), float(ts[k + 1])

@@ -54,6 +54,7 @@ import torch
 
 from mpnode_cli import __version__
 from mpnode_cli.config import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.signals import deferred_signals
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
@@ -123,29 +124,50 @@ def save_checkpoint(path: str | Path, ckpt: Checkpoint) -> Path:
     }
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    except BaseException:  # KeyboardInterrupt too: never leave a half-written temp behind
+        with deferred_signals():  # an interrupt waits for the save, then propagates
+            torch.save(payload, tmp)
+            os.replace(tmp, path)
+    except BaseException:  # an interrupt too: never leave a half-written temp behind
         tmp.unlink(missing_ok=True)
         raise
     return path
 
 
-def load_checkpoint(path: str | Path) -> Checkpoint:
-    """Read a checkpoint (tensors on the CPU).
+def resolve_path(path: str | Path) -> Path:
+    """The checkpoint file a user means: the file itself, or a run folder's (or its
+    `checkpoints/` folder's) `best.pt`.
 
     Raises:
-        FileNotFoundError: no such file.
-        CheckpointFormatError: not an mpnode checkpoint, or a newer format version.
+        FileNotFoundError: nothing there, or a folder without `checkpoints/best.pt`.
     """
     path = Path(path)
-    if not path.is_file():
+    if path.is_dir():
+        for candidate in (path / "checkpoints" / "best.pt", path / "best.pt"):
+            if candidate.is_file():
+                return candidate
+        raise FileNotFoundError(f"{path} is a folder without a checkpoint: give a .pt file, "
+                                "e.g. runs/<name>/checkpoints/best.pt")
+    if not path.exists():
         raise FileNotFoundError(f"no checkpoint at {path}")
+    return path
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint (tensors on the CPU); a run folder means its `checkpoints/best.pt`.
+
+    Raises:
+        FileNotFoundError: no such file (or a folder without a checkpoint).
+        CheckpointFormatError: not an mpnode checkpoint, or a newer format version.
+    """
+    path = resolve_path(path)
+    if not path.is_file():
+        raise CheckpointFormatError(f"{path} is not a regular file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # pickle, zip and weights_only errors all mean "not ours"
+    except Exception:  # pickle, zip and weights_only errors all mean "not ours"
         raise CheckpointFormatError(
-            f"{path} is not an mpnode checkpoint ({type(exc).__name__})") from None
+            f"{path} is not an mpnode checkpoint (torch cannot read it as a saved "
+            "dictionary of tensors; is it a dataset or another file?)") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointFormatError(f"{path} is not an mpnode checkpoint (no format '{FORMAT}')")
     version = payload.get("format_version")
@@ -172,7 +194,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
             mpnode_version=payload.get("mpnode_version", "?"), path=path,
         )  # fmt: skip
     except KeyError as exc:
-        raise CheckpointFormatError(f"{path} lacks the checkpoint field {exc}") from None
+        raise CheckpointFormatError(f"{path} lacks the checkpoint field {exc.args[0]!r}") from None
 
 
 def _upgrade_v1(payload: dict[str, Any]) -> None:

@@ -227,14 +227,21 @@ def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData, str]:
 
 
 def check_compatible(model_kind: str, model_config: dict[str, Any], trained_nodes: int,
-                     data: TrajectoryData, verb: str) -> None:
+                     data: TrajectoryData, verb: str, trained_system: str | None = None, *,
+                     allow_other_system: bool = False) -> None:
     """Raise a one-line `ValueError` when a trained model cannot run on `data`.
+
+    A model learned one system's node dynamics in that system's normalization; on another
+    system's data (of the same state size) it runs, but its numbers mean nothing, so that
+    is refused unless asked for.
 
     Args:
         model_kind, model_config: the checkpoint's model.
         trained_nodes: N of the dataset the model was trained on.
         data: the dataset to run on.
         verb: what the user asked for ("finetune", "zeroshot", ...), for the message.
+        trained_system: the `system` of the training dataset (None: not checked).
+        allow_other_system: accept data of another system.
     """
     name = data.path.name
     for field, have in (("node_dim", data.node_dim), ("control_dim", data.control_dim)):
@@ -244,6 +251,10 @@ def check_compatible(model_kind: str, model_config: dict[str, Any], trained_node
             raise ValueError(
                 f"{name} has {field} {have} but the checkpoint expects {want}: {verb} needs "
                 f"the same per-node {what} size")
+    if trained_system is not None and data.system != trained_system and not allow_other_system:
+        raise ValueError(
+            f"{name} holds system '{data.system}' but the checkpoint was trained on "
+            f"'{trained_system}': {verb} on another system needs --allow-other-system")
     transferable = model_kind not in OPTIONS or model_class(model_kind).transferable
     if not transferable and data.num_nodes != trained_nodes:
         raise ValueError(
@@ -254,7 +265,8 @@ def check_compatible(model_kind: str, model_config: dict[str, Any], trained_node
 def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                         verb: str = "evaluate", batch_size: int = 128,
                         device: str | torch.device = "cpu",
-                        plot_dir: Path | None = None) -> dict[str, Any]:
+                        plot_dir: Path | None = None,
+                        allow_other_system: bool = False) -> dict[str, Any]:
     """A checkpoint's errors on one split of a dataset (evaluate, zeroshot).
 
     The model rolls out with the checkpoint's training normalization and solver options.
@@ -262,8 +274,10 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     Args:
         ckpt: a `Checkpoint`. data: the dataset. split: "train", "validation", "test", "all".
         verb: the command asking, for the compatibility message.
-        plot_dir: if given, draw the first trajectory (Fig. 2 style) and the error vs time
-            there as `<dataset>-<split>-rollout.png` and `-error.png`.
+        plot_dir: if given, draw the split's first trajectory (Fig. 2 style; its titles say
+            which trajectory and nodes) and the error vs time there as
+            `<dataset>-<split>-rollout.png` and `-error.png`.
+        allow_other_system: accept a dataset of another system than the checkpoint's.
 
     Returns:
         JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`),
@@ -273,7 +287,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     Raises:
         ValueError: incompatible per-node sizes, or an empty split.
     """
-    check_compatible(ckpt.model_kind, ckpt.model_config, ckpt.dataset["num_nodes"], data, verb)
+    check_compatible(ckpt.model_kind, ckpt.model_config, ckpt.dataset["num_nodes"], data, verb,
+                     ckpt.dataset.get("system"), allow_other_system=allow_other_system)
     subset = data.subset(split)
     if len(subset) == 0:
         raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
@@ -291,10 +306,12 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         stem = f"{data.path.stem}-{split}"
         pred = predict(model, subset, normalizer, torch.arange(1), **options)
         messages = None if pred.messages is None else pred.messages[0]
+        index = _file_index(data, split, 0)
         plots = [
             str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
                              Path(plot_dir) / f"{stem}-rollout.png",
-                             title=f"{data.path.name} ({split}), trajectory 0")),
+                             title=f"{data.path.name}: trajectory {index} (the first of the "
+                                   f"{split} split)")),
             str(plot_error_vs_time(data.time, result.mse_vs_time,
                                    Path(plot_dir) / f"{stem}-error.png",
                                    title=f"{data.path.name} ({split}): error vs time")),
@@ -303,6 +320,15 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
             "topology": data.attrs.get("topology"), "split": split,
             "result": result.to_dict(), "baselines": baselines, "baselines_note": note,
             "plots": plots}
+
+
+def _file_index(data: TrajectoryData, split: str, i: int) -> int:
+    """The index in the file of the i-th trajectory of a split."""
+    if split == "all":
+        return i
+    from mpnode_cli.data.dataset import SPLITS
+
+    return int(torch.nonzero(data.split == SPLITS[split])[i])
 
 
 def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):

@@ -35,6 +35,8 @@ import torch
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
 from mpnode_cli.models.registry import OPTIONS, build_model, resolve_options
+from mpnode_cli.paths import check_writable_dir
+from mpnode_cli.signals import deferred_signals, signal_name
 from mpnode_cli.solver import Status
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint, save_checkpoint
@@ -52,11 +54,17 @@ Progress = Callable[[dict[str, Any]], None]
 
 
 class TrainingInterrupted(Exception):
-    """Ctrl-C: `last.pt` holds the last completed epoch; `--resume` continues from it."""
+    """Ctrl-C or SIGTERM: `last.pt` holds the last completed epoch, `summary.json` says the
+    run was interrupted, and `--resume` continues from it.
 
-    def __init__(self, run_dir: Path, epoch: int):
+    Attributes:
+        run_dir, epoch: the run and its last completed epoch.
+        cause: the `KeyboardInterrupt` (an `mpnode_cli.signals.Interrupted` for SIGTERM).
+    """
+
+    def __init__(self, run_dir: Path, epoch: int, cause: BaseException | None = None):
         super().__init__(f"interrupted after epoch {epoch}")
-        self.run_dir, self.epoch = run_dir, epoch
+        self.run_dir, self.epoch, self.cause = run_dir, epoch, cause
 
 
 class TrainingDiverged(RuntimeError):
@@ -82,16 +90,36 @@ def train(config: TrainConfig, *, resume: bool = False,
           progress: Progress | None = None) -> runs.TrainSummary:
     """Train (or finetune, or resume) as `config` says; write the run folder.
 
+    A new run that fails before its first checkpoint leaves no run folder behind.
+
     Raises:
         ValueError: unusable data, checkpoint or run folder (a one-line reason).
         FileNotFoundError: missing dataset or checkpoint.
-        TrainingInterrupted: Ctrl-C (after saving `last.pt`).
+        TrainingInterrupted: Ctrl-C or SIGTERM (after saving `last.pt` and an interrupted
+            `summary.json`).
         TrainingDiverged: bad steps persisted down to `min_lr`.
     """
-    emit = progress or (lambda event: None)
+    made: list[tuple[Path, bool]] = []  # the new run folder, and whether it existed
+    try:
+        return _train(config, resume, progress or (lambda event: None), made)
+    except BaseException:
+        for run_dir, existed in made:  # a husk could neither be resumed nor reused
+            runs.remove_unstarted(run_dir, keep_folder=existed)
+        raise
+
+
+def _train(config: TrainConfig, resume: bool, emit: Progress,
+           made: list[tuple[Path, bool]]) -> runs.TrainSummary:
+    """`train`'s body; it appends a new run folder to `made` (and whether it existed)."""
+    if not resume:  # where the run folder goes must be writable before any work starts
+        check_writable_dir(config.run_dir or runs.default_root())
 
     # 1. Data: the train split (optionally its first K trajectories) and the validation split.
     data = TrajectoryData.load(config.dataset)
+    # Absolute paths, so that a run can be resumed and evaluated from any folder.
+    config = config.model_copy(update={"dataset": Path(config.dataset).resolve()} | (
+        {"init_checkpoint": Path(config.init_checkpoint).resolve()}
+        if config.init_checkpoint is not None else {}))
     if not resume:  # a resumed run's config.json is already resolved
         config = resolve_config(config, data)
     device = _device(config.device)
@@ -111,25 +139,33 @@ def train(config: TrainConfig, *, resume: bool = False,
         config.init_checkpoint)
     last = load_checkpoint(runs.checkpoint_path(config.run_dir, "last")) if resume else None
     source = last or parent
+    if last is not None and last.dataset["fingerprint"] != data.fingerprint:
+        raise ValueError(f"{data.path} is not the dataset this run trained on (its "
+                         "fingerprint differs from the run's): resume needs the same data")
+    if last is not None and config.epochs <= last.epoch:
+        raise ValueError(f"{config.run_dir} has trained {last.epoch} epochs already; --epochs "
+                         f"is the total, so give more than {last.epoch} to continue it")
     if source is not None:
         kind, model_config = source.model_kind, source.model_config
         check_compatible(kind, model_config, source.dataset["num_nodes"], data,
-                         "finetune" if parent else "resume")
+                         "finetune" if parent else "resume", source.dataset.get("system"),
+                         allow_other_system=config.allow_other_system)
     else:  # sizes from the data, options as resolved
         kind, model_config = config.model, {
             "node_dim": data.node_dim, "control_dim": data.control_dim,
             "num_nodes": data.num_nodes, **config.model_options}
     torch.manual_seed(config.seed)
-    model = build_model(kind, model_config)
+    try:
+        model = build_model(kind, model_config)
+    except (MemoryError, RuntimeError) as exc:  # torch reports a failed allocation so
+        raise ValueError(f"cannot build model '{kind}' with {model_config}: out of memory "
+                         f"({str(exc).splitlines()[0][:80]})") from None
     # config.json tells the truth: the architecture is what was built.
     model_config = model.config
     config = config.model_copy(update={"model": kind,
                                        "model_options": model.options.model_dump()})
     run_dir = Path(config.run_dir or runs.default_run_dir(config.dataset, kind))
     config = config.model_copy(update={"run_dir": run_dir})
-    if last is not None and last.dataset["fingerprint"] != data.fingerprint:
-        raise ValueError(f"{data.path} changed since this run started (fingerprint "
-                         "differs): resume needs the same dataset")
     if source is not None and not (parent and config.renormalize):
         normalizer = source.build_normalizer()
     else:
@@ -154,10 +190,10 @@ def train(config: TrainConfig, *, resume: bool = False,
         state = LoopState(**last.loop)
         runs.truncate_metrics(run_dir, state.epoch)
     else:
-        runs.create(run_dir)
+        made.append((run_dir, not runs.create(run_dir)))
     runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
 
-    facts = {"fingerprint": data.fingerprint, "path": str(data.path), "system": data.system,
+    facts = {"fingerprint": data.fingerprint, "path": str(config.dataset), "system": data.system,
              "num_nodes": data.num_nodes, "node_dim": data.node_dim,
              "control_dim": data.control_dim, "state_names": list(data.state_names),
              "control_names": list(data.control_names), "topology": data.attrs.get("topology")}
@@ -185,11 +221,13 @@ def train(config: TrainConfig, *, resume: bool = False,
           "epochs": config.epochs, "batches": batches, "parameters": _count(model),
           "solver": _describe_solver(config)})
     try:
-        if state.epoch == 0 and last is None:  # epoch 0: how good the starting weights are
+        if state.epoch == 0 and not runs.checkpoint_path(run_dir, "best").exists():
+            # Epoch 0: how good the starting weights are (again, if interrupted before).
+            runs.truncate_metrics(run_dir, -1)
             val = validate()
             row = _record(state, 0, val, config, None, optimizer, val.seconds)
-            runs.append_metrics(run_dir, row)
             save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
+            runs.append_metrics(run_dir, row)
             snapshot = _snapshot(checkpoint())
             save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
             emit({"event": "epoch", **row})
@@ -207,9 +245,14 @@ def train(config: TrainConfig, *, resume: bool = False,
             snapshot = _snapshot(checkpoint())
             save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
             emit({"event": "epoch", **row})
-    except KeyboardInterrupt:
-        save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
-        raise TrainingInterrupted(run_dir, snapshot.epoch) from None
+    except KeyboardInterrupt as exc:
+        try:
+            with deferred_signals():  # a second signal must not cut the save short
+                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+                runs.write_interrupted(run_dir, snapshot.epoch, signal_name(exc))
+        except KeyboardInterrupt:
+            pass  # it came during the save, which finished: stop, as both signals asked
+        raise TrainingInterrupted(run_dir, snapshot.epoch, exc) from None
 
     # 4. The best weights on the test split (if the dataset has one), plots, summary.json.
     best = load_checkpoint(runs.checkpoint_path(run_dir, "best"))

@@ -1,10 +1,12 @@
 """The run folder `runs/<name>/`: where a training run leaves everything it made.
 
-    config.json         the resolved `TrainConfig` (rebuilds the run: `TrainConfig(**json)`)
+    config.json         the resolved `TrainConfig` (rebuilds the run: `TrainConfig(**json)`;
+                        the dataset's path is absolute, so the run resumes from anywhere)
     metrics.jsonl       one JSON object per epoch (epoch 0 = the starting weights, validated)
     summary.json        written at the end: best epoch, minimum validation loss, test metrics,
                         the paper's Table-2 figure, wall time, parameter count (and, from
-                        the CLI, the CPU threads torch used)
+                        the CLI, the CPU threads torch used); a run stopped by Ctrl-C or
+                        SIGTERM writes one with `finished: false` and `interrupted`
     checkpoints/        best.pt (lowest validation loss) and last.pt (latest epoch)
     plots/              test-split plots of the best checkpoint
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -59,10 +62,15 @@ class TrainSummary:
     finished: bool = True
 
 
-def default_run_dir(dataset: Path, model: str, root: Path = Path("runs")) -> Path:
+def default_root() -> Path:
+    """Where run folders go unless `--run-dir` says otherwise."""
+    return Path("runs")
+
+
+def default_run_dir(dataset: Path, model: str, root: Path | None = None) -> Path:
     """`runs/<dataset stem>-<model>-<YYYYmmdd-HHMMSS>`, with a suffix if that exists."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    base = root / f"{Path(dataset).stem}-{model}-{stamp}"
+    base = (root or default_root()) / f"{Path(dataset).stem}-{model}-{stamp}"
     path, n = base, 1
     while path.exists():
         n += 1
@@ -70,12 +78,46 @@ def default_run_dir(dataset: Path, model: str, root: Path = Path("runs")) -> Pat
     return path
 
 
-def create(run_dir: Path) -> None:
-    """Make a new run folder; refuse to train over an existing run."""
+def create(run_dir: Path) -> bool:
+    """Make a new run folder; refuse to train over an existing run.
+
+    Returns:
+        Whether the folder itself was made (an existing empty folder is used as it is).
+    """
     if run_dir.exists() and any(run_dir.iterdir()):
         raise ValueError(f"run folder {run_dir} already exists: continue it with "
                          f"--resume {run_dir}, or choose another --run-dir")
+    made = not run_dir.exists()
     (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    return made
+
+
+def remove_unstarted(run_dir: Path, *, keep_folder: bool = False) -> None:
+    """Empty a new run folder that has no `last.pt` yet (a run that failed before its
+    first checkpoint), so that its name can be used again, and remove it unless
+    `keep_folder` (it existed, empty, before the run). A folder with `last.pt` is kept: it
+    can be resumed."""
+    if checkpoint_path(run_dir, "last").exists():
+        return
+    if not keep_folder:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        return
+    for child in Path(run_dir).iterdir():
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child, ignore_errors=True)
+        else:
+            child.unlink(missing_ok=True)
+
+
+def write_interrupted(run_dir: Path, epoch: int, signal: str) -> None:
+    """`summary.json` of a run stopped by a signal: what its metrics say so far, and how to
+    continue it."""
+    path = Path(run_dir) / SUMMARY
+    path.unlink(missing_ok=True)  # read_summary would return a previous (finished) one
+    truncate_metrics(run_dir, epoch)  # a row may precede its checkpoint
+    summary = read_summary(run_dir)
+    write_json(path, {**summary, "epochs": epoch, "finished": False, "interrupted": signal,
+                      "resume": f"mpnode train --resume {run_dir}"})
 
 
 def checkpoint_path(run_dir: Path, which: str) -> Path:
@@ -100,8 +142,12 @@ def read_config(run_dir: str | Path) -> TrainConfig:
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write JSON atomically (non-finite floats as null, so the file stays valid JSON)."""
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(_jsonable(data), indent=2) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+        os.replace(tmp, path)
+    except BaseException:  # an interrupt too: no stray temporary file
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:

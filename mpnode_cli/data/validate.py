@@ -1,0 +1,374 @@
+"""Check a dataset file completely before anything reads it: `check_dataset(path) -> Report`.
+
+Every field of `docs/dataset-format.md` is checked against the others: array shapes and
+dtypes, indices (`graph_index`, `split`) inside their ranges, the root attributes against
+the arrays they describe (`num_nodes`, `node_dim`, `control_dim`, `dt` against `time`), the
+JSON attributes, the format name and version, and that every stored value is finite. A
+file that passes can be read by every verb; one that does not gets one line per problem.
+
+`mpnode check` prints the report; every reader (`TrajectoryData.load`, hence train,
+finetune, evaluate, zeroshot, and `mpnode info`) calls `require_valid` first, so that bad
+data never starts a run.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from mpnode_cli.data.hdf5 import (
+    FORMAT,
+    FORMAT_VERSION,
+    OPTIONAL_ATTRS,
+    REQUIRED_ATTRS,
+    SPLIT_NAMES,
+    DatasetFormatError,
+    _py,
+)
+
+# Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
+_BLOCK_VALUES = 1 << 26
+# Relative slack when comparing sample spacing with `dt` (float32 time in hand-made files).
+_DT_RTOL = 1e-4
+
+
+@dataclass
+class Report:
+    """What a check found.
+
+    Attributes:
+        path: the file checked. kind: "dataset" or "checkpoint".
+        problems: one line each; empty when the file is valid.
+        summary: facts about the file (JSON-able), as far as they could be read.
+    """
+
+    path: Path
+    kind: str
+    problems: list[str] = field(default_factory=list)
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"path": str(self.path), "kind": self.kind, "valid": self.ok,
+                "problems": list(self.problems), "summary": self.summary}
+
+
+def require_valid(path: str | Path) -> None:
+    """Raise unless `path` is a valid dataset.
+
+    Raises:
+        FileNotFoundError: no such file.
+        DatasetFormatError: one line: the first problem, and how many more there are.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"no such dataset file: {path}")
+    report = check_dataset(path)
+    if not report.ok:
+        more = len(report.problems) - 1
+        tail = f" (and {more} more: mpnode check {path})" if more else ""
+        raise DatasetFormatError(f"{path} is not a valid dataset: {report.problems[0]}{tail}")
+
+
+def check_dataset(path: str | Path) -> Report:
+    """Check every field of a dataset file against the format and against each other."""
+    report = Report(Path(path), "dataset")
+    if not report.path.is_file():
+        report.problems.append(f"no such file: {path}" if not report.path.exists()
+                               else f"{path} is not a regular file")
+        return report
+    try:
+        f = h5py.File(report.path, "r")
+    except OSError:
+        report.problems.append(f"{path} is not an HDF5 file")
+        return report
+    with f:
+        try:
+            _Checker(f, report).run()
+        except (OSError, ValueError, TypeError, KeyError) as exc:  # h5py on a damaged file
+            report.problems.append(f"{path} could not be read completely: {exc}")
+    return report
+
+
+class _Checker:
+    """One pass over an open file; each method adds problems and summary facts."""
+
+    def __init__(self, f: h5py.File, report: Report):
+        self.f, self.report = f, report
+        self.problems, self.summary = report.problems, report.summary
+
+    def problem(self, text: str) -> None:
+        self.problems.append(text)
+
+    def run(self) -> None:
+        attrs = {key: _py(value) for key, value in self.f.attrs.items()}
+        if not self._format(attrs):
+            return  # another kind of file: nothing else is meaningful
+        missing = [name for name in REQUIRED_ATTRS if name not in attrs]
+        if missing:
+            self.problem(f"missing root attributes: {', '.join(missing)}")
+        attrs = {**OPTIONAL_ATTRS, **attrs}
+        states = self._array("states", required=True)
+        if states is None:
+            return
+        if states.ndim != 4:
+            self.problem(f"states must be [K, T, N, D], got shape {states.shape}")
+            return
+        k, t, n, d = states.shape
+        system = attrs.get("system")
+        self.summary.update({"system": system if isinstance(system, str) else None,
+                             "trajectories": k, "samples": t,
+                             "nodes": n, "node_dim": d})
+        if k < 1 or t < 2 or n < 1 or d < 1:
+            self.problem(f"states has shape {states.shape}: a dataset needs at least one "
+                         "trajectory, two samples, one node and one state")
+        names = self._names(attrs, "state_names", d, "node_dim")
+        u = self._controls(attrs, k, t, n)
+        self._attrs(attrs, n, d, u)
+        g = self._graph(k, n)
+        self._time(attrs, t)
+        self._split(k)
+        self._optional(k, t, g)
+        self._system(attrs, names, d)
+        for name in ("states", "controls", *(f"hidden/{h}" for h in self._hidden_names())):
+            if name in self.f and isinstance(self.f[name], h5py.Dataset):
+                self._finite(name)
+
+    def _format(self, attrs: dict[str, Any]) -> bool:
+        name, version = attrs.get("format"), attrs.get("format_version")
+        if not isinstance(name, str) or name != FORMAT:
+            what = f"format '{name}'" if name is not None else "no 'format' attribute"
+            self.problem(f"not an {FORMAT} file ({what})")
+            return False
+        self.summary["format"] = f"{FORMAT} v{version}"
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            self.problem(f"format_version must be a positive integer, got {version!r}")
+        elif version > FORMAT_VERSION:
+            self.problem(f"format_version {version} is newer than this mpnode reads (up to "
+                         f"{FORMAT_VERSION}): upgrade mpnode")
+        return True
+
+    def _array(self, name: str, *, required: bool) -> h5py.Dataset | None:
+        if name not in self.f:
+            if required:
+                self.problem(f"missing dataset '{name}'")
+            return None
+        obj = self.f[name]
+        if not isinstance(obj, h5py.Dataset):
+            self.problem(f"'{name}' must be a dataset, not a group")
+            return None
+        if obj.dtype.kind not in "biuf":
+            self.problem(f"'{name}' must hold numbers, not {obj.dtype}")
+            return None
+        return obj
+
+    def _shape(self, name: str, obj: h5py.Dataset, want: tuple, meaning: str) -> bool:
+        """Shape `want` (None: any size on that axis); a problem if it differs."""
+        ok = len(obj.shape) == len(want) and all(
+            w is None or s == w for s, w in zip(obj.shape, want, strict=True))
+        if not ok:
+            shown = ", ".join("*" if w is None else str(w) for w in want)
+            self.problem(f"{name} has shape {list(obj.shape)}, expected [{shown}] {meaning}")
+        return ok
+
+    def _names(self, attrs: dict[str, Any], key: str, size: int, dim: str) -> list[str]:
+        raw = attrs.get(key)
+        try:
+            names = json.loads(raw) if isinstance(raw, str) else None
+        except ValueError:
+            names = None
+        if not isinstance(names, list) or not all(isinstance(x, str) for x in names):
+            self.problem(f"{key} must be a JSON list of strings, e.g. "
+                         f"'[\"x\", \"y\"]', got {raw!r}")
+            return []
+        if len(names) != size:
+            self.problem(f"{key} has {len(names)} names but {dim} is {size}")
+        return names
+
+    def _controls(self, attrs: dict[str, Any], k: int, t: int, n: int) -> int:
+        names = self._names(attrs, "control_names", len(_json_list(attrs["control_names"])),
+                            "control_dim")
+        u = len(names)
+        controls = self._array("controls", required=u > 0)
+        if controls is not None:
+            if u == 0:
+                self.problem("controls is present but control_names is empty")
+            else:
+                self._shape("controls", controls, (k, t, n, u), "[K, T, N, U]")
+        self.summary["control_dim"] = u
+        return u
+
+    def _attrs(self, attrs: dict[str, Any], n: int, d: int, u: int) -> None:
+        for key, have in (("num_nodes", n), ("node_dim", d), ("control_dim", u)):
+            value = attrs.get(key)
+            if value is None:
+                continue
+            if not _is_int(value):
+                self.problem(f"attribute {key} must be an integer, got {value!r}")
+            elif value != have:
+                self.problem(f"attribute {key} is {value} but the arrays have {have}")
+        system = attrs.get("system")
+        if system is not None and (not isinstance(system, str) or not system):
+            self.problem(f"attribute system must be a non-empty string, got {system!r}")
+        seed = attrs.get("seed")
+        if seed is not None and not _is_int(seed):
+            self.problem(f"attribute seed must be an integer, got {seed!r}")
+        config = attrs.get("config")
+        try:
+            parsed = json.loads(config) if isinstance(config, str) else None
+        except ValueError:
+            parsed = None
+        if not isinstance(parsed, dict):
+            self.problem(f"attribute config must be a JSON object, got {config!r:.60}")
+
+    def _graph(self, k: int, n: int) -> int:
+        adjacency = self._array("graph/adjacency", required=True)
+        g = 0
+        if adjacency is not None and self._shape("graph/adjacency", adjacency, (None, n, n),
+                                                  "[G, N, N]"):
+            g = adjacency.shape[0]
+            values = adjacency[()]
+            if g < 1:
+                self.problem("graph/adjacency holds no graph (G = 0)")
+            elif not np.isin(values, (0, 1)).all():
+                self.problem("graph/adjacency must hold only 0 and 1 "
+                             "(A[g, i, j] = 1 iff node j sends to node i)")
+            self.summary["graphs"] = g
+        index = self._array("graph_index", required=True)
+        if index is not None and self._shape("graph_index", index, (k,), "[K]"):
+            if index.dtype.kind not in "iu":
+                self.problem(f"graph_index must be integers, not {index.dtype}")
+            elif k and g and not (0 <= int(np.min(index)) and int(np.max(index)) < g):
+                self.problem(f"graph_index points outside graph/adjacency: values "
+                             f"{int(np.min(index))}..{int(np.max(index))}, graphs 0..{g - 1}")
+        return g
+
+    def _time(self, attrs: dict[str, Any], t: int) -> None:
+        time = self._array("time", required=True)
+        dt = attrs.get("dt")
+        dt_ok = isinstance(dt, int | float) and not isinstance(dt, bool) and (
+            np.isfinite(dt) and dt > 0)
+        if dt is not None and not dt_ok:
+            self.problem(f"attribute dt must be a positive finite number, got {dt!r}")
+        if time is None or not self._shape("time", time, (t,), "[T] (one time per sample)"):
+            return
+        ts = time[()].astype(np.float64)
+        if not np.isfinite(ts).all():
+            self.problem("time holds non-finite values")
+            return
+        steps = np.diff(ts)
+        if (steps <= 0).any():
+            at = int(np.argmax(steps <= 0)) + 1
+            self.problem(f"time must be strictly increasing (sample {at} is not after {at - 1})")
+            return
+        if dt_ok and len(steps):
+            slack = _DT_RTOL * dt + 1e-9 * float(np.abs(ts).max())
+            off = np.abs(steps - dt) > slack
+            if off.any():
+                first = int(np.argmax(off))
+                self.problem(f"attribute dt is {dt:g} but time steps by {steps[first]:g} "
+                             f"(between samples {first} and {first + 1}); samples must be "
+                             "evenly spaced by dt")
+        self.summary["dt"] = dt
+        self.summary["t_end"] = float(ts[-1])
+
+    def _split(self, k: int) -> None:
+        split = self._array("split", required=True)
+        if split is None or not self._shape("split", split, (k,), "[K]"):
+            return
+        values = split[()]
+        if split.dtype.kind not in "iu" or not np.isin(values, (0, 1, 2)).all():
+            self.problem("split must hold 0 (train), 1 (validation) or 2 (test) per trajectory")
+            return
+        counts = np.bincount(values.astype(np.int64), minlength=3)
+        self.summary["split"] = {name: int(c) for name, c in zip(SPLIT_NAMES, counts,
+                                                                   strict=True)}
+
+    def _optional(self, k: int, t: int, g: int) -> None:
+        for name in ("solver/status", "solver/n_f_evals"):
+            obj = self._array(name, required=False)
+            if obj is not None:
+                self._shape(name, obj, (k,), "[K]")
+        if "params" in self.f:
+            params = self.f["params"]
+            if not isinstance(params, h5py.Group):
+                self.problem("'params' must be a group")
+            else:
+                for name in params:
+                    obj = self._array(f"params/{name}", required=False)
+                    if obj is not None and g and (obj.ndim < 1 or obj.shape[0] != g):
+                        self.problem(f"params/{name} has shape {list(obj.shape)}; its first "
+                                     f"axis must be the {g} graphs")
+                    elif obj is not None and not np.isfinite(obj[()]).all():
+                        self.problem(f"params/{name} holds non-finite values")
+                for name, value in params.attrs.items():
+                    value = _py(value)
+                    if not isinstance(value, int | float) or not np.isfinite(value):
+                        self.problem(f"params attribute {name} must be a finite number, "
+                                     f"got {value!r}")
+        for name in self._hidden_names():
+            obj = self._array(f"hidden/{name}", required=False)
+            if obj is not None and (obj.ndim < 2 or obj.shape[:2] != (k, t)):
+                self.problem(f"hidden/{name} has shape {list(obj.shape)}; it must start "
+                             f"[K, T] = [{k}, {t}]")
+
+    def _hidden_names(self) -> list[str]:
+        hidden = self.f.get("hidden")
+        return list(hidden) if isinstance(hidden, h5py.Group) else []
+
+    def _system(self, attrs: dict[str, Any], names: list[str], d: int) -> None:
+        """A built-in system's name promises its states; other data is "custom"."""
+        from mpnode_cli.systems.registry import SYSTEMS, get_system
+
+        system = attrs.get("system")
+        if not isinstance(system, str) or system not in SYSTEMS:
+            return
+        try:
+            want = tuple(get_system(system).state_names)
+        except (TypeError, ValueError):
+            return
+        if len(want) != d:
+            self.problem(f"system '{system}' has {len(want)} states per node ({', '.join(want)}) "
+                         f"but the file has {d}; name your own data system \"custom\"")
+
+    def _finite(self, name: str) -> None:
+        """Count non-finite values block by block and say where the first one is."""
+        obj = self.f[name]
+        if obj.dtype.kind != "f" or obj.shape[0] == 0:
+            return
+        per_row = max(1, int(np.prod(obj.shape[1:])))
+        rows = max(1, _BLOCK_VALUES // per_row)
+        bad, first = 0, None
+        for start in range(0, obj.shape[0], rows):
+            block = obj[start:start + rows]
+            mask = ~np.isfinite(block)
+            count = int(mask.sum())
+            if count and first is None:
+                first = tuple(int(i) for i in np.argwhere(mask)[0])
+                first = (first[0] + start, *first[1:])
+            bad += count
+        if bad:
+            axes = ("trajectory", "sample", "node", "component")
+            where = ", ".join(f"{axis} {i}" for axis, i in zip(axes, first, strict=False))
+            self.problem(f"{name} holds {bad} non-finite value{'s' * (bad > 1)} (NaN or inf; "
+                         f"the first at {where})")
+
+
+def _json_list(raw: Any) -> list:
+    try:
+        value = json.loads(raw) if isinstance(raw, str) else None
+    except ValueError:
+        value = None
+    return value if isinstance(value, list) else []
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)

@@ -1,0 +1,101 @@
+"""SIGINT and SIGTERM handled alike: both interrupt a run, and a file being written either
+appears whole or not at all.
+
+A batch scheduler stops a job with SIGTERM where a person presses Ctrl-C (SIGINT). Python
+turns only SIGINT into `KeyboardInterrupt`; under `interrupt_on_signals` SIGTERM raises the
+same exception (an `Interrupted`, which says which signal), so every `except
+KeyboardInterrupt` that cleans up serves both.
+
+Libraries that write files from C (h5py, torch.save) can swallow an exception raised in
+the middle of their work ("Exception ignored in ...") and then finish the file as if
+nothing happened. `deferred_signals` keeps such a write out of the way of signals: it
+records them, lets the writer ask at safe points (`Deferred.check`), and raises once the
+block ends.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class Interrupted(KeyboardInterrupt):
+    """A `KeyboardInterrupt` raised for a signal; `signum` says which (exit 128 + signum)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def exit_code(exc: BaseException) -> int:
+    """The shell's exit status for an interrupt: 130 for SIGINT (Ctrl-C), 143 for SIGTERM."""
+    return 128 + (exc.signum if isinstance(exc, Interrupted) else signal.SIGINT)
+
+
+def signal_name(exc: BaseException) -> str:
+    """"SIGTERM" or "SIGINT" (a plain `KeyboardInterrupt` is Ctrl-C)."""
+    return signal.Signals(exc.signum).name if isinstance(exc, Interrupted) else "SIGINT"
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+def _raise(signum: int, frame) -> None:
+    raise Interrupted(signum)
+
+
+@contextmanager
+def interrupt_on_signals() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM both raise `Interrupted`.
+
+    Outside the main thread (where Python cannot set handlers) the block runs unchanged.
+    """
+    if not _in_main_thread():
+        yield
+        return
+    old = {signum: signal.signal(signum, _raise) for signum in _SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in old.items():
+            signal.signal(signum, handler)
+
+
+class Deferred:
+    """Signals that arrived while deferred; `check()` raises for the first of them."""
+
+    def __init__(self) -> None:
+        self.received: int | None = None
+
+    def record(self, signum: int, frame) -> None:
+        self.received = self.received or signum
+
+    def check(self) -> None:
+        """Raise `Interrupted` if a signal arrived (call between steps of a write)."""
+        if self.received is not None:
+            raise Interrupted(self.received)
+
+
+@contextmanager
+def deferred_signals() -> Iterator[Deferred]:
+    """Within the block, SIGINT and SIGTERM are recorded instead of raised.
+
+    The block may call `check()` at points where stopping is safe; a signal that arrived
+    and was not raised there is raised when the block ends without another exception.
+    """
+    pending = Deferred()
+    if not _in_main_thread():
+        yield pending
+        return
+    old = {signum: signal.signal(signum, pending.record) for signum in _SIGNALS}
+    try:
+        yield pending
+    finally:
+        for signum, handler in old.items():
+            signal.signal(signum, handler)
+    pending.check()
