@@ -331,9 +331,9 @@ def test_plots_say_which_trajectory_and_nodes(data, run, tmp_path, monkeypatch):
     titles = []
     save = plots._save
 
-    def keep_title(fig, path):
+    def keep_title(fig, path, *args, **kwargs):
         titles.append(fig._suptitle.get_text() if fig._suptitle else fig.axes[0].get_title())
-        return save(fig, path)
+        return save(fig, path, *args, **kwargs)
 
     monkeypatch.setattr(plots, "_save", keep_title)
     result = invoke("evaluate", run, data["lorenz"], "--plot", "--plot-dir", tmp_path)

@@ -227,7 +227,10 @@ def _train(step, options, folder: Path, inputs, status, emit):
         fields["init_checkpoint"] = _best(inputs[step.checkpoint])
     try:
         if status == "resumed":
-            train(read_config(run_dir), resume=True, progress=_forward(emit))
+            # A training that finished before its step record was written trains no more
+            # epochs and writes its summary again.
+            train(read_config(run_dir), resume=True, progress=_forward(emit),
+                  finished_ok=True)
         else:
             train(TrainConfig(**fields), progress=_forward(emit))
     except TrainingDiverged as exc:

@@ -87,10 +87,12 @@ class LoopState:
 
 
 def train(config: TrainConfig, *, resume: bool = False,
-          progress: Progress | None = None) -> runs.TrainSummary:
+          progress: Progress | None = None, finished_ok: bool = False) -> runs.TrainSummary:
     """Train (or finetune, or resume) as `config` says; write the run folder.
 
-    A new run that fails before its first checkpoint leaves no run folder behind.
+    A new run that fails before its first checkpoint leaves no run folder behind. Resuming a
+    run that has done its `epochs` is an error, unless `finished_ok`: then no epoch runs and
+    the summary is written again (for a caller that lost it, e.g. an interrupted experiment).
 
     Raises:
         ValueError: unusable data, checkpoint or run folder (a one-line reason).
@@ -101,7 +103,7 @@ def train(config: TrainConfig, *, resume: bool = False,
     """
     made: list[tuple[Path, bool]] = []  # the new run folder, and whether it existed
     try:
-        return _train(config, resume, progress or (lambda event: None), made)
+        return _train(config, resume, progress or (lambda event: None), made, finished_ok)
     except BaseException:
         for run_dir, existed in made:  # a husk could neither be resumed nor reused
             runs.remove_unstarted(run_dir, keep_folder=existed)
@@ -109,7 +111,7 @@ def train(config: TrainConfig, *, resume: bool = False,
 
 
 def _train(config: TrainConfig, resume: bool, emit: Progress,
-           made: list[tuple[Path, bool]]) -> runs.TrainSummary:
+           made: list[tuple[Path, bool]], finished_ok: bool = False) -> runs.TrainSummary:
     """`train`'s body; it appends a new run folder to `made` (and whether it existed)."""
     if not resume:  # where the run folder goes must be writable before any work starts
         check_writable_dir(config.run_dir or runs.default_root())
@@ -142,7 +144,7 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
     if last is not None and last.dataset["fingerprint"] != data.fingerprint:
         raise ValueError(f"{data.path} is not the dataset this run trained on (its "
                          "fingerprint differs from the run's): resume needs the same data")
-    if last is not None and config.epochs <= last.epoch:
+    if last is not None and config.epochs <= last.epoch and not finished_ok:
         raise ValueError(f"{config.run_dir} has trained {last.epoch} epochs already; --epochs "
                          f"is the total, so give more than {last.epoch} to continue it")
     if source is not None:
