@@ -18,7 +18,7 @@ from typing import Any, Literal, get_args, get_origin
 import typer
 from pydantic.fields import FieldInfo
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail, solver_option
+from mpnode_cli.cli.common import THREADS, console, error_message, fail, solver_option, speaks
 from mpnode_cli.config import train_solver
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.threads import applied_threads
@@ -227,24 +227,31 @@ def _run(config: Any, resume: bool) -> None:
     from dataclasses import asdict
 
     from mpnode_cli.report.tables import train_table
+    from mpnode_cli.training.distributed import process_group
     from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
     from mpnode_cli.training.run import add_to_summary
 
     display_console = console(stderr=True)
     try:
-        with _Display(display_console) as display:
+        # Under torchrun: join the other processes; only rank 0 reports (and returns a summary).
+        with process_group(config.device) as world, _Display(display_console,
+                                                             world.main) as display:
             summary = train(config, resume=resume, progress=display.on_event)
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
     except TrainingDiverged as exc:
         fail(f"training diverged: {exc}", code=1)
     except TrainingInterrupted as exc:
+        if not speaks():
+            raise typer.Exit(code=130) from None
         typer.echo(f"Interrupted: saved {exc.run_dir}/checkpoints/last.pt (epoch {exc.epoch}); "
                    f"continue with: mpnode train --resume {exc.run_dir}", err=True)
         raise typer.Exit(code=130) from None
     except KeyboardInterrupt:
         typer.echo("Interrupted before training started: nothing to resume", err=True)
         raise typer.Exit(code=130) from None
+    if summary is None:  # a torchrun process other than rank 0
+        return
     if threads := applied_threads():  # beside wall_seconds, which it explains
         add_to_summary(summary.run_dir, {"threads": threads.count})
     console().print(train_table(asdict(summary)))
@@ -253,7 +260,7 @@ def _run(config: Any, resume: bool) -> None:
 class _Display:
     """A rich progress display fed by the loop's events; epoch lines go above the bars."""
 
-    def __init__(self, out):
+    def __init__(self, out, shown: bool = True):
         from rich.progress import (
             BarColumn,
             MofNCompleteColumn,
@@ -268,7 +275,7 @@ class _Display:
         self.bar = Progress(TextColumn("{task.description}"), BarColumn(),
                             MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
                             TextColumn("{task.fields[info]}"), console=out,
-                            transient=True, disable=not out.is_terminal)
+                            transient=True, disable=not (shown and out.is_terminal))
         self.epochs = self.bar.add_task("epochs", total=None, info="")
         self.batches = self.bar.add_task("batches", total=None, info="")
         self.every, self.last_epoch, self.best = 1, 0, float("inf")
@@ -293,6 +300,9 @@ class _Display:
                 self.console.print(f"threads: {threads.describe()}")
             if "solver" in event:
                 self.console.print(f"solver: {event['solver']}")
+            if event.get("processes", 1) > 1:
+                self.console.print(f"processes: {event['processes']} ({event['backend']}), "
+                                   "each training its slice of every batch")
         elif kind == "batch":
             self.bar.update(self.batches, completed=event["batch"],
                             info=f"loss {event['loss']:.4g}")
