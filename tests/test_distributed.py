@@ -13,6 +13,7 @@ import os
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -84,7 +85,14 @@ def spawn_two(fn, *args):
             assert world.size == 2 and world.rank == rank and world.backend == "gloo"
             fn(rank, *args)
 
-    mp.start_processes(rank_main, args=args, nprocs=2, start_method="fork")
+    ranks = mp.start_processes(rank_main, args=args, nprocs=2, join=False,
+                               start_method="fork")
+    deadline = time.monotonic() + 120
+    while not ranks.join(timeout=1):  # raises if a rank failed (and stops the other)
+        if time.monotonic() > deadline:  # a rank waits on one that will never answer
+            for process in ranks.processes:
+                process.kill()
+            pytest.fail("two ranks did not finish within 120 s")
 
 
 def one_step(gene, rank: int | None, out: Path, batch: int, fail: str | None = None):
@@ -243,3 +251,40 @@ def test_cuda_under_torchrun_without_a_gpu_is_refused_in_one_line(monkeypatch):
     monkeypatch.setenv("WORLD_SIZE", "2")
     with pytest.raises(ValueError, match="no CUDA device"), distributed.process_group("cuda"):
         pass
+
+
+def resume_on_two_ranks(rank, run_dir, epochs):
+    from mpnode_cli.training.run import read_config
+
+    config = read_config(run_dir).model_copy(update={"epochs": epochs})
+    summary = loop.train(config, resume=True)
+    assert (summary is None) == (rank != 0)  # rank 0 alone reports
+
+
+def test_a_one_process_run_resumes_on_two_ranks(gene, one_process, tmp_path):
+    loop.train(small(gene, tmp_path / "run", epochs=2))
+    spawn_two(resume_on_two_ranks, tmp_path / "run", 3)
+    assert [r["epoch"] for r in read_metrics(tmp_path / "run")] == [0, 1, 2, 3]
+    assert val_losses(tmp_path / "run") == pytest.approx(val_losses(one_process), rel=1e-4)
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["world_size"] == 2
+
+
+def train_into_existing(rank, gene, run_dir):
+    with pytest.raises(ValueError, match="already exists"):  # on both ranks, none waits
+        loop.train(small(gene, run_dir))
+
+
+def test_a_refusal_on_rank_0_stops_every_rank(gene, tmp_path):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "notes.txt").write_text("someone else's")
+    spawn_two(train_into_existing, gene, tmp_path / "run")
+    assert [p.name for p in (tmp_path / "run").iterdir()] == ["notes.txt"]
+
+
+def test_only_rank_0_prints_an_error(gene, monkeypatch, tmp_path):
+    monkeypatch.setenv("RANK", "1")
+    result = CliRunner().invoke(app, ["train", str(tmp_path / "missing.h5")])
+    assert result.exit_code == 2 and result.output == ""
+    monkeypatch.setenv("RANK", "0")
+    result = CliRunner().invoke(app, ["train", str(tmp_path / "missing.h5")])
+    assert result.exit_code == 2 and result.output.startswith("Error:")
