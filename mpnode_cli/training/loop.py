@@ -293,7 +293,7 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
             batch.controls[:, :horizon]).to(device)
         loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
                                                batch.adjacency.to(device), u, loss_fn, config,
-                                               world, share=len(batch) / len(idx))
+                                               world, len(batch) / len(idx))
         evals_per_batch.append(evals)
         if reason is None:
             loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
