@@ -50,8 +50,17 @@ def error_message(exc: Exception) -> str:
 
 def fail(message: str, code: int = 2) -> None:
     """Print `Error: message` to stderr and exit (2: usage, 1: numerical failure)."""
-    typer.echo(f"Error: {message}", err=True)
+    if speaks():
+        typer.echo(f"Error: {message}", err=True)
     raise typer.Exit(code=code)
+
+
+def speaks() -> bool:
+    """False in the processes other than rank 0 that torchrun starts (its RANK variable):
+    they exit as rank 0 does, but only rank 0 prints."""
+    import os
+
+    return os.environ.get("RANK", "0") in ("", "0")
 
 
 def console(stderr: bool = False):

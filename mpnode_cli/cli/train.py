@@ -21,7 +21,7 @@ from typing import Any, Literal, get_args, get_origin
 import typer
 from pydantic.fields import FieldInfo
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail, solver_option
+from mpnode_cli.cli.common import THREADS, console, error_message, fail, solver_option, speaks
 from mpnode_cli.config import train_solver
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.threads import applied_threads
@@ -249,26 +249,34 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
 
     from mpnode_cli.report.tables import train_table
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
+    from mpnode_cli.training.distributed import process_group
     from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
     from mpnode_cli.training.run import add_to_summary, read_summary
 
     display_console = console(stderr=True)
     try:
-        with interrupt_on_signals(), _Display(display_console) as display:
+        # Under torchrun: join the other processes; only rank 0 reports (and returns a summary).
+        with interrupt_on_signals(), process_group(config.device) as world, _Display(
+                display_console, world.main) as display:
             summary = train(config, resume=resume, progress=display.on_event)
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
     except TrainingDiverged as exc:
         fail(f"training diverged: {exc}", code=1)
     except TrainingInterrupted as exc:
+        if not speaks():
+            raise typer.Exit(code=exit_code(exc.cause)) from None
         typer.echo(f"Interrupted ({signal_name(exc.cause)}): saved {exc.run_dir}/checkpoints/"
                    f"last.pt (epoch {exc.epoch}); continue with: mpnode train --resume "
                    f"{exc.run_dir}", err=True)
         raise typer.Exit(code=exit_code(exc.cause)) from None
     except KeyboardInterrupt as exc:
-        typer.echo(f"Interrupted ({signal_name(exc)}) before training started: nothing to "
-                   "resume", err=True)
+        if speaks():
+            typer.echo(f"Interrupted ({signal_name(exc)}) before training started: nothing to "
+                       "resume", err=True)
         raise typer.Exit(code=exit_code(exc)) from None
+    if summary is None:  # a torchrun process other than rank 0
+        return
     if threads := applied_threads():  # beside wall_seconds, which it explains
         add_to_summary(summary.run_dir, {"threads": threads.count})
     if json_out:
@@ -280,7 +288,7 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
 class _Display:
     """A rich progress display fed by the loop's events; epoch lines go above the bars."""
 
-    def __init__(self, out):
+    def __init__(self, out, shown: bool = True):
         from rich.progress import (
             BarColumn,
             MofNCompleteColumn,
@@ -295,7 +303,7 @@ class _Display:
         self.bar = Progress(TextColumn("{task.description}"), BarColumn(),
                             MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
                             TextColumn("{task.fields[info]}"), console=out,
-                            transient=True, disable=not out.is_terminal)
+                            transient=True, disable=not (shown and out.is_terminal))
         self.epochs = self.bar.add_task("epochs", total=None, info="")
         self.batches = self.bar.add_task("batches", total=None, info="")
         self.every, self.last_epoch, self.best = 1, 0, float("inf")
@@ -320,6 +328,9 @@ class _Display:
                 self.console.print(f"threads: {threads.describe()}")
             if "solver" in event:
                 self.console.print(f"solver: {event['solver']}")
+            if event.get("processes", 1) > 1:
+                self.console.print(f"processes: {event['processes']} ({event['backend']}), "
+                                   "each training its slice of every batch")
         elif kind == "batch":
             self.bar.update(self.batches, completed=event["batch"],
                             info=f"loss {event['loss']:.4g}")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -85,7 +86,8 @@ class Prediction:
 
 def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *,
              batch_size: int = 128, solver: SolverOptions | None = None,
-             device: str | torch.device = "cpu") -> EvalResult:
+             device: str | torch.device = "cpu",
+             combine: Callable[[torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
@@ -96,6 +98,9 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
         solver: how the rollouts are integrated, normally as the model was trained
             (None: `solve`'s defaults).
         device: where the rollouts run.
+        combine: when `data` is one part of a split that several processes share, adds
+            the error sums of all parts (`[S]` float64 → `[S]`, e.g. an all-reduce), so
+            that the result is the whole split's; RHS evaluations are then the parts' sum.
 
     Returns:
         An `EvalResult`; errors are NaN when every rollout failed (or `data` is empty).
@@ -125,6 +130,11 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
             phys_err = normalizer.denorm_x(pred) - normalizer.denorm_x(x)
             sq_phys += phys_err[:, 1:].pow(2).double().sum(dim=(0, 1, 2)).cpu()
     model.train(was_training)
+    if combine is not None:
+        sums = combine(torch.cat([torch.tensor([k, ok, failed, huber_sum, n_f_evals],
+                                               dtype=torch.float64), sq_time, sq_phys]))
+        k, ok, failed, n_f_evals = (int(v) for v in sums[[0, 1, 2, 4]].tolist())
+        huber_sum, sq_time, sq_phys = float(sums[3]), sums[5:5 + t], sums[5 + t:]
     n = data.num_nodes
     per_time = sq_time / max(ok * n * d, 1) if ok else torch.full((t,), math.nan)
     predicted = max(ok * (t - 1) * n, 1)

@@ -14,6 +14,11 @@ supplies the weights and the architecture (and, unless `renormalize`, the normal
 the optimizer is fresh. Resuming (`resume=True`) restores a run's `last.pt` — weights,
 optimizer, RNG states and the loop's counters — so 2 + 2 epochs equal 4.
 
+Under torchrun the processes train one model data-parallel (`mpnode_cli.training.distributed`):
+each takes its slice of every global batch, the update is one process's update of that
+batch, and rank 0 alone writes the run folder and reports progress. The run folder holds
+nothing that depends on the number of processes, so a run resumes with any number.
+
 `progress`, if given, is called with one dict per event, `event` naming it:
 `start` (run_dir, first_epoch, epochs, batches), `batch` (epoch, batch, batches, loss),
 `skip` (epoch, batch, reason), `restore` (epoch, lr), `epoch` (the metrics row), `test`.
@@ -38,6 +43,7 @@ from mpnode_cli.models.registry import OPTIONS, build_model, resolve_options
 from mpnode_cli.paths import check_writable_dir
 from mpnode_cli.signals import deferred_signals, signal_name
 from mpnode_cli.solver import Status
+from mpnode_cli.training import distributed
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint, save_checkpoint
 from mpnode_cli.training.evaluate import (
@@ -87,9 +93,11 @@ class LoopState:
 
 
 def train(config: TrainConfig, *, resume: bool = False,
-          progress: Progress | None = None, finished_ok: bool = False) -> runs.TrainSummary:
+          progress: Progress | None = None,
+          finished_ok: bool = False) -> runs.TrainSummary | None:
     """Train (or finetune, or resume) as `config` says; write the run folder.
 
+    Returns the summary; None on the processes other than rank 0 of a torchrun launch.
     A new run that fails before its first checkpoint leaves no run folder behind. Resuming a
     run that has done its `epochs` is an error, unless `finished_ok`: then no epoch runs and
     the summary is written again (for a caller that lost it, e.g. an interrupted experiment).
@@ -103,17 +111,19 @@ def train(config: TrainConfig, *, resume: bool = False,
     """
     made: list[tuple[Path, bool]] = []  # the new run folder, and whether it existed
     try:
-        return _train(config, resume, progress or (lambda event: None), made, finished_ok)
+        return _train(config, resume, progress, made, finished_ok)
     except BaseException:
         for run_dir, existed in made:  # a husk could neither be resumed nor reused
             runs.remove_unstarted(run_dir, keep_folder=existed)
         raise
 
 
-def _train(config: TrainConfig, resume: bool, emit: Progress,
-           made: list[tuple[Path, bool]], finished_ok: bool = False) -> runs.TrainSummary:
+def _train(config: TrainConfig, resume: bool, progress: Progress | None,
+           made: list[tuple[Path, bool]], finished_ok: bool = False) -> runs.TrainSummary | None:
     """`train`'s body; it appends a new run folder to `made` (and whether it existed)."""
-    if not resume:  # where the run folder goes must be writable before any work starts
+    world = distributed.world()
+    emit = progress if progress is not None and world.main else (lambda event: None)
+    if not resume and world.main:  # the run folder's place must be writable before any work
         check_writable_dir(config.run_dir or runs.default_root())
 
     # 1. Data: the train split (optionally its first K trajectories) and the validation split.
@@ -166,7 +176,9 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
     model_config = model.config
     config = config.model_copy(update={"model": kind,
                                        "model_options": model.options.model_dump()})
-    run_dir = Path(config.run_dir or runs.default_run_dir(config.dataset, kind))
+    # The default name holds the time and whatever suffix makes it new: rank 0 chooses it.
+    run_dir = world.from_main(
+        lambda: Path(config.run_dir or runs.default_run_dir(config.dataset, kind)))
     config = config.model_copy(update={"run_dir": run_dir})
     if source is not None and not (parent and config.renormalize):
         normalizer = source.build_normalizer()
@@ -182,6 +194,7 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
         model.fit_statistics(normalizer.norm_x(train_set.states),
                              float(train_set.time[1] - train_set.time[0]), train_set.adjacency)
     model.to(device)
+    world.broadcast_module(model)
     optimizer = Adam(model.parameters(), lr=config.lr)
     shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
     state = LoopState()
@@ -190,10 +203,19 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
         torch.set_rng_state(last.rng["torch"])
         shuffle.set_state(last.rng["shuffle"])
         state = LoopState(**last.loop)
-        runs.truncate_metrics(run_dir, state.epoch)
-    else:
-        made.append((run_dir, not runs.create(run_dir)))
-    runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
+    if not world.main:
+        # The only draws from torch's global generator in training are L2S's step noise on
+        # each rank's own slice: other ranks must not repeat rank 0's draws.
+        torch.manual_seed(hash((config.seed, world.rank, state.epoch)))
+
+    def open_run() -> None:  # rank 0's
+        if last is not None:
+            runs.truncate_metrics(run_dir, state.epoch)
+        else:
+            made.append((run_dir, not runs.create(run_dir)))
+        runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
+
+    world.from_main(open_run)
 
     facts = {"fingerprint": data.fingerprint, "path": str(config.dataset), "system": data.system,
              "num_nodes": data.num_nodes, "node_dim": data.node_dim,
@@ -209,9 +231,13 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
             loop=asdict(state), parent_sha256=parent_sha, metrics=metrics or {},
         )  # fmt: skip
 
+    # Each rank validates its part of the split; the error sums are added over ranks.
+    val_part = val_set.take(torch.arange(len(val_set))[world.shard(len(val_set))])
+
     def validate() -> EvalResult:
-        return evaluate(model, val_set, normalizer, batch_size=config.val_batch_size,
-                        solver=config.solver, device=device)
+        return evaluate(model, val_part, normalizer, batch_size=config.val_batch_size,
+                        solver=config.solver, device=device,
+                        combine=world.sum if world.size > 1 else None)
 
     # 3. Epochs. The snapshot is the last completed epoch: what last.pt holds, what a run of
     # bad steps rolls back to, and what Ctrl-C leaves behind.
@@ -221,40 +247,46 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
         _set_lr(optimizer, _cosine_lr(config, 1))
     emit({"event": "start", "run_dir": str(run_dir), "first_epoch": state.epoch + 1,
           "epochs": config.epochs, "batches": batches, "parameters": _count(model),
-          "solver": _describe_solver(config)})
+          "solver": _describe_solver(config), "processes": world.size,
+          "backend": world.backend})
     try:
         if state.epoch == 0 and not runs.checkpoint_path(run_dir, "best").exists():
             # Epoch 0: how good the starting weights are (again, if interrupted before).
             runs.truncate_metrics(run_dir, -1)
             val = validate()
             row = _record(state, 0, val, config, None, optimizer, val.seconds)
-            save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
-            runs.append_metrics(run_dir, row)
             snapshot = _snapshot(checkpoint())
-            save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+            if world.main:
+                runs.append_metrics(run_dir, row)
+                save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
+                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
             emit({"event": "epoch", **row})
         for epoch in range(state.epoch + 1, config.epochs + 1):
             start = time.perf_counter()
             steps = _train_epoch(model, optimizer, train_set, normalizer, loss_fn, config,
-                                 state, snapshot, shuffle, epoch, device, emit)
+                                 state, snapshot, shuffle, epoch, device, emit, world)
             val = validate()
             state.epoch = epoch
             row = _record(state, epoch, val, config, steps, optimizer,
                           time.perf_counter() - start)
-            if row["improved"]:
-                save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
-            runs.append_metrics(run_dir, row)
             snapshot = _snapshot(checkpoint())
-            save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+            if world.main:
+                if row["improved"]:
+                    save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
+                runs.append_metrics(run_dir, row)
+                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
             emit({"event": "epoch", **row})
     except KeyboardInterrupt as exc:
-        try:
-            with deferred_signals():  # a second signal must not cut the save short
-                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
-                runs.write_interrupted(run_dir, snapshot.epoch, signal_name(exc))
-        except KeyboardInterrupt:
-            pass  # it came during the save, which finished: stop, as both signals asked
+        if world.main:
+            try:
+                with deferred_signals():  # a second signal must not cut the save short
+                    save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+                    runs.write_interrupted(run_dir, snapshot.epoch, signal_name(exc))
+            except KeyboardInterrupt:
+                pass  # it came during the save, which finished: stop, as both signals asked
         raise TrainingInterrupted(run_dir, snapshot.epoch, exc) from None
+    if not world.main:
+        return None
 
     # 4. The best weights on the test split (if the dataset has one), plots, summary.json.
     best = load_checkpoint(runs.checkpoint_path(run_dir, "best"))
@@ -275,7 +307,7 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
         seconds_per_epoch=runs.seconds_per_epoch(run_dir), skipped_batches=state.skipped,
         restores=state.restores,
         init_checkpoint=None if config.init_checkpoint is None else str(config.init_checkpoint),
-        parent_sha256=parent_sha,
+        parent_sha256=parent_sha, world_size=world.size,
     )  # fmt: skip
     runs.write_json(run_dir / runs.SUMMARY, asdict(summary))
     return summary
@@ -283,28 +315,32 @@ def _train(config: TrainConfig, resume: bool, emit: Progress,
 
 def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normalizer,
                  loss_fn, config: TrainConfig, state: LoopState, snapshot: Checkpoint,
-                 shuffle: torch.Generator, epoch: int, device, emit: Progress) -> dict:
+                 shuffle: torch.Generator, epoch: int, device, emit: Progress,
+                 world: distributed.World) -> dict:
     """One pass over the shuffled train split; returns the epoch's step statistics."""
     start = time.perf_counter()
     horizon = _horizon(config, epoch, train_set.time.numel())
     ts = train_set.time[:horizon].to(device)
     order = torch.randperm(len(train_set), generator=shuffle)
-    loss_sum, count, grad_norms, n_f_evals, skipped = 0.0, 0, [], 0, []
+    loss_sum, count, grad_norms, evals_per_batch, skipped = 0.0, 0, [], [], []
     if config.even_batches:  # ⌈K/B⌉ batches whose sizes differ by at most one
         batches = order.tensor_split(math.ceil(len(order) / config.batch_size))
     else:  # full batches and a partial last one, as the authors' DataLoader
         batches = order.split(config.batch_size)
     for b, idx in enumerate(batches, start=1):
-        batch = train_set.take(idx)
-        x = normalizer.norm_x(batch.states[:, :horizon])  # (B, H, N, D)
-        # Noise is drawn on the CPU from the loop's generator, so it is the same on any
-        # device and after a resume.
-        x = (x + config.noise * torch.randn(x.shape, generator=shuffle)).to(device)
+        part = world.shard(len(idx))  # this rank's slice of the global batch (all of it)
+        batch = train_set.take(idx[part])
+        x = normalizer.norm_x(batch.states[:, :horizon])  # (B_r, H, N, D)
+        # Noise is drawn on the CPU from the loop's generator for the whole global batch, so
+        # it is the same on any device, after a resume and with any number of processes.
+        noise = torch.randn((len(idx), *x.shape[1:]), generator=shuffle)[part]
+        x = (x + config.noise * noise).to(device)
         u = None if batch.controls is None else normalizer.norm_u(
             batch.controls[:, :horizon]).to(device)
         loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
-                                               batch.adjacency.to(device), u, loss_fn, config)
-        n_f_evals += evals
+                                               batch.adjacency.to(device), u, loss_fn, config,
+                                               world, len(batch) / len(idx))
+        evals_per_batch.append(evals)
         if reason is None:
             loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
             grad_norms.append(grad_norm)
@@ -328,30 +364,52 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
             state.bad_run, state.restores = 0, state.restores + 1
             state.lr_scale /= 2
             emit({"event": "restore", "epoch": epoch, "lr": lr})
+    # A batch's RHS evaluations are its slowest trajectory's, wherever that was solved.
+    n_f_evals = int(world.max(torch.tensor(evals_per_batch, dtype=torch.long)).sum())
     return {"train_loss": loss_sum / count if count else math.nan, "horizon": horizon,
             "grad_norm": sum(grad_norms) / len(grad_norms) if grad_norms else math.nan,
             "rhs_evals": n_f_evals, "skipped": len(skipped), "skip_reasons": skipped,
             "train_seconds": time.perf_counter() - start}
 
 
-def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig):
-    """One update from `x: [B, H, N, D]`. Returns (loss, grad norm, RHS evals, skip reason)."""
+def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig,
+          world: distributed.World, share: float = 1.0):
+    """One update from this rank's `x: [B_r, H, N, D]`, the fraction `share` = B_r / B of
+    the global batch (all of it in one process).
+
+    Returns (the global batch's loss, grad norm, this rank's RHS evals, skip reason).
+    """
     optimizer.zero_grad(set_to_none=True)
-    batch = model.training_loss(x, ts, adjacency, u, loss_fn, solver=config.solver)
-    loss, evals = batch.loss, batch.n_f_evals
-    if loss is None:
-        failed = int((batch.status != 0).sum())
-        worst = Status(int(batch.status.max())).name
+    loss, evals, status = None, 0, torch.zeros(0, dtype=torch.long)
+    if len(x):  # a rank's slice is empty when the batch has fewer trajectories than ranks
+        batch = model.training_loss(x, ts, adjacency, u, loss_fn, solver=config.solver)
+        loss, evals, status = batch.loss, batch.n_f_evals, batch.status
+    # Summed over ranks, so that every rank takes the same decision: failed solves per
+    # status, non-finite losses, and the batch's mean loss (each rank's weighted by share).
+    verdict = torch.zeros(len(Status) + 2, dtype=torch.float64)
+    value = None if loss is None else loss.item()
+    if value is not None and not math.isfinite(value):
+        verdict[-2] = 1
+    elif value is not None:
+        verdict[-1] = value * share
+    elif len(x):
+        verdict[:len(Status)] = torch.bincount(status.cpu(), minlength=len(Status))
+    verdict = world.sum(verdict)
+    failed = int(verdict[1:len(Status)].sum())
+    if failed:
+        worst = Status(int(verdict[:len(Status)].nonzero().max())).name
         return math.nan, math.nan, evals, f"solver {worst} on {failed} trajectories"
-    if not torch.isfinite(loss):
+    if verdict[-2] > 0:
         return math.nan, math.nan, evals, "non-finite loss"
-    loss.backward()
+    if loss is not None:
+        loss.backward()
+    world.sum_gradients(list(model.parameters()), share)  # the global batch's gradient
     norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip))
     if not math.isfinite(norm):
         optimizer.zero_grad(set_to_none=True)
         return math.nan, norm, evals, "non-finite gradient"
     optimizer.step()
-    return loss.item(), norm, evals, None
+    return float(verdict[-1]), norm, evals, None
 
 
 def _record(state: LoopState, epoch: int, val: EvalResult, config: TrainConfig,

@@ -4,9 +4,10 @@
                         the dataset's path is absolute, so the run resumes from anywhere)
     metrics.jsonl       one JSON object per epoch (epoch 0 = the starting weights, validated)
     summary.json        written at the end: best epoch, minimum validation loss, test metrics,
-                        the paper's Table-2 figure, wall time, parameter count (and, from
-                        the CLI, the CPU threads torch used); a run stopped by Ctrl-C or
-                        SIGTERM writes one with `finished: false` and `interrupted`
+                        the paper's Table-2 figure, wall time, parameter count, processes
+                        (and, from the CLI, the CPU threads torch used by each); a run
+                        stopped by Ctrl-C or SIGTERM writes one with `finished: false` and
+                        `interrupted`
     checkpoints/        best.pt (lowest validation loss) and last.pt (latest epoch)
     plots/              test-split plots of the best checkpoint
 """
@@ -34,7 +35,8 @@ class TrainSummary:
     `table2` is the paper's Table-2 figure, best epoch × minimum validation loss; `test`
     holds `EvalResult.to_dict()` of the best checkpoint on the test split (None without one)
     and `baselines` the naive predictors' MSE on that split, `{hold_x0, time_mean}` (see
-    `mpnode_cli.training.evaluate.baseline_mse`).
+    `mpnode_cli.training.evaluate.baseline_mse`). `world_size` is the number of processes
+    that trained (torchrun's data parallelism; 1 without it).
     """
 
     run_dir: str
@@ -60,6 +62,7 @@ class TrainSummary:
     parent_sha256: str | None
     baselines: dict[str, Any] | None = None
     finished: bool = True
+    world_size: int = 1
 
 
 def default_root() -> Path:
