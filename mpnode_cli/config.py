@@ -49,6 +49,36 @@ def _over(defaults: Callable[[], SolverOptions], value: Any) -> Any:
     return {**defaults().model_dump(), **value} if isinstance(value, dict) else value
 
 
+def _split_fractions(cls: type, value: Any) -> Any:
+    """Accept the command line's `"0.7,0.15,0.15"` as well as a list of three numbers."""
+    parts = value.replace(" ", "").split(",") if isinstance(value, str) else value
+    try:
+        numbers = tuple(float(p) for p in parts)
+    except (TypeError, ValueError):
+        numbers = ()
+    if len(numbers) != 3:
+        raise ValueError(f"expected three fractions like 0.7,0.15,0.15, got {value!r}")
+    return numbers
+
+
+def _valid_split(cls: type, value: tuple[float, float, float]) -> tuple[float, float, float]:
+    if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(
+        sum(value), 1.0, abs_tol=1e-6
+    ):
+        shown = ",".join(f"{x:g}" for x in value)
+        raise ValueError(
+            f"train,validation,test fractions must lie in [0, 1] and sum to 1, got {shown}"
+        )
+    return value
+
+
+def _names(cls: type, value: Any) -> Any:
+    """Accept the command line's `"x,y"` as well as a list of names."""
+    if isinstance(value, str):
+        return [part.strip() for part in value.split(",")]
+    return value
+
+
 class GenerateConfig(BaseModel):
     """What `mpnode generate` makes: one system on G graphs, K trajectories, one HDF5 file.
 
@@ -104,35 +134,13 @@ class GenerateConfig(BaseModel):
     out: Path | None = None
     chunk_size: int = Field(1024, ge=1)
 
-    @field_validator("split", mode="before")
-    @classmethod
-    def _parse_split(cls, value: Any) -> Any:
-        """Accept the command line's `"0.7,0.15,0.15"` as well as a list of three numbers."""
-        parts = value.replace(" ", "").split(",") if isinstance(value, str) else value
-        try:
-            numbers = tuple(float(p) for p in parts)
-        except (TypeError, ValueError):
-            numbers = ()
-        if len(numbers) != 3:
-            raise ValueError(f"expected three fractions like 0.7,0.15,0.15, got {value!r}")
-        return numbers
+    _parse_split = field_validator("split", mode="before")(_split_fractions)
+    _check_split = field_validator("split")(_valid_split)
 
     @field_validator("solver", mode="before")
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
         return _over(generate_solver, value)
-
-    @field_validator("split")
-    @classmethod
-    def _check_split(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
-        if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(
-            sum(value), 1.0, abs_tol=1e-6
-        ):
-            shown = ",".join(f"{x:g}" for x in value)
-            raise ValueError(
-                f"train,validation,test fractions must lie in [0, 1] and sum to 1, got {shown}"
-            )
-        return value
 
     @model_validator(mode="after")
     def _check_cross_fields(self) -> GenerateConfig:
@@ -166,6 +174,62 @@ class GenerateConfig(BaseModel):
         if self.t_end is None or self.dt is None:
             raise ValueError("num_steps needs a resolved config (t_end and dt set)")
         return round(self.t_end / self.dt)
+
+
+class ImportConfig(BaseModel):
+    """What `mpnode import` makes: one dataset file (system "custom") from a user's arrays.
+
+    Attributes:
+        states: `[K, T, N, D]` as `.npy`, `.npz` (array `states`, optionally `time`) or a
+            long-format `.csv` with `trajectory`, `time`, `node` and one column per state.
+        adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory),
+            `A[i, j] = 1` iff node j sends to node i.
+        edge_list: the graph as a text file of `i j` lines (or `i j w`, w 0 or 1);
+            `mpnode_cli.graphs.read_edge_list`. Exactly one of the two.
+        directed: read the edge list's `i j` as one edge from i to j.
+        dt: sample spacing (a time column or array must step by it).
+        controls: `.npy` of `[K, T, N, U]` zero-order-hold controls.
+        state_names, control_names: names of the D states and U controls (default: the
+            CSV's columns, else `x0, x1, ...` and `u0, u1, ...`).
+        split: train, validation, test fractions (by trajectory).
+        seed: seed of the split (`numpy.random.default_rng([seed, 1])`, as generate).
+        dtype: storage dtype of `states` and `controls`.
+        out: output file (default `datasets/<states file stem>.h5`).
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    states: Path
+    adjacency: Path | None = None
+    edge_list: Path | None = None
+    directed: bool = False
+    dt: float = Field(gt=0)
+    controls: Path | None = None
+    state_names: list[str] | None = None
+    control_names: list[str] | None = None
+    split: tuple[float, float, float] = (0.7, 0.15, 0.15)
+    seed: int = Field(0, ge=0, le=SEED_MAX)
+    dtype: Literal["float32", "float64"] = "float32"
+    out: Path | None = None
+
+    _parse_split = field_validator("split", mode="before")(_split_fractions)
+    _check_split = field_validator("split")(_valid_split)
+    _parse_names = field_validator("state_names", "control_names", mode="before")(_names)
+
+    @model_validator(mode="after")
+    def _check_graph(self) -> ImportConfig:
+        if (self.adjacency is None) == (self.edge_list is None):
+            raise ValueError("give the graph as exactly one of --adjacency A.npy or "
+                             "--edge-list E.txt")
+        if self.directed and self.edge_list is None:
+            raise ValueError("directed applies to an edge list only (--edge-list); an "
+                             "adjacency matrix says its own direction")
+        for field in ("state_names", "control_names"):
+            names = getattr(self, field) or []
+            if any(not name for name in names) or len(set(names)) != len(names):
+                raise ValueError(f"{field} must be distinct, non-empty names, got "
+                                 f"{','.join(names)!r}")
+        return self
 
 
 class TrainConfig(BaseModel):

@@ -292,7 +292,7 @@ def generate(
         total += len(pending)
 
     # 5. Split by trajectory and write.
-    split = _split(k, config.split, config.seed)
+    split = split_trajectories(k, config.split, config.seed)
     dataset = Dataset(
         system=system.name,
         dt=config.dt,
@@ -399,7 +399,7 @@ def format_bytes(n: float) -> str:
     return f"{n:.3g} PiB"  # unreachable: the loop returns at TiB
 
 
-def _split(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:
+def split_trajectories(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:
     """uint8 `[K]`: 0 train, 1 validation, 2 test, shuffled by trajectory.
 
     Its own generator (`default_rng([seed, 1])`), so the split does not depend on how many
