@@ -72,6 +72,25 @@ def _valid_split(cls: type, value: tuple[float, float, float]) -> tuple[float, f
     return value
 
 
+def _check_grid(dt: float, t_end: float) -> None:
+    """Samples `0, dt, ..., t_end`: t_end must be a whole number of dt steps."""
+    if dt > t_end:
+        raise ValueError(f"dt ({dt:g}) is larger than t_end ({t_end:g})")
+    steps = t_end / dt
+    if abs(steps - round(steps)) > _GRID_TOL * max(1.0, steps):
+        raise ValueError(f"t_end ({t_end:g}) must be a whole number of dt ({dt:g}) steps")
+
+
+def _check_graph_source(adjacency: Path | None, edge_list: Path | None, directed: bool) -> None:
+    """A user's graph comes as exactly one of an adjacency array or an edge list."""
+    if (adjacency is None) == (edge_list is None):
+        raise ValueError("give the graph as exactly one of --adjacency A.npy or "
+                         "--edge-list E.txt")
+    if directed and edge_list is None:
+        raise ValueError("directed applies to an edge list only (--edge-list); an "
+                         "adjacency matrix says its own direction")
+
+
 def _names(cls: type, value: Any) -> Any:
     """Accept the command line's `"x,y"` as well as a list of names."""
     if isinstance(value, str):
@@ -145,13 +164,7 @@ class GenerateConfig(BaseModel):
     @model_validator(mode="after")
     def _check_cross_fields(self) -> GenerateConfig:
         if self.dt is not None and self.t_end is not None:
-            if self.dt > self.t_end:
-                raise ValueError(f"dt ({self.dt:g}) is larger than t_end ({self.t_end:g})")
-            steps = self.t_end / self.dt
-            if abs(steps - round(steps)) > _GRID_TOL * max(1.0, steps):
-                raise ValueError(
-                    f"t_end ({self.t_end:g}) must be a whole number of dt ({self.dt:g}) steps"
-                )
+            _check_grid(self.dt, self.t_end)
         if self.nodes is not None and self.grid is not None and self.nodes != self.grid**2:
             raise ValueError(
                 f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of side "
@@ -217,19 +230,56 @@ class ImportConfig(BaseModel):
     _parse_names = field_validator("state_names", "control_names", mode="before")(_names)
 
     @model_validator(mode="after")
-    def _check_graph(self) -> ImportConfig:
-        if (self.adjacency is None) == (self.edge_list is None):
-            raise ValueError("give the graph as exactly one of --adjacency A.npy or "
-                             "--edge-list E.txt")
-        if self.directed and self.edge_list is None:
-            raise ValueError("directed applies to an edge list only (--edge-list); an "
-                             "adjacency matrix says its own direction")
+    def _check(self) -> ImportConfig:
+        _check_graph_source(self.adjacency, self.edge_list, self.directed)
         for field in ("state_names", "control_names"):
             names = getattr(self, field) or []
             if any(not name for name in names) or len(set(names)) != len(names):
                 raise ValueError(f"{field} must be distinct, non-empty names, got "
                                  f"{','.join(names)!r}")
         return self
+
+
+class SimulateConfig(BaseModel):
+    """What `mpnode simulate` does: a trained node model rolled out on graphs of your own.
+
+    Attributes:
+        checkpoint: the checkpoint (`.pt`; a run folder means its `checkpoints/best.pt`).
+        x0: `[K, N, D]` (or `[N, D]`) initial states in physical units, `.npy`.
+        adjacency, edge_list, directed: the graph(s), as for `ImportConfig`.
+        t_end, dt: samples `0, dt, ..., t_end`.
+        controls: `[K, T, N, U]` physical zero-order-hold controls (`.npy`), T = t_end/dt + 1.
+        batch_size: trajectories per rollout.
+        device: where the rollouts run.
+        dtype: storage dtype of the predictions.
+        out: output file (default `predictions/<x0 file stem>.h5`).
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    checkpoint: Path
+    x0: Path
+    adjacency: Path | None = None
+    edge_list: Path | None = None
+    directed: bool = False
+    t_end: float = Field(gt=0)
+    dt: float = Field(gt=0)
+    controls: Path | None = None
+    batch_size: int = Field(128, ge=1)
+    device: Literal["cpu", "cuda"] = "cpu"
+    dtype: Literal["float32", "float64"] = "float32"
+    out: Path | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> SimulateConfig:
+        _check_graph_source(self.adjacency, self.edge_list, self.directed)
+        _check_grid(self.dt, self.t_end)
+        return self
+
+    @property
+    def num_steps(self) -> int:
+        """Number of dt steps, T − 1."""
+        return round(self.t_end / self.dt)
 
 
 class TrainConfig(BaseModel):

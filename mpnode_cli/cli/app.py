@@ -24,6 +24,7 @@ from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
 from mpnode_cli.cli.generate import generate_command
 from mpnode_cli.cli.importer import import_command
 from mpnode_cli.cli.info import info_command
+from mpnode_cli.cli.simulate import simulate_command
 from mpnode_cli.cli.train import finetune_command, train_command
 from mpnode_cli.threads import ENV_VAR, apply_threads, choose_threads
 
@@ -87,6 +88,7 @@ app.command("train", cls=_Computing)(train_command)
 app.command("finetune", no_args_is_help=True, cls=_Computing)(finetune_command)
 app.command("evaluate", no_args_is_help=True, cls=_Computing)(evaluate_command)
 app.command("zeroshot", no_args_is_help=True, cls=_Computing)(zeroshot_command)
+app.command("simulate", no_args_is_help=True, cls=_Computing)(simulate_command)
 app.command("compare", no_args_is_help=True)(compare_command)
 experiment_app.command("list")(list_command)
 experiment_app.command("run", no_args_is_help=True, cls=_Computing)(run_command)

@@ -132,7 +132,8 @@ class TrajectoryData:
             control_names=tuple(ds.control_names), path=Path(path),
             fingerprint=fingerprint(states, ds.adjacency, ds.graph_index, ds.time),
             attrs={"topology": topology, "config": ds.config, "dt": ds.dt,
-                   "recipe": _recipe(ds.extra_attrs.get("recipe"))})
+                   "recipe": _recipe(ds.extra_attrs.get("recipe")),
+                   "prediction": ds.extra_attrs.get("prediction")})
 
     def __len__(self) -> int:
         return self.states.shape[0]

@@ -84,7 +84,8 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
     k, t, n, d = states.shape
     time = _time(loaded.time, config.dt, t, config.states)
     names = _names(config.state_names, loaded.names, d, "state", "x", config.states)
-    adjacency, graph_index = load_graph(config, k, n)
+    adjacency, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
+                                        directed=config.directed)
     controls, control_names = None, ()
     if config.controls is not None:
         controls = load_controls(config.controls, (k, t, n))
@@ -164,12 +165,19 @@ def load_states(path: str | Path) -> Loaded:
     return loaded
 
 
-def load_graph(config: ImportConfig, k: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: int, n: int,
+               *, directed: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The graphs of `k` trajectories on `n` nodes: `(adjacency uint8 [G, N, N],
     graph_index int32 [K])`.
 
-    An adjacency of `[K, N, N]` stores each distinct graph once (`graph_index` says
-    which trajectory ran on which). An edge list is one graph for all.
+    Args:
+        adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory);
+            each distinct graph is stored once (`graph_index` says which trajectory ran
+            on which).
+        edge_list: or a text file of `i j` lines (`mpnode_cli.graphs.read_edge_list`),
+            one graph for all.
+        k, n: the trajectories' and nodes' count.
+        directed: read the edge list's `i j` as the one edge i → j.
 
     Raises:
         ValueError: a graph that cannot be read, has another number of nodes than the
@@ -177,23 +185,24 @@ def load_graph(config: ImportConfig, k: int, n: int) -> tuple[np.ndarray, np.nda
     """
     from mpnode_cli.graphs import read_edge_list
 
-    if config.edge_list is not None:
+    if edge_list is not None:
         try:
-            a = read_edge_list(config.edge_list, directed=config.directed)
+            a = read_edge_list(edge_list, directed=directed)
         except OSError as exc:
-            raise ValueError(f"cannot read edge list {config.edge_list}: "
+            raise ValueError(f"cannot read edge list {edge_list}: "
                              f"{exc.strerror or exc}") from None
         if a.shape[0] != n:
-            raise ValueError(f"{config.edge_list} has {a.shape[0]} nodes (ids 0..{a.shape[0] - 1})"
+            raise ValueError(f"{edge_list} has {a.shape[0]} nodes (ids 0..{a.shape[0] - 1})"
                              f" but the states have {n}")
         return a[None], np.zeros(k, dtype=np.int32)
-    path = Path(config.adjacency)
-    a = _numbers(_single(path), path, "adjacency")
-    if a.ndim == 2:
-        a = a[None]
+    if adjacency is None:
+        raise ValueError("give the graph as an adjacency array or an edge list")
+    path = Path(adjacency)
+    given = _numbers(_single(path), path, "adjacency")
+    a = given[None] if given.ndim == 2 else given
     if a.ndim != 3 or a.shape[1:] != (n, n) or len(a) not in (1, k):
         raise ValueError(f"{path}: adjacency must be [N, N] (one graph) or [K, N, N] (one per "
-                         f"trajectory) with N = {n}, K = {k}, got shape {list(np.shape(a))}")
+                         f"trajectory) with N = {n}, K = {k}, got shape {list(given.shape)}")
     off = ~np.isin(a, (0, 1))
     if off.any():
         where = ", ".join(map(str, np.argwhere(off)[0]))
@@ -203,6 +212,23 @@ def load_graph(config: ImportConfig, k: int, n: int) -> tuple[np.ndarray, np.nda
         return a.astype(np.uint8), np.zeros(k, dtype=np.int32)
     unique, index = np.unique(a.astype(np.uint8), axis=0, return_inverse=True)
     return unique, index.reshape(k).astype(np.int32)
+
+
+def load_initial_states(path: str | Path) -> np.ndarray:
+    """Initial states `[K, N, D]` (or one, `[N, D]`) from `.npy` or `.npz`; float64.
+
+    Raises:
+        ValueError: an unreadable file, another shape, or values that are not finite.
+    """
+    path = Path(path)
+    x0 = _numbers(_single(path), path, "initial states")
+    if x0.ndim == 2:
+        x0 = x0[None]
+    if x0.ndim != 3 or 0 in x0.shape:
+        raise ValueError(f"{path}: initial states must be [K, N, D] (trajectories, nodes, state "
+                         f"components), got shape {list(x0.shape)}")
+    _finite(x0, path, ("trajectory", "node", "component"))
+    return x0
 
 
 def load_controls(path: str | Path, ktn: tuple[int, int, int]) -> np.ndarray:
