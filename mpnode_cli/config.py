@@ -104,7 +104,10 @@ class GenerateConfig(BaseModel):
     Fields left `None` take the system's defaults in `resolve_config`.
 
     Attributes:
-        system: registry name (`pendulum`, `lorenz`, `gene`, `kuramoto`).
+        system: registry name (`pendulum`, `lorenz`, `gene`, `kuramoto`, `quadrotor`, or
+            a system of your own).
+        system_file: the Python file that defines `system` when it is your own and not an
+            installed entry point (`mpnode_cli.systems.registry.load_system_file`).
         params: scalar parameters and options of the system, e.g. `{"coupling": 1.0}` for
             lorenz, `{"init": "hotspot"}` for gene, `{"K": 0.5}` for kuramoto.
         nodes: N, the number of nodes (default: the system's, or the edge list's).
@@ -135,6 +138,7 @@ class GenerateConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     system: str
+    system_file: Path | None = None
     params: dict[str, float | str] = Field(default_factory=dict)
     nodes: int | None = Field(None, ge=1)
     grid: int | None = Field(None, ge=1)
