@@ -150,6 +150,11 @@ def generate_command(
         params.update({k: v for k, v in system_options.items() if v is not None})
         if params:
             options["params"] = params
+        own = None
+        if system_file is not None:  # first, so that its presets are known
+            from mpnode_cli.systems.registry import load_system_file
+
+            own = load_system_file(system_file).name
         layers = [
             (f"preset {preset}", get_preset(preset) if preset else {}),
             (f"config {config_file}",
@@ -157,6 +162,8 @@ def generate_command(
             ("command line", options),
         ]
         fields = merge_layers(layers)
+        if "system" not in fields and own is not None:
+            fields["system"] = own
         if "system" not in fields:
             raise ValueError(f"give a SYSTEM ({_system_names()}) or --preset NAME")
         config = GenerateConfig(**fields)

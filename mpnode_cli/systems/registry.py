@@ -100,7 +100,8 @@ def load_system_file(path: str | Path) -> type[System]:
     """Import a Python file and register the one `System` subclass it defines.
 
     The module is imported under a name derived from the file's path, so two files of the
-    same name do not collide; loading the same file again returns its registered class.
+    same name do not collide; loading the same file again returns its registered class,
+    and a file that defines a name already loaded from another file takes it over.
 
     Raises:
         ValueError: a missing file, one that does not import, or one that defines no
@@ -124,18 +125,19 @@ def load_system_file(path: str | Path) -> type[System]:
             raise ValueError(f"--system-file {path} does not import: "
                              f"{type(exc).__name__}: {exc}") from None
     classes = [cls for _, cls in inspect.getmembers(module, inspect.isclass)
-               if issubclass(cls, System) and cls.__module__ == module_name
-               and not inspect.isabstract(cls)]
-    if len(classes) != 1:
-        names = ", ".join(cls.__name__ for cls in classes) or "none"
+               if issubclass(cls, System) and cls.__module__ == module_name]
+    concrete = [cls for cls in classes if not inspect.isabstract(cls)]
+    if not concrete and classes:  # a class that misses a method: say which
+        missing = ", ".join(sorted(classes[0].__abstractmethods__))
+        raise ValueError(f"--system-file {path}: the system {classes[0].__name__} does not "
+                         f"declare {missing} (docs/custom-systems.md)")
+    if len(concrete) != 1:
+        names = ", ".join(cls.__name__ for cls in concrete) or "none"
         raise ValueError(f"--system-file {path} must define exactly one System subclass, "
                          f"found {names}")
-    cls = classes[0]
+    cls = concrete[0]
     _check_class(cls, f"--system-file {path}")
-    if _FILES.get(cls.name, cls) is not cls and _FILES[cls.name].__module__ != module_name:
-        raise ValueError(f"--system-file {path}: a system called '{cls.name}' is already "
-                         "loaded from another file")
-    _FILES[cls.name] = cls
+    _FILES[cls.name] = cls  # the file named last defines the name
     return cls
 
 
