@@ -7,6 +7,7 @@ import csv
 import hashlib
 import json
 
+import h5py
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -65,6 +66,17 @@ def test_npy_and_adjacency_read_back_equal(arrays):
     summary = json.loads(result.output)
     assert ds.extra_attrs["fingerprint"] == summary["fingerprint"] == TrajectoryData.load(
         out).fingerprint
+
+
+def test_check_finds_data_changed_after_import(arrays):
+    root, _, _ = arrays
+    out = root / "t.h5"
+    assert invoke("import", "--states", root / "s.npy", "--adjacency", root / "a.npy", "--dt",
+                  0.1, "--out", out).exit_code == 0
+    with h5py.File(out, "r+") as f:
+        f["states"][0, 1, 0, 0] += 1.0
+    report = check_dataset(out)
+    assert len(report.problems) == 1 and "fingerprint" in report.problems[0]
 
 
 def test_float32_storage_is_the_cast(arrays):

@@ -141,6 +141,21 @@ class _Checker:
         for name in ("states", "controls", *(f"hidden/{h}" for h in self._hidden_names())):
             if name in self.f and isinstance(self.f[name], h5py.Dataset):
                 self._finite(name)
+        if "fingerprint" in attrs and not self.problems:
+            self._fingerprint(attrs["fingerprint"], states)
+
+    def _fingerprint(self, stored: Any, states: h5py.Dataset) -> None:
+        """A recorded fingerprint (`mpnode import`, predictions) must still be the data's."""
+        from mpnode_cli.data.hdf5 import fingerprint
+
+        per_row = max(1, int(np.prod(states.shape[1:])))
+        have = fingerprint(states, self.f["graph/adjacency"][()], self.f["graph_index"][()],
+                           self.f["time"][()], rows=max(1, _BLOCK_VALUES // per_row))
+        self.summary["fingerprint"] = have
+        if stored != have:
+            self.problem(f"attribute fingerprint {str(stored)[:12]}... is not the data's "
+                         f"({have[:12]}...): the arrays changed after the file was written; "
+                         "delete the attribute if that was meant")
 
     def _format(self, attrs: dict[str, Any]) -> bool:
         name, version = attrs.get("format"), attrs.get("format_version")
