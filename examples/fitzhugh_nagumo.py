@@ -33,12 +33,10 @@ class FitzHughNagumo(System):
     default_topology: ClassVar[str] = "chain"
     default_nodes: ClassVar[int] = 4
 
-    # Physical parameters (`-p eps=0.1`), stored as attributes of the dataset's `params`.
+    # Physical parameters (`-p eps=0.1`), stored as attributes of the dataset's `params`:
+    # recovery offset a and damping b, time-scale ratio eps, drive I, coupling strength c.
     defaults: ClassVar[dict[str, float]] = {"a": 0.7, "b": 0.8, "eps": 0.08, "I": 0.5,
                                             "c": 0.1}
-    parameter_help: ClassVar[dict[str, str]] = {
-        "a": "recovery offset", "b": "recovery damping", "eps": "time-scale ratio",
-        "I": "drive current", "c": "coupling strength"}
 
     # Options that are not physical parameters (`-p ic_box=1.5`), with their help.
     options: ClassVar[dict[str, Option]] = {

@@ -8,7 +8,7 @@ filter of trajectories to redraw (`reject`).
 
 A system declares what `mpnode generate` needs to know about it, so that neither the CLI
 nor the presets hold per-system knowledge: its scalar parameters and their defaults
-(`defaults`, with `parameter_help`), its options (`options`: `Option` declarations with
+(`defaults`), its options (`options`: `Option` declarations with
 defaults, help and allowed values; the CLI's "System options" are built from them), its
 data defaults (`data_defaults`: trajectories, horizon, spacing) and its named datasets
 (`presets`). A system of your own subclasses `System` in a Python file
@@ -122,7 +122,7 @@ class System(ABC):
         topologies: the `mpnode_cli.graphs.make_graph` topologies it runs on;
             default_topology and default_nodes: the graph without options.
         defaults: scalar parameters and their default values (written as attributes of
-            the dataset's `params` group); parameter_help: one line per parameter.
+            the dataset's `params` group; given as `-p NAME=VALUE`).
         options: options that are not physical parameters, name → `Option`; each is
             stored on the instance as an attribute of its name.
         data_defaults: `trajectories`, `t_end` and `dt` of `mpnode generate NAME` without
@@ -139,7 +139,6 @@ class System(ABC):
     default_topology: ClassVar[str]
     default_nodes: ClassVar[int]
     defaults: ClassVar[dict[str, float]]
-    parameter_help: ClassVar[dict[str, str]] = {}
     options: ClassVar[dict[str, Option]] = {}
     # The authors' data defaults (MPNODE.jl configs/empode_sys_32_3.toml).
     data_defaults: ClassVar[dict[str, float]] = {"trajectories": 1000, "t_end": 2.5,
