@@ -49,13 +49,65 @@ def _over(defaults: Callable[[], SolverOptions], value: Any) -> Any:
     return {**defaults().model_dump(), **value} if isinstance(value, dict) else value
 
 
+def _split_fractions(cls: type, value: Any) -> Any:
+    """Accept the command line's `"0.7,0.15,0.15"` as well as a list of three numbers."""
+    parts = value.replace(" ", "").split(",") if isinstance(value, str) else value
+    try:
+        numbers = tuple(float(p) for p in parts)
+    except (TypeError, ValueError):
+        numbers = ()
+    if len(numbers) != 3:
+        raise ValueError(f"expected three fractions like 0.7,0.15,0.15, got {value!r}")
+    return numbers
+
+
+def _valid_split(cls: type, value: tuple[float, float, float]) -> tuple[float, float, float]:
+    if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(
+        sum(value), 1.0, abs_tol=1e-6
+    ):
+        shown = ",".join(f"{x:g}" for x in value)
+        raise ValueError(
+            f"train,validation,test fractions must lie in [0, 1] and sum to 1, got {shown}"
+        )
+    return value
+
+
+def _check_grid(dt: float, t_end: float) -> None:
+    """Samples `0, dt, ..., t_end`: t_end must be a whole number of dt steps."""
+    if dt > t_end:
+        raise ValueError(f"dt ({dt:g}) is larger than t_end ({t_end:g})")
+    steps = t_end / dt
+    if abs(steps - round(steps)) > _GRID_TOL * max(1.0, steps):
+        raise ValueError(f"t_end ({t_end:g}) must be a whole number of dt ({dt:g}) steps")
+
+
+def _check_graph_source(adjacency: Path | None, edge_list: Path | None, directed: bool) -> None:
+    """A user's graph comes as exactly one of an adjacency array or an edge list."""
+    if (adjacency is None) == (edge_list is None):
+        raise ValueError("give the graph as exactly one of --adjacency A.npy or "
+                         "--edge-list E.txt")
+    if directed and edge_list is None:
+        raise ValueError("directed applies to an edge list only (--edge-list); an "
+                         "adjacency matrix says its own direction")
+
+
+def _names(cls: type, value: Any) -> Any:
+    """Accept the command line's `"x,y"` as well as a list of names."""
+    if isinstance(value, str):
+        return [part.strip() for part in value.split(",")]
+    return value
+
+
 class GenerateConfig(BaseModel):
     """What `mpnode generate` makes: one system on G graphs, K trajectories, one HDF5 file.
 
     Fields left `None` take the system's defaults in `resolve_config`.
 
     Attributes:
-        system: registry name (`pendulum`, `lorenz`, `gene`, `kuramoto`).
+        system: registry name (`pendulum`, `lorenz`, `gene`, `kuramoto`, `quadrotor`, or
+            a system of your own).
+        system_file: the Python file that defines `system` when it is your own and not an
+            installed entry point (`mpnode_cli.systems.registry.load_system_file`).
         params: scalar parameters and options of the system, e.g. `{"coupling": 1.0}` for
             lorenz, `{"init": "hotspot"}` for gene, `{"K": 0.5}` for kuramoto.
         nodes: N, the number of nodes (default: the system's, or the edge list's).
@@ -86,6 +138,7 @@ class GenerateConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     system: str
+    system_file: Path | None = None
     params: dict[str, float | str] = Field(default_factory=dict)
     nodes: int | None = Field(None, ge=1)
     grid: int | None = Field(None, ge=1)
@@ -104,46 +157,18 @@ class GenerateConfig(BaseModel):
     out: Path | None = None
     chunk_size: int = Field(1024, ge=1)
 
-    @field_validator("split", mode="before")
-    @classmethod
-    def _parse_split(cls, value: Any) -> Any:
-        """Accept the command line's `"0.7,0.15,0.15"` as well as a list of three numbers."""
-        parts = value.replace(" ", "").split(",") if isinstance(value, str) else value
-        try:
-            numbers = tuple(float(p) for p in parts)
-        except (TypeError, ValueError):
-            numbers = ()
-        if len(numbers) != 3:
-            raise ValueError(f"expected three fractions like 0.7,0.15,0.15, got {value!r}")
-        return numbers
+    _parse_split = field_validator("split", mode="before")(_split_fractions)
+    _check_split = field_validator("split")(_valid_split)
 
     @field_validator("solver", mode="before")
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
         return _over(generate_solver, value)
 
-    @field_validator("split")
-    @classmethod
-    def _check_split(cls, value: tuple[float, float, float]) -> tuple[float, float, float]:
-        if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(
-            sum(value), 1.0, abs_tol=1e-6
-        ):
-            shown = ",".join(f"{x:g}" for x in value)
-            raise ValueError(
-                f"train,validation,test fractions must lie in [0, 1] and sum to 1, got {shown}"
-            )
-        return value
-
     @model_validator(mode="after")
     def _check_cross_fields(self) -> GenerateConfig:
         if self.dt is not None and self.t_end is not None:
-            if self.dt > self.t_end:
-                raise ValueError(f"dt ({self.dt:g}) is larger than t_end ({self.t_end:g})")
-            steps = self.t_end / self.dt
-            if abs(steps - round(steps)) > _GRID_TOL * max(1.0, steps):
-                raise ValueError(
-                    f"t_end ({self.t_end:g}) must be a whole number of dt ({self.dt:g}) steps"
-                )
+            _check_grid(self.dt, self.t_end)
         if self.nodes is not None and self.grid is not None and self.nodes != self.grid**2:
             raise ValueError(
                 f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of side "
@@ -165,6 +190,99 @@ class GenerateConfig(BaseModel):
         """Number of dt steps, T − 1 (after resolution)."""
         if self.t_end is None or self.dt is None:
             raise ValueError("num_steps needs a resolved config (t_end and dt set)")
+        return round(self.t_end / self.dt)
+
+
+class ImportConfig(BaseModel):
+    """What `mpnode import` makes: one dataset file (system "custom") from a user's arrays.
+
+    Attributes:
+        states: `[K, T, N, D]` as `.npy`, `.npz` (array `states`, optionally `time`) or a
+            long-format `.csv` with `trajectory`, `time`, `node` and one column per state.
+        adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory),
+            `A[i, j] = 1` iff node j sends to node i.
+        edge_list: the graph as a text file of `i j` lines (or `i j w`, w 0 or 1);
+            `mpnode_cli.graphs.read_edge_list`. Exactly one of the two.
+        directed: read the edge list's `i j` as one edge from i to j.
+        dt: sample spacing (a time column or array must step by it).
+        controls: `.npy` of `[K, T, N, U]` zero-order-hold controls.
+        state_names, control_names: names of the D states and U controls (default: the
+            CSV's columns, else `x0, x1, ...` and `u0, u1, ...`).
+        split: train, validation, test fractions (by trajectory).
+        seed: seed of the split (`numpy.random.default_rng([seed, 1])`, as generate).
+        dtype: storage dtype of `states` and `controls`.
+        out: output file (default `datasets/<states file stem>.h5`).
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    states: Path
+    adjacency: Path | None = None
+    edge_list: Path | None = None
+    directed: bool = False
+    dt: float = Field(gt=0)
+    controls: Path | None = None
+    state_names: list[str] | None = None
+    control_names: list[str] | None = None
+    split: tuple[float, float, float] = (0.7, 0.15, 0.15)
+    seed: int = Field(0, ge=0, le=SEED_MAX)
+    dtype: Literal["float32", "float64"] = "float32"
+    out: Path | None = None
+
+    _parse_split = field_validator("split", mode="before")(_split_fractions)
+    _check_split = field_validator("split")(_valid_split)
+    _parse_names = field_validator("state_names", "control_names", mode="before")(_names)
+
+    @model_validator(mode="after")
+    def _check(self) -> ImportConfig:
+        _check_graph_source(self.adjacency, self.edge_list, self.directed)
+        for field in ("state_names", "control_names"):
+            names = getattr(self, field) or []
+            if any(not name for name in names) or len(set(names)) != len(names):
+                raise ValueError(f"{field} must be distinct, non-empty names, got "
+                                 f"{','.join(names)!r}")
+        return self
+
+
+class SimulateConfig(BaseModel):
+    """What `mpnode simulate` does: a trained node model rolled out on graphs of your own.
+
+    Attributes:
+        checkpoint: the checkpoint (`.pt`; a run folder means its `checkpoints/best.pt`).
+        x0: `[K, N, D]` (or `[N, D]`) initial states in physical units, `.npy`.
+        adjacency, edge_list, directed: the graph(s), as for `ImportConfig`.
+        t_end, dt: samples `0, dt, ..., t_end`.
+        controls: `[K, T, N, U]` physical zero-order-hold controls (`.npy`), T = t_end/dt + 1.
+        batch_size: trajectories per rollout.
+        device: where the rollouts run.
+        dtype: storage dtype of the predictions.
+        out: output file (default `predictions/<x0 file stem>.h5`).
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    checkpoint: Path
+    x0: Path
+    adjacency: Path | None = None
+    edge_list: Path | None = None
+    directed: bool = False
+    t_end: float = Field(gt=0)
+    dt: float = Field(gt=0)
+    controls: Path | None = None
+    batch_size: int = Field(128, ge=1)
+    device: Literal["cpu", "cuda"] = "cpu"
+    dtype: Literal["float32", "float64"] = "float32"
+    out: Path | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> SimulateConfig:
+        _check_graph_source(self.adjacency, self.edge_list, self.directed)
+        _check_grid(self.dt, self.t_end)
+        return self
+
+    @property
+    def num_steps(self) -> int:
+        """Number of dt steps, T − 1."""
         return round(self.t_end / self.dt)
 
 

@@ -115,6 +115,11 @@ def read_edge_list(path: str | Path, *, directed: bool = False) -> np.ndarray:
     isolated node on a line of its own). Blank lines and `#` comments are skipped;
     duplicate edges are merged. Ids may be separated by spaces, tabs or a comma.
 
+    A third column is the edge's weight, as networkx's `write_weighted_edgelist` writes
+    it. mpnode's graphs are unweighted (a dataset's adjacency holds 0 and 1,
+    docs/dataset-format.md), so a weight must be 1 (the edge) or 0 (no edge; its ids still
+    count as nodes); any other weight is refused rather than silently rounded.
+
     Args:
         path: the text file.
         directed: read `i j` as the one edge i → j instead of an undirected edge.
@@ -134,9 +139,10 @@ def read_edge_list(path: str | Path, *, directed: bool = False) -> np.ndarray:
             continue
         fields = line.split()
         where = f"{path}:{lineno}"
-        if len(fields) not in (1, 2):
-            raise ValueError(f"{where}: expected two node ids 'i j' (or one, for a node "
-                             f"without edges), got {raw.strip()!r}")
+        if len(fields) not in (1, 2, 3):
+            raise ValueError(f"{where}: expected two node ids 'i j' and an optional weight "
+                             f"(or one id, for a node without edges), got {raw.strip()!r}")
+        weight = _weight(fields.pop(), where) if len(fields) == 3 else 1.0
         try:
             ids = [int(x) for x in fields]
         except ValueError:
@@ -149,7 +155,8 @@ def read_edge_list(path: str | Path, *, directed: bool = False) -> np.ndarray:
             continue
         if ids[0] == ids[1]:
             raise ValueError(f"{where}: self-loop {ids[0]} {ids[0]} is not allowed")
-        pairs.append((ids[0], ids[1]))
+        if weight:
+            pairs.append((ids[0], ids[1]))
     if not pairs:
         raise ValueError(f"{path}: no edges found (expected lines of 'i j')")
     n = max(nodes) + 1
@@ -165,6 +172,18 @@ def read_edge_list(path: str | Path, *, directed: bool = False) -> np.ndarray:
     if not directed:
         adjacency[ij[:, 0], ij[:, 1]] = 1
     return adjacency
+
+
+def _weight(text: str, where: str) -> float:
+    """An edge list's weight column: 1 (an edge) or 0 (none); anything else is refused."""
+    try:
+        weight = float(text)
+    except ValueError:
+        raise ValueError(f"{where}: an edge weight must be a number, got {text!r}") from None
+    if weight not in (0.0, 1.0):
+        raise ValueError(f"{where}: edge weight {text} is not 0 or 1; mpnode's graphs are "
+                         "unweighted (an adjacency holds 0 and 1, docs/dataset-format.md)")
+    return weight
 
 
 def edges(adjacency: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -8,6 +8,7 @@ replaced: the user meant something else, and replacing it would be hard to undo.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import stat
 import tempfile
@@ -76,3 +77,13 @@ def check_writable_dir(path: str | Path) -> None:
     except OSError as exc:
         where = path if probe == path else f"{path} (its folder {probe})"
         raise ValueError(f"cannot write in {where}: {exc.strerror or exc}") from None
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex sha256 of a file's bytes: a checkpoint's identity (recorded by finetunes and
+    predictions), an imported input's."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -16,7 +16,8 @@ runner = CliRunner()
 def test_help_lists_the_verbs():
     result = runner.invoke(app, ["--help"])
     assert result.exit_code == 0
-    for verb in ("generate", "train", "evaluate", "zeroshot", "finetune", "info"):
+    for verb in ("generate", "import", "train", "evaluate", "zeroshot", "finetune", "info",
+                 "check", "simulate"):
         assert verb in result.output
 
 

@@ -142,10 +142,32 @@ def test_read_edge_list(tmp_path):
     np.testing.assert_array_equal(a, expected)
 
 
+def test_read_edge_list_weights(tmp_path):
+    # networkx's weighted edge list: weight 1 is an edge, weight 0 declares its nodes only.
+    path = tmp_path / "w.txt"
+    path.write_text("0 1 1\n1 2 1.0\n2 3 0\n")
+    expected = np.zeros((4, 4), dtype=np.uint8)
+    for i, j in [(0, 1), (1, 2)]:
+        expected[i, j] = expected[j, i] = 1
+    np.testing.assert_array_equal(read_edge_list(path), expected)
+    directed = read_edge_list(path, directed=True)
+    assert directed[1, 0] == 1 and directed[0, 1] == 0
+
+
+def test_read_edge_list_of_weight_zero_only_has_no_edges(tmp_path):
+    path = tmp_path / "zero.txt"
+    path.write_text("0 1 0\n")
+    with pytest.raises(ValueError, match="no edges"):
+        read_edge_list(path)
+
+
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("0 1\n1 2 3\n", "two node ids"),
+        ("0 1\n1 2 1 4\n", "two node ids"),
+        ("0 1\n1 2 3\n", "not 0 or 1"),
+        ("0 1\n1 2 0.5\n", "unweighted"),
+        ("0 1\n1 2 heavy\n", "must be a number"),
         ("0 x\n", "integers"),
         ("0 -1\n", "non-negative"),
         ("2 2\n", "self-loop"),

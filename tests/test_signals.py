@@ -120,3 +120,39 @@ def test_train_stopped_leaves_a_summary_and_a_resumable_checkpoint(dataset, tmp_
     summary = json.loads((run / "summary.json").read_text())
     assert summary["finished"] is True and "interrupted" not in summary
     assert summary["epochs"] == last.epoch + 1
+
+
+@pytest.mark.parametrize("verb", ["import", "simulate"])
+def test_import_and_simulate_stopped_while_writing_leave_nothing(tmp_path, monkeypatch, verb,
+                                                                 dataset):
+    """SIGTERM while the file is written (h5py would swallow it): held until a field is
+    done, then the write stops, the temporary file goes, and the verb exits 143."""
+    import numpy as np
+
+    write = hdf5._write
+
+    def interrupted_write(f, ds, check=lambda: None):
+        os.kill(os.getpid(), signal.SIGTERM)  # arrives inside the write
+        write(f, ds, check)
+
+    out = tmp_path / "out" / "x.h5"
+    if verb == "import":
+        np.save(tmp_path / "s.npy", np.zeros((4, 3, 2, 1)))
+        np.save(tmp_path / "a.npy", np.ones((2, 2)) - np.eye(2))
+        args = ["import", "--states", tmp_path / "s.npy", "--adjacency", tmp_path / "a.npy",
+                "--dt", 0.1, "--out", out]
+    else:
+        run = tmp_path / "run"
+        trained = CliRunner().invoke(app, [str(a) for a in (
+            "train", dataset, "--epochs", 1, "--batch-size", 8, "--no-plots", "--run-dir",
+            run)])
+        assert trained.exit_code == 0, trained.output
+        np.save(tmp_path / "x0.npy", np.zeros((2, 4, 3)))
+        np.save(tmp_path / "a.npy", np.ones((4, 4)) - np.eye(4))
+        args = ["simulate", run, "--x0", tmp_path / "x0.npy", "--adjacency",
+                tmp_path / "a.npy", "--t-end", 0.2, "--dt", 0.05, "--out", out]
+    monkeypatch.setattr(hdf5, "_write", interrupted_write)
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 128 + signal.SIGTERM, result.output
+    assert "Interrupted (SIGTERM): nothing written" in result.output
+    assert not out.exists() and _stray(out.parent) == []

@@ -22,7 +22,9 @@ from mpnode_cli.cli.common import fail, hide_flag_types
 from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
 from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
 from mpnode_cli.cli.generate import generate_command
+from mpnode_cli.cli.importer import import_command
 from mpnode_cli.cli.info import info_command
+from mpnode_cli.cli.simulate import simulate_command
 from mpnode_cli.cli.train import finetune_command, train_command
 from mpnode_cli.threads import ENV_VAR, apply_threads, choose_threads
 
@@ -79,12 +81,14 @@ class _Computing(TyperCommand):
 # Each verb's module imports only typer at load time; heavy imports live in its function.
 # compare only reads JSON, so it has no threads to size.
 app.command("generate", no_args_is_help=True, cls=_Computing)(generate_command)
+app.command("import", no_args_is_help=True)(import_command)
 app.command("info")(info_command)
 app.command("check", no_args_is_help=True)(check_command)
 app.command("train", cls=_Computing)(train_command)
 app.command("finetune", no_args_is_help=True, cls=_Computing)(finetune_command)
 app.command("evaluate", no_args_is_help=True, cls=_Computing)(evaluate_command)
 app.command("zeroshot", no_args_is_help=True, cls=_Computing)(zeroshot_command)
+app.command("simulate", no_args_is_help=True, cls=_Computing)(simulate_command)
 app.command("compare", no_args_is_help=True)(compare_command)
 experiment_app.command("list")(list_command)
 experiment_app.command("run", no_args_is_help=True, cls=_Computing)(run_command)

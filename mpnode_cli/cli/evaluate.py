@@ -37,10 +37,15 @@ def evaluate_command(
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
     allow_other_system: bool = _OTHER_SYSTEM,
+    save_predictions: Path | None = typer.Option(
+        None, metavar="FILE", help="Write the split's predictions (physical units, messages "
+        "under hidden/messages) as an mpnode dataset file."),
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing --save-predictions file."),
     threads: str | None = THREADS,
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
-    from mpnode_cli.paths import check_writable_dir
+    from mpnode_cli.paths import check_output_file, check_writable_dir
     from mpnode_cli.report.tables import baselines_note, metrics_table
 
     _check_batch_size(batch_size)
@@ -52,8 +57,13 @@ def evaluate_command(
             check_writable_dir(where)
         except ValueError as exc:
             fail(f"--plot-dir: {exc}")
+    if save_predictions is not None:
+        try:
+            check_output_file(save_predictions, overwrite=force)
+        except (FileExistsError, ValueError) as exc:
+            fail(f"--save-predictions: {exc}")
     row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
-                    allow_other_system)
+                    allow_other_system, save_predictions, force)
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
         return
@@ -61,7 +71,9 @@ def evaluate_command(
     console().print(metrics_table(row["result"], ckpt.dataset["state_names"], title,
                                   row["baselines"]))
     console().print(baselines_note(row["baselines_note"]))
-    for path in row["plots"]:
+    if row["data_note"]:
+        console().print(f"note: {row['data_note']}", highlight=False)
+    for path in [*row["plots"], *([row["predictions"]] if row["predictions"] else [])]:
         typer.echo(f"wrote {path}")
 
 
@@ -128,11 +140,13 @@ def _check_batch_size(batch_size: int) -> None:
 
 
 def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, device: str,
-              plot_dir: Path | None, allow_other_system: bool = False) -> dict[str, Any]:
+              plot_dir: Path | None, allow_other_system: bool = False,
+              save_predictions: Path | None = None, force: bool = False) -> dict[str, Any]:
     import torch
 
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.evaluate import evaluate_checkpoint
+    from mpnode_cli.training.predict import PredictionFailed
 
     if device not in ("cpu", "cuda"):
         fail(f"unknown device '{device}' (cpu or cuda)")
@@ -142,14 +156,19 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
         data = TrajectoryData.load(dataset)
         return evaluate_checkpoint(ckpt, data, split=split, verb=verb, batch_size=batch_size,
                                    device=device, plot_dir=plot_dir,
-                                   allow_other_system=allow_other_system)
-    except (FileNotFoundError, ValueError) as exc:
+                                   allow_other_system=allow_other_system,
+                                   save_predictions=save_predictions, overwrite=force)
+    except (FileNotFoundError, FileExistsError, ValueError) as exc:
         fail(error_message(exc))
+    except PredictionFailed as exc:
+        fail(str(exc), code=1)
     except OSError as exc:  # a plot that could not be written after all
         fail(f"cannot write {exc.filename or 'a plot'}: {exc.strerror or exc}")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or a signal held while predictions were written
+        from mpnode_cli.signals import exit_code
+
         typer.echo("Interrupted", err=True)
-        raise typer.Exit(code=130) from None
+        raise typer.Exit(code=exit_code(exc)) from None
 
 
 def _default_plot_dir(checkpoint: Path) -> Path:

@@ -10,6 +10,7 @@ it prints the size and memory it will take and, above `CONFIRM_BYTES`, asks to g
 
 from __future__ import annotations
 
+import inspect
 import math
 from pathlib import Path
 from typing import Any
@@ -38,13 +39,36 @@ def _complete_preset(incomplete: str) -> list[str]:
     return [name for name in PRESETS if name.startswith(incomplete)]
 
 
+def _system_names() -> str:
+    from mpnode_cli.systems.registry import SYSTEMS
+
+    return ", ".join(SYSTEMS)
+
+
+def _topologies() -> str:
+    from mpnode_cli.systems.registry import SYSTEMS
+
+    return ", ".join(dict.fromkeys(t for cls in SYSTEMS.values() for t in cls.topologies))
+
+
+def _parameters() -> str:
+    from mpnode_cli.systems.registry import SYSTEMS
+
+    return "; ".join(f"{cls.name} " + ", ".join(f"{k} ({v:g})" for k, v in cls.defaults.items())
+                     for cls in SYSTEMS.values())
+
+
 def generate_command(
     system: str | None = typer.Argument(
         None,
-        help="pendulum, lorenz, gene, kuramoto or quadrotor (may come from --preset or --config).",
+        help=f"{_system_names()}, or your own with --system-file (may come from --preset "
+        "or --config).",
         autocompletion=_complete_system,
         show_default=False,
     ),
+    system_file: Path | None = typer.Option(
+        None, help="A Python file defining your own System subclass "
+        "(docs/custom-systems.md); its options go in as -p NAME=VALUE."),
     preset: str | None = typer.Option(
         None,
         help="Start from one of the paper's datasets, e.g. lorenz10, gene-ba-8x8.",
@@ -54,8 +78,9 @@ def generate_command(
         None, "--config", help="TOML (or JSON) file of config fields; options override it."
     ),
     nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
-    grid: str | None = typer.Option(None, metavar="N", help="Square grid side: N = grid² (gene)."),
-    topology: str | None = typer.Option(None, help="complete, chain, er, ba or ws."),
+    grid: str | None = typer.Option(None, metavar="N", help="Square grid side: N = grid²."),
+    topology: str | None = typer.Option(
+        None, help=f"One of the system's topologies ({_topologies()})."),
     graphs: str | None = typer.Option(
         None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
     graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
@@ -88,19 +113,16 @@ def generate_command(
     chunk_size: str | None = typer.Option(
         None, metavar="N", help="Trajectories per solver batch (default 1024)."
     ),
-    coupling: float | None = typer.Option(
-        None, help="lorenz: ‖H‖_F (default 0.01; the paper's high is 1.0)."
-    ),
-    init: str | None = typer.Option(None, help="gene: initial states, uniform or hotspot."),
-    ic_range: str | None = typer.Option(None, help="pendulum: small (code) or paper (appendix)."),
     param: list[str] | None = typer.Option(
         None,
         "--param",
         "-p",
         metavar="NAME=VALUE",
-        help="System parameter NAME=VALUE, e.g. -p K=0.5 (repeatable).",
+        help=f"System parameter or option NAME=VALUE, e.g. -p K=0.5 (repeatable). "
+        f"Parameters (default): {_parameters()}.",
     ),
     threads: str | None = THREADS,
+    **system_options: Any,
 ) -> None:
     """Simulate ground truth on graphs and write an HDF5 dataset."""
     from mpnode_cli.config import GenerateConfig, read_config_file, upgrade_solver_fields
@@ -110,7 +132,7 @@ def generate_command(
         "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
         "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
-        "chunk_size": chunk_size, "directed": directed or None,
+        "chunk_size": chunk_size, "directed": directed or None, "system_file": system_file,
     }  # fmt: skip
     options = {key: value for key, value in options.items() if value is not None}
     try:
@@ -125,11 +147,14 @@ def generate_command(
         options["solver"] = solver
     try:
         params = _parse_params(param or [])
-        for key, value in (("coupling", coupling), ("init", init), ("ic_range", ic_range)):
-            if value is not None:
-                params[key] = value
+        params.update({k: v for k, v in system_options.items() if v is not None})
         if params:
             options["params"] = params
+        own = None
+        if system_file is not None:  # first, so that its presets are known
+            from mpnode_cli.systems.registry import load_system_file
+
+            own = load_system_file(system_file).name
         layers = [
             (f"preset {preset}", get_preset(preset) if preset else {}),
             (f"config {config_file}",
@@ -137,14 +162,53 @@ def generate_command(
             ("command line", options),
         ]
         fields = merge_layers(layers)
+        if "system" not in fields and own is not None:
+            fields["system"] = own
         if "system" not in fields:
-            from mpnode_cli.systems.registry import SYSTEMS
-
-            raise ValueError(f"give a SYSTEM ({', '.join(SYSTEMS)}) or --preset NAME")
+            raise ValueError(f"give a SYSTEM ({_system_names()}) or --preset NAME")
         config = GenerateConfig(**fields)
     except ValueError as exc:
         _usage_error(_message(exc))
     _run(config, force, yes, json_out)
+
+
+def _system_option_parameters() -> list[inspect.Parameter]:
+    """One CLI option per option the built-in systems declare (`System.options`), in the
+    "System options" panel, with its help and the systems that take it with their
+    defaults. The system refuses an option it does not declare; a system of your own
+    takes its options as `-p NAME=VALUE`."""
+    from mpnode_cli.systems.registry import SYSTEMS
+
+    declared: dict[str, tuple[Any, list[str]]] = {}
+    for cls in SYSTEMS.values():
+        for name, option in cls.options.items():
+            first, takers = declared.setdefault(name, (option, []))
+            if bool(option.choices) != bool(first.choices):
+                raise TypeError(f"system option '{name}' is a number in one system and a "
+                                f"choice in another ({cls.name})")
+            takers.append(f"{cls.name} ({option.default:g})" if not option.choices
+                          else f"{cls.name} ({option.default})")
+    params = []
+    for name, (option, takers) in declared.items():
+        choices = f" Choices: {', '.join(option.choices)}." if option.choices else ""
+        help_text = f"{option.help}{choices} Systems (default): {', '.join(takers)}."
+        value_type = str if option.choices else float
+        params.append(inspect.Parameter(
+            name, inspect.Parameter.KEYWORD_ONLY, annotation=value_type | None,
+            default=typer.Option(None, "--" + name.replace("_", "-"), help=help_text,
+                                 rich_help_panel="System options")))
+    return params
+
+
+def _with_system_options(command):
+    """Give `command` (whose `**system_options` collects them) the systems' options."""
+    signature = inspect.signature(command)
+    fixed = [p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD]
+    command.__signature__ = signature.replace(parameters=fixed + _system_option_parameters())
+    return command
+
+
+generate_command = _with_system_options(generate_command)
 
 
 def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:

@@ -67,7 +67,10 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
                                  if name.startswith("params/")},
         "states_dtype": states_dtype, "seed": attrs["seed"],
         "graph_seed": config.get("graph_seed"),
-        "solver": stored_solver(config, generate_solver).model_dump(),
+        # Imported and hand-written data were not solved by mpnode: no solver to show.
+        "solver": (stored_solver(config, generate_solver).model_dump() if "solver" in config
+                   else None),
+        "origin": _origin(config, attrs),
         "unfinished": int(np.count_nonzero(header["solver_status"])),
         "hidden": [name.removeprefix("hidden/") for name in shapes
                    if name.startswith("hidden/")],
@@ -81,8 +84,12 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
 def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
     """(label, text) rows of the summary table."""
     solver = facts["solver"]
-    steps = (f"fixed dt {solver['fixed_dt']:g}" if solver["fixed_dt"] is not None
-             else f"rtol {solver['rtol']:g}, atol {solver['atol']:g}")
+    if solver is None:
+        solved = "none recorded (data mpnode did not solve)"
+    else:
+        steps = (f"fixed dt {solver['fixed_dt']:g}" if solver["fixed_dt"] is not None
+                 else f"rtol {solver['rtol']:g}, atol {solver['atol']:g}")
+        solved = f"{solver['method']}, {steps}, {facts['unfinished']} unfinished in the file"
     split = facts["split"]
     scalars = ", ".join(f"{key}={value:g}" for key, value in facts["parameters"].items())
     per_graph = ", ".join(f"{name} {shape}"
@@ -104,8 +111,10 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
         ("states dtype", facts["states_dtype"]),
         ("seeds", f"trajectories {_known(facts['seed'])}, "
                   f"graphs {_known(facts['graph_seed'])}"),
-        ("solver", f"{solver['method']}, {steps}, {facts['unfinished']} unfinished in the file"),
+        ("solver", solved),
     ]
+    if facts["origin"]:
+        rows.insert(2, ("origin", facts["origin"]))
     if "redrawn" in facts:
         rows.append(("redrawn", f"{facts['redrawn']['failed']} failed, "
                                 f"{facts['redrawn']['rejected']} rejected"))
@@ -115,6 +124,26 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
     writer = f"mpnode {version}" if version else "?"
     rows.append(("written", f"{_known(facts['created_utc'])} by {writer}"))
     return rows
+
+
+def _origin(config: dict[str, Any], attrs: dict[str, Any]) -> str | None:
+    """Where the data came from, for files mpnode did not generate: imported arrays, or a
+    model's predictions (`mpnode simulate`, `evaluate --save-predictions`)."""
+    if config.get("verb") == "import":
+        source = config.get("sources", {}).get("states", {}).get("path", "?")
+        return f"imported from {source}"
+    prediction = attrs.get("prediction")
+    if isinstance(prediction, str):
+        import json
+
+        try:
+            facts = json.loads(prediction)
+        except ValueError:
+            facts = {}
+        sha = str(facts.get("checkpoint_sha256"))[:12]
+        return (f"predictions of {facts.get('model_kind', '?')} checkpoint "
+                f"{facts.get('checkpoint', '?')} (sha256 {sha}...), not ground truth")
+    return None
 
 
 def _known(value: Any) -> str:

@@ -1,6 +1,7 @@
-"""Datasets: the HDF5 format (`hdf5`), presets of the paper's data (`presets`), and the
-generator that turns a system, its graphs and the solver into a file (`generate`), and the
-complete check of a file that every reader runs first (`validate`).
+"""Datasets: the HDF5 format (`hdf5`), the systems' presets (`presets`), the generator
+that turns a system, its graphs and the solver into a file (`generate`), a user's own arrays
+turned into a file (`importers`), and the complete check of a file that every reader runs
+first (`validate`).
 
 Names are re-exported lazily so that importing `mpnode_cli.data.presets` (for the CLI's
 choices) does not pull in h5py or torch. The function `generate` shares its module's name,
@@ -18,6 +19,9 @@ _EXPORTS = {
     "read_dataset": "hdf5",
     "read_header": "hdf5",
     "write_dataset": "hdf5",
+    "fingerprint": "hdf5",
+    "ImportSummary": "importers",
+    "import_arrays": "importers",
     "Report": "validate",
     "check_dataset": "validate",
     "require_valid": "validate",

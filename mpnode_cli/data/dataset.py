@@ -10,7 +10,6 @@ authors fitted on all data, validation included).
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mpnode_cli.data.hdf5 import read_dataset
+from mpnode_cli.data.hdf5 import fingerprint, read_dataset
 from mpnode_cli.data.validate import require_valid
 
 SPLITS = {"train": 0, "validation": 1, "test": 2}
@@ -120,9 +119,6 @@ class TrajectoryData:
         ds = read_dataset(path)
         states = np.ascontiguousarray(ds.states, dtype=np.float32)
         adjacency = ds.adjacency[ds.graph_index].astype(np.float32)  # [K, N, N]
-        digest = hashlib.sha256()
-        for array in (states, ds.adjacency, ds.graph_index, ds.time):
-            digest.update(np.ascontiguousarray(array).tobytes())
         controls = None
         if ds.controls is not None and ds.controls.shape[-1] > 0:
             controls = torch.from_numpy(np.ascontiguousarray(ds.controls, dtype=np.float32))
@@ -134,9 +130,10 @@ class TrajectoryData:
             split=torch.from_numpy(ds.split.astype(np.uint8)),
             system=ds.system, state_names=tuple(ds.state_names),
             control_names=tuple(ds.control_names), path=Path(path),
-            fingerprint=digest.hexdigest(),
+            fingerprint=fingerprint(states, ds.adjacency, ds.graph_index, ds.time),
             attrs={"topology": topology, "config": ds.config, "dt": ds.dt,
-                   "recipe": _recipe(ds.extra_attrs.get("recipe"))})
+                   "recipe": _recipe(ds.extra_attrs.get("recipe")),
+                   "prediction": ds.extra_attrs.get("prediction")})
 
     def __len__(self) -> int:
         return self.states.shape[0]

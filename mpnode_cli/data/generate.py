@@ -31,10 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data.presets import DEFAULTS, SYSTEM_DEFAULTS
 from mpnode_cli.graphs import read_edge_list
 from mpnode_cli.systems.base import System
-from mpnode_cli.systems.registry import SYSTEMS, get_system
+from mpnode_cli.systems.registry import get_system, load_system_file
 
 # Redraw rounds before giving up on trajectories that keep failing. A trajectory fails
 # independently with probability p per draw (p ≈ 0.2 for the pendulum's wide box), so 50
@@ -97,7 +96,7 @@ class Estimate:
 
 def estimate(config: GenerateConfig) -> Estimate:
     """The size of the file and the memory a resolved config will take (approximate)."""
-    system = get_system(config.system, **config.params)
+    system = build_system(config)
     k, t, n, g = config.trajectories, config.num_steps + 1, config.nodes, config.graphs
     d, u = len(system.state_names), len(system.control_names)
     store = 4 if config.dtype == "float32" else 8
@@ -133,11 +132,11 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         ValueError: unknown system, parameter, topology or size; an unreadable edge list;
             a job too large for this machine.
     """
-    if config.system not in SYSTEMS:
-        raise ValueError(f"unknown system '{config.system}' (choose from: {', '.join(SYSTEMS)})")
-    system = get_system(config.system, **config.params)
+    system = build_system(config)
     fields = config.model_dump()
-    for key, value in SYSTEM_DEFAULTS.get(config.system, DEFAULTS).items():
+    if config.system_file is not None:  # stored where the file was found, for provenance
+        fields["system_file"] = Path(config.system_file).resolve()
+    for key, value in system.data_defaults.items():
         if fields[key] is None:
             fields[key] = value
 
@@ -206,7 +205,7 @@ def generate(
     config = resolve_config(config)
     out = Path(config.out)
     check_output_file(out, overwrite=overwrite)
-    system = get_system(config.system, **config.params)
+    system = build_system(config)
     k, g = config.trajectories, config.graphs
 
     # 1. Graphs and their parameters.
@@ -292,7 +291,7 @@ def generate(
         total += len(pending)
 
     # 5. Split by trajectory and write.
-    split = _split(k, config.split, config.seed)
+    split = split_trajectories(k, config.split, config.seed)
     dataset = Dataset(
         system=system.name,
         dt=config.dt,
@@ -326,6 +325,22 @@ def generate(
         solve_seconds=solve_seconds,
         seconds=time.perf_counter() - start,
     )
+
+
+def build_system(config: GenerateConfig) -> System:
+    """The config's system with its parameters and options; a system of your own is first
+    loaded from `config.system_file` (or found among the installed entry points).
+
+    Raises:
+        ValueError: an unknown system, a file that does not load, or a parameter or
+            option the system refuses.
+    """
+    if config.system_file is not None:
+        cls = load_system_file(config.system_file)
+        if cls.name != config.system:
+            raise ValueError(f"--system-file {config.system_file} defines the system "
+                             f"'{cls.name}', not '{config.system}'")
+    return get_system(config.system, **config.params)
 
 
 def _graph(system: System, config: GenerateConfig, g: int) -> np.ndarray:
@@ -399,7 +414,7 @@ def format_bytes(n: float) -> str:
     return f"{n:.3g} PiB"  # unreachable: the loop returns at TiB
 
 
-def _split(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:
+def split_trajectories(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:
     """uint8 `[K]`: 0 train, 1 validation, 2 test, shuffled by trajectory.
 
     Its own generator (`default_rng([seed, 1])`), so the split does not depend on how many

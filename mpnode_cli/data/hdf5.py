@@ -12,6 +12,7 @@ renamed when complete, so an interrupted run (Ctrl-C included) leaves nothing at
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import uuid
@@ -117,6 +118,28 @@ class Dataset:
     def num_graphs(self) -> int:
         """G."""
         return self.adjacency.shape[0]
+
+
+def fingerprint(states: Any, adjacency: np.ndarray, graph_index: np.ndarray,
+                time: np.ndarray, *, rows: int | None = None) -> str:
+    """The data's identity: sha256 of states (as float32), adjacency, graph_index and time,
+    each as stored. Runs and checkpoints record it; a file whose data are the same has
+    the same fingerprint wherever it lies.
+
+    Args:
+        states: `[K, T, N, D]`, a numpy array or an h5py dataset (read `rows`
+            trajectories at a time; the digest is the same).
+        adjacency, graph_index, time: as stored in the file.
+        rows: trajectories per read (default: all at once).
+    """
+    digest = hashlib.sha256()
+    step = max(1, rows or len(states))
+    for start in range(0, len(states), step):
+        block = np.asarray(states[start:start + step], dtype=np.float32)
+        digest.update(np.ascontiguousarray(block).tobytes())
+    for array in (adjacency, graph_index, time):
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
 
 
 def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> Path:

@@ -141,6 +141,21 @@ class _Checker:
         for name in ("states", "controls", *(f"hidden/{h}" for h in self._hidden_names())):
             if name in self.f and isinstance(self.f[name], h5py.Dataset):
                 self._finite(name)
+        if "fingerprint" in attrs and not self.problems:
+            self._fingerprint(attrs["fingerprint"], states)
+
+    def _fingerprint(self, stored: Any, states: h5py.Dataset) -> None:
+        """A recorded fingerprint (`mpnode import`, predictions) must still be the data's."""
+        from mpnode_cli.data.hdf5 import fingerprint
+
+        per_row = max(1, int(np.prod(states.shape[1:])))
+        have = fingerprint(states, self.f["graph/adjacency"][()], self.f["graph_index"][()],
+                           self.f["time"][()], rows=max(1, _BLOCK_VALUES // per_row))
+        self.summary["fingerprint"] = have
+        if stored != have:
+            self.problem(f"attribute fingerprint {str(stored)[:12]}... is not the data's "
+                         f"({have[:12]}...): the arrays changed after the file was written; "
+                         "delete the attribute if that was meant")
 
     def _format(self, attrs: dict[str, Any]) -> bool:
         name, version = attrs.get("format"), attrs.get("format_version")
@@ -325,14 +340,14 @@ class _Checker:
         return list(hidden) if isinstance(hidden, h5py.Group) else []
 
     def _system(self, attrs: dict[str, Any], names: list[str], d: int) -> None:
-        """A built-in system's name promises its states; other data is "custom"."""
-        from mpnode_cli.systems.registry import SYSTEMS, get_system
+        """A known system's name promises its states; other data is "custom"."""
+        from mpnode_cli.systems.registry import system_class
 
         system = attrs.get("system")
-        if not isinstance(system, str) or system not in SYSTEMS:
+        if not isinstance(system, str) or system == "custom":
             return
-        try:
-            want = tuple(get_system(system).state_names)
+        try:  # built in, or a plug-in this process knows
+            want = tuple(system_class(system).state_names)
         except (TypeError, ValueError):
             return
         if len(want) != d:

@@ -371,10 +371,10 @@ def _validated(model: type[BaseModel], fields: dict[str, Any]) -> Any:
 def shrink_generate(fields: dict[str, Any]) -> dict[str, Any]:
     """The tiny scale of a generate step: a few trajectories of a few samples (a quadrotor
     flight keeps the horizon it needs to pass the doorway)."""
-    from mpnode_cli.data.presets import SYSTEM_DEFAULTS
     from mpnode_cli.systems.quadrotor_flight import MIN_HORIZON
+    from mpnode_cli.systems.registry import system_class
 
-    defaults = SYSTEM_DEFAULTS.get(fields["system"], {})
+    defaults = system_class(fields["system"]).data_defaults
     dt = fields.get("dt", defaults.get("dt", 0.1))
     t_end = fields.get("t_end", defaults.get("t_end", 1.0))
     shortest = MIN_HORIZON if fields["system"] == "quadrotor" else 0.0

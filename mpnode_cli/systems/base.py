@@ -1,10 +1,19 @@
-"""The interface every dynamical system on a graph implements.
+"""The interface every dynamical system on a graph implements, built in or your own.
 
 A system is homogeneous: N identical nodes, each with a D-dimensional state
 (`state_names`), coupled along a graph. Generating data for it takes five pieces, one
 method each: its graph (`graph`), the parameters drawn once per graph (`graph_params`),
 initial states (`sample_initial`), a batched torch right-hand side (`rhs`), and an optional
 filter of trajectories to redraw (`reject`).
+
+A system declares what `mpnode generate` needs to know about it, so that neither the CLI
+nor the presets hold per-system knowledge: its scalar parameters and their defaults
+(`defaults`), its options (`options`: `Option` declarations with
+defaults, help and allowed values; the CLI's "System options" are built from them), its
+data defaults (`data_defaults`: trajectories, horizon, spacing) and its named datasets
+(`presets`). A system of your own subclasses `System` in a Python file
+(`mpnode generate --system-file FILE`) or a package (entry point group `mpnode.systems`);
+docs/custom-systems.md walks through one.
 
 Two hooks serve systems that are more than an autonomous ODE on the nodes (the quadrotor
 swarm: a closed-loop flight with controls, a hidden load and per-flight plans):
@@ -19,6 +28,7 @@ importing the registry (for the CLI's choices) stays cheap.
 from __future__ import annotations
 
 import itertools
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,6 +44,44 @@ if TYPE_CHECKING:
     from mpnode_cli.solver.options import SolverOptions
 
 RHS = Callable[["torch.Tensor", "torch.Tensor"], "torch.Tensor"]
+
+
+@dataclass(frozen=True)
+class Option:
+    """A system option that is not a physical parameter (e.g. the initial-state box).
+
+    Attributes:
+        default: its value when not given: a number, or a string among `choices`.
+        help: one line for `mpnode generate --help` and error messages.
+        choices: the allowed strings (empty: a number).
+        minimum: the smallest allowed number (None: any finite number).
+    """
+
+    default: float | str
+    help: str
+    choices: tuple[str, ...] = ()
+    minimum: float | None = None
+
+    def parse(self, value: object, name: str, system: str) -> float | str:
+        """`value` checked against this declaration (numbers as float).
+
+        Raises:
+            ValueError: a value outside `choices`, not a number, or below `minimum`.
+        """
+        if self.choices:
+            if value not in self.choices:
+                raise ValueError(f"unknown {name} '{value}' for {system} (choose from: "
+                                 f"{', '.join(self.choices)})")
+            return str(value)
+        try:
+            number = float(value)  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            raise ValueError(f"{system} option {name} must be a number, got {value!r}") from None
+        if not math.isfinite(number) or (self.minimum is not None and number < self.minimum):
+            low = "" if self.minimum is None else f" >= {self.minimum:g}"
+            raise ValueError(f"{system} option {name} must be a finite number{low}, "
+                             f"got {value!r} ({self.help})")
+        return number
 
 
 @dataclass(frozen=True)
@@ -65,11 +113,23 @@ class Simulation:
 class System(ABC):
     """A homogeneous dynamical system on a graph.
 
-    Subclasses set the class attributes below and `defaults` (scalar parameters and their
-    default values, written as attributes of the dataset's `params` group). Per-instance
-    options that are not physical parameters (e.g. the initial-state range) are keyword-only
-    arguments of the subclass's `__init__`, listed in `options` and stored as attributes of
-    the same name.
+    Subclasses set the class attributes below and implement `sample_initial` and `rhs`.
+
+    Class attributes:
+        name: registry name (`mpnode generate NAME`, the dataset's `system`).
+        state_names: `[D]` names of a node's state components.
+        control_names: `[U]` names of a node's controls (none for an autonomous system).
+        topologies: the `mpnode_cli.graphs.make_graph` topologies it runs on;
+            default_topology and default_nodes: the graph without options.
+        defaults: scalar parameters and their default values (written as attributes of
+            the dataset's `params` group; given as `-p NAME=VALUE`).
+        options: options that are not physical parameters, name → `Option`; each is
+            stored on the instance as an attribute of its name.
+        data_defaults: `trajectories`, `t_end` and `dt` of `mpnode generate NAME` without
+            a preset (the authors' Lorenz sizes unless a system says otherwise).
+        presets: named datasets, name → partial generate config (`system` is added);
+            `mpnode generate --preset NAME`.
+        paper_loss, recommended: how to learn it (see `recipe`).
     """
 
     name: ClassVar[str]
@@ -79,7 +139,11 @@ class System(ABC):
     default_topology: ClassVar[str]
     default_nodes: ClassVar[int]
     defaults: ClassVar[dict[str, float]]
-    options: ClassVar[tuple[str, ...]] = ()
+    options: ClassVar[dict[str, Option]] = {}
+    # The authors' data defaults (MPNODE.jl configs/empode_sys_32_3.toml).
+    data_defaults: ClassVar[dict[str, float]] = {"trajectories": 1000, "t_end": 2.5,
+                                                 "dt": 0.05}
+    presets: ClassVar[dict[str, dict[str, object]]] = {}
     # How to learn this system (written into each dataset as its `recipe` attribute; see
     # `mpnode_cli.training.recipe` and docs/training-recipe.md): the paper's training loss
     # for it, and train-config fields mpnode's own recipe sets for it.
@@ -91,23 +155,33 @@ class System(ABC):
         """`{"paper": {...}, "mpnode": {...}}`: train-config fields this system recommends."""
         return {"paper": {"loss": cls.paper_loss}, "mpnode": dict(cls.recommended)}
 
-    def __init__(self, **params: float) -> None:
-        """Set the scalar parameters, each defaulting to `defaults`.
+    def __init__(self, **given: float | str) -> None:
+        """Set the scalar parameters and the options, each defaulting to its declaration.
 
         Raises:
-            ValueError: a key that is neither a parameter nor an option of this system.
+            ValueError: a key that is neither a parameter nor an option of this system, a
+                parameter that is not a finite number, or an option its `Option` refuses.
         """
-        unknown = sorted(set(params) - set(self.defaults))
+        unknown = sorted(set(given) - set(self.defaults) - set(self.options))
         if unknown:
-            known = ", ".join(self.defaults)
+            known = ", ".join(self.defaults) or "none"
             opts = f"; options: {', '.join(self.options)}" if self.options else ""
             raise ValueError(
                 f"unknown parameter {', '.join(map(repr, unknown))} for system '{self.name}' "
                 f"(parameters: {known}{opts})"
             )
-        self.params: dict[str, float] = {
-            key: float(params.get(key, value)) for key, value in self.defaults.items()
-        }
+        self.params: dict[str, float] = {}
+        for key, value in self.defaults.items():
+            try:
+                number = float(given.get(key, value))
+            except (TypeError, ValueError):
+                number = math.nan
+            if not math.isfinite(number):
+                raise ValueError(f"{self.name} parameter {key} must be a finite number, got "
+                                 f"{given.get(key)!r}")
+            self.params[key] = number
+        for key, option in self.options.items():
+            setattr(self, key, option.parse(given.get(key, option.default), key, self.name))
 
     @property
     def node_dim(self) -> int:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, NeighbourSum, System
+from mpnode_cli.systems.base import RHS, NeighbourSum, Option, System
 
 if TYPE_CHECKING:
     import torch
@@ -40,22 +40,21 @@ class Gene(System):
     default_topology: ClassVar[str] = "ba"
     default_nodes: ClassVar[int] = 16
     defaults: ClassVar[dict[str, float]] = {"b": 1.0, "f": 1.0, "h": 2.0}
-    options: ClassVar[tuple[str, ...]] = ("init",)
+    options: ClassVar[dict[str, Option]] = {"init": Option(
+        "uniform", "Initial states: uniform (U(0, 50) per node) or hotspot (three "
+        "rectangles on the grid).", choices=INITS)}
+    init: str
     # Regulation sums over in-neighbours, so a node must sense its in-degree; PNA does, and
     # transfers to unseen topologies far better than a plain sum (docs/training-recipe.md).
     recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
-
-    def __init__(self, *, init: str = "uniform", **params: float) -> None:
-        """Create the system.
-
-        Args:
-            init: initial states, `"uniform"` (U(0, 50) per node) or `"hotspot"`.
-            **params: b, f, h.
-        """
-        super().__init__(**params)
-        if init not in INITS:
-            raise ValueError(f"unknown init '{init}' for gene (choose from: {', '.join(INITS)})")
-        self.init = init
+    # The paper's 200 trajectories over 5 graphs, dt 0.1, 5 s, for every topology and size
+    # (the paper states it for BA; the other graphs are treated the same way).
+    data_defaults: ClassVar[dict[str, float]] = {"trajectories": 200, "t_end": 5.0,
+                                                 "dt": 0.1}
+    presets: ClassVar[dict[str, dict[str, object]]] = {
+        f"gene-{topology}-{side}x{side}": {"grid": side, "topology": topology, "graphs": 5,
+                                           "trajectories": 200, "t_end": 5.0, "dt": 0.1}
+        for side in (4, 8) for topology in ("ba", "er", "ws")}
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """Mean degree about n/2 per topology ("each cell connected to n/2 other cells")."""

@@ -39,6 +39,13 @@ class Kuramoto(System):
     paper_loss: ClassVar[str] = "huber"  # the paper's App. A.4
     # The coupling sums over neighbours: as for gene, PNA lets a node sense its in-degree.
     recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
+    # The paper gives 500 trajectories at dt 0.05 but no horizon; the authors' 50 steps.
+    data_defaults: ClassVar[dict[str, float]] = {"trajectories": 500, "t_end": 2.5,
+                                                 "dt": 0.05}
+    presets: ClassVar[dict[str, dict[str, object]]] = {
+        f"kuramoto10-{topology}": {"nodes": 10, "topology": topology, "trajectories": 500,
+                                   "t_end": 2.5, "dt": 0.05}
+        for topology in ("ba", "er", "ws")}
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """Mean degree ≈ 5 for each topology."""

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, NeighbourSum, System
+from mpnode_cli.systems.base import RHS, NeighbourSum, Option, System
 
 if TYPE_CHECKING:
     import torch
@@ -49,23 +49,17 @@ class Pendulum(System):
     default_topology: ClassVar[str] = "chain"
     default_nodes: ClassVar[int] = 2
     defaults: ClassVar[dict[str, float]] = {"m": 1.0, "l": 1.5, "k": 2.0, "g": 9.81}
-    options: ClassVar[tuple[str, ...]] = ("ic_range",)
+    options: ClassVar[dict[str, Option]] = {"ic_range": Option(
+        "small", "Initial-state box: small (the authors' code) or paper (the appendix's).",
+        choices=tuple(IC_RANGES))}
+    ic_range: str
     # The springs' pull sums over neighbours.
     recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
-
-    def __init__(self, *, ic_range: str = "small", **params: float) -> None:
-        """Create the system.
-
-        Args:
-            ic_range: `"small"` (the authors' code) or `"paper"` (the appendix's box).
-            **params: m, l, k, g.
-        """
-        super().__init__(**params)
-        if ic_range not in IC_RANGES:
-            raise ValueError(
-                f"unknown ic_range '{ic_range}' for pendulum (choose from: {', '.join(IC_RANGES)})"
-            )
-        self.ic_range = ic_range
+    # The paper's 500 trajectories, dt 0.1, 10 s (App. A.1).
+    data_defaults: ClassVar[dict[str, float]] = {"trajectories": 500, "t_end": 10.0,
+                                                 "dt": 0.1}
+    presets: ClassVar[dict[str, dict[str, object]]] = {
+        "pendulum": {"nodes": 2, "trajectories": 500, "t_end": 10.0, "dt": 0.1}}
 
     def sample_initial(self, adjacency: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
         """θ and θ̇ uniform in the `ic_range` box; float64 `[k, N, 2]`."""

@@ -54,6 +54,13 @@ class Quadrotor(System):
         "m": 1.0, "Jxx": 0.0023, "Jyy": 0.0023, "Jzz": 0.004, "arm": 0.175, "km": 0.0245,
         "w_max": 4.66, "m_load": 0.9, "cable": 1.55, "g": 9.81,
     }  # fmt: skip
+    # The paper's 463 flights of 10 s sampled every 0.2 s (App. A.5) for three quads; the
+    # paper gives no count for six, so `quad6` has 463 as well.
+    data_defaults: ClassVar[dict[str, float]] = {"trajectories": 463, "t_end": 10.0,
+                                                 "dt": 0.2}
+    presets: ClassVar[dict[str, dict[str, object]]] = {
+        f"quad{n}": {"nodes": n, "trajectories": 463, "t_end": 10.0, "dt": 0.2}
+        for n in (3, 6)}
 
     def graph(self, topology: str, n: int, seed: int) -> np.ndarray:
         """The complete graph among `n` quads (n in `NODE_COUNTS`).

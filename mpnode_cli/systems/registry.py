@@ -1,10 +1,25 @@
-"""Systems by name: the one list that feeds the CLI's choices and config validation.
+"""Systems by name: the built-in ones, and your own.
 
-Adding a system is adding its module and one line here. Importing this module is cheap (no
-torch, no networkx), so the CLI may use it for `--help` and completion.
+`SYSTEMS` lists the built-in systems (adding one is adding its module and one line here);
+importing this module is cheap (no torch, no networkx), so the CLI may use it for `--help`
+and completion. Systems of your own join in two ways (docs/custom-systems.md):
+
+- a Python file, `mpnode generate --system-file my_system.py`: `load_system_file` imports
+  it and registers the one `System` subclass it defines;
+- a package's entry point in the group `mpnode.systems` (`name = "package.module:Class"`),
+  found by `entry_point_systems` the first time a name is not built in.
+
+Either kind then runs through the same solver, writer, presets and checks as the
+built-in ones. A plug-in cannot take a built-in system's name.
 """
 
 from __future__ import annotations
+
+import functools
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
 
 from mpnode_cli.systems.base import System
 from mpnode_cli.systems.gene import Gene
@@ -13,9 +28,13 @@ from mpnode_cli.systems.lorenz import Lorenz
 from mpnode_cli.systems.pendulum import Pendulum
 from mpnode_cli.systems.quadrotor import Quadrotor
 
+ENTRY_POINT_GROUP = "mpnode.systems"
+
 SYSTEMS: dict[str, type[System]] = {
     cls.name: cls for cls in (Pendulum, Lorenz, Gene, Kuramoto, Quadrotor)
 }
+# Systems registered from files in this process (`load_system_file`).
+_FILES: dict[str, type[System]] = {}
 
 
 def get_system(name: str, **params: object) -> System:
@@ -24,6 +43,117 @@ def get_system(name: str, **params: object) -> System:
     Raises:
         ValueError: an unknown name, or a parameter/option the system does not have.
     """
-    if name not in SYSTEMS:
-        raise ValueError(f"unknown system '{name}' (choose from: {', '.join(SYSTEMS)})")
-    return SYSTEMS[name](**params)
+    return system_class(name)(**params)
+
+
+def system_class(name: str) -> type[System]:
+    """The class of the system called `name`: built in, loaded from a file, or an entry point.
+
+    Raises:
+        ValueError: an unknown name (the message lists the known ones), or a plug-in that
+            cannot be loaded.
+    """
+    if name in SYSTEMS:
+        return SYSTEMS[name]
+    if name in _FILES:
+        return _FILES[name]
+    plugins = entry_point_systems()
+    if name in plugins:
+        return plugins[name]
+    known = [*SYSTEMS, *_FILES, *plugins]
+    raise ValueError(f"unknown system '{name}' (choose from: {', '.join(known)}; or your own "
+                     "with --system-file FILE, docs/custom-systems.md)")
+
+
+def all_systems() -> dict[str, type[System]]:
+    """Every system known to this process: built in, from files, from entry points."""
+    return {**entry_point_systems(), **_FILES, **SYSTEMS}
+
+
+@functools.cache
+def entry_point_systems() -> dict[str, type[System]]:
+    """The systems that installed packages declare in the entry point group
+    `mpnode.systems` (loaded once per process).
+
+    Raises:
+        ValueError: an entry point that does not load, or is not a `System` subclass of
+            the name it is registered under.
+    """
+    from importlib.metadata import entry_points
+
+    found: dict[str, type[System]] = {}
+    for point in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            cls = point.load()
+        except Exception as exc:  # the user's code: any error means "cannot load"
+            raise ValueError(f"the {ENTRY_POINT_GROUP} entry point '{point.name}' "
+                             f"({point.value}) does not load: {exc}") from None
+        _check_class(cls, f"entry point '{point.name}' ({point.value})")
+        if cls.name != point.name:
+            raise ValueError(f"entry point '{point.name}' ({point.value}) names a system "
+                             f"called '{cls.name}': register it under its own name")
+        found[cls.name] = cls
+    return found
+
+
+def load_system_file(path: str | Path) -> type[System]:
+    """Import a Python file and register the one `System` subclass it defines.
+
+    The module is imported under a name derived from the file's path, so two files of the
+    same name do not collide; loading the same file again returns its registered class,
+    and a file that defines a name already loaded from another file takes it over.
+
+    Raises:
+        ValueError: a missing file, one that does not import, or one that defines no
+            `System` subclass or several.
+    """
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise ValueError(f"--system-file {path}: no such file")
+    module_name = f"mpnode_system_{abs(hash(str(path))):x}"
+    module = sys.modules.get(module_name)
+    if module is None:
+        spec = importlib.util.spec_from_file_location(module_name, path)
+        if spec is None or spec.loader is None:
+            raise ValueError(f"--system-file {path}: not a Python file")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[module_name] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as exc:  # the user's code: any error means "cannot load"
+            del sys.modules[module_name]
+            raise ValueError(f"--system-file {path} does not import: "
+                             f"{type(exc).__name__}: {exc}") from None
+    classes = [cls for _, cls in inspect.getmembers(module, inspect.isclass)
+               if issubclass(cls, System) and cls.__module__ == module_name]
+    concrete = [cls for cls in classes if not inspect.isabstract(cls)]
+    if not concrete and classes:  # a class that misses a method: say which
+        missing = ", ".join(sorted(classes[0].__abstractmethods__))
+        raise ValueError(f"--system-file {path}: the system {classes[0].__name__} does not "
+                         f"declare {missing} (docs/custom-systems.md)")
+    if len(concrete) != 1:
+        names = ", ".join(cls.__name__ for cls in concrete) or "none"
+        raise ValueError(f"--system-file {path} must define exactly one System subclass, "
+                         f"found {names}")
+    cls = concrete[0]
+    _check_class(cls, f"--system-file {path}")
+    _FILES[cls.name] = cls  # the file named last defines the name
+    return cls
+
+
+def _check_class(cls: object, where: str) -> None:
+    """A plug-in must be a concrete `System` with the declarations generate needs."""
+    if not (inspect.isclass(cls) and issubclass(cls, System)):
+        raise ValueError(f"{where} is not a subclass of mpnode_cli.systems.System")
+    missing = [attr for attr in ("name", "state_names", "topologies", "default_topology",
+                                 "default_nodes", "defaults") if not hasattr(cls, attr)]
+    if missing or inspect.isabstract(cls):
+        what = ", ".join(missing) or "sample_initial or rhs"
+        raise ValueError(f"{where}: the system {cls.__name__} does not declare {what} "
+                         "(docs/custom-systems.md)")
+    if cls.name in SYSTEMS and SYSTEMS[cls.name] is not cls:
+        raise ValueError(f"{where}: '{cls.name}' is a built-in system; give yours another "
+                         "name")
+    if cls.default_topology not in cls.topologies:
+        raise ValueError(f"{where}: default_topology '{cls.default_topology}' is not among "
+                         f"its topologies ({', '.join(cls.topologies)})")

@@ -43,7 +43,6 @@ leaves the previous checkpoint intact.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import uuid
 from dataclasses import dataclass, field
@@ -54,6 +53,7 @@ import torch
 
 from mpnode_cli import __version__
 from mpnode_cli.config import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.paths import file_sha256  # noqa: F401  (a checkpoint's identity)
 from mpnode_cli.signals import deferred_signals
 
 if TYPE_CHECKING:
@@ -217,12 +217,3 @@ def _upgrade_v2(payload: dict[str, Any]) -> None:
             "step_noise" in train_config):
         config.setdefault("step_noise", train_config["step_noise"])
     payload["train_config"] = upgrade_train_fields(train_config)
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file's bytes (a checkpoint's identity, recorded by finetunes)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

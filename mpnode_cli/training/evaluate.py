@@ -23,12 +23,12 @@ from typing import Any
 
 import torch
 
-from mpnode_cli.config import stored_solver, train_solver
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.losses import huber_loss
+from mpnode_cli.training.predict import roll_out, rollout_solver, write_predictions
 
 
 @dataclass
@@ -276,7 +276,9 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                         verb: str = "evaluate", batch_size: int = 128,
                         device: str | torch.device = "cpu",
                         plot_dir: Path | None = None,
-                        allow_other_system: bool = False) -> dict[str, Any]:
+                        allow_other_system: bool = False,
+                        save_predictions: Path | None = None,
+                        overwrite: bool = False) -> dict[str, Any]:
     """A checkpoint's errors on one split of a dataset (evaluate, zeroshot).
 
     The model rolls out with the checkpoint's training normalization and solver options.
@@ -288,14 +290,20 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
             which trajectory and nodes) and the error vs time there as
             `<dataset>-<split>-rollout.png` and `-error.png`.
         allow_other_system: accept a dataset of another system than the checkpoint's.
+        save_predictions: if given, write the split's predictions there as an
+            `mpnode-dataset` file (`mpnode_cli.training.predict.write_predictions`).
+        overwrite: replace an existing regular file at `save_predictions`.
 
     Returns:
         JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`),
         baselines (`baseline_mse`, with the train split from `train_reference`),
-        baselines_note (where the time mean came from), plots.
+        baselines_note (where the time mean came from), plots, predictions (the file
+        written, or None), and data_note (when the dataset itself holds a model's
+        predictions rather than ground truth).
 
     Raises:
         ValueError: incompatible per-node sizes, or an empty split.
+        PredictionFailed: `save_predictions` with rollouts that did not finish.
     """
     check_compatible(ckpt.model_kind, ckpt.model_config, ckpt.dataset["num_nodes"], data, verb,
                      ckpt.dataset.get("system"), allow_other_system=allow_other_system)
@@ -303,9 +311,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     if len(subset) == 0:
         raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
-    # One pass over the data does not pay for compiling the step, whatever training did.
-    solver = stored_solver(ckpt.train_config, train_solver).model_copy(update={"compile": False})
-    options = {"solver": solver, "device": device}
+    options = {"solver": rollout_solver(ckpt), "device": device}
     result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
     train, note = train_reference(ckpt, data)
     baselines = {k: _finite(v) for k, v in baseline_mse(train, subset, normalizer).items()}
@@ -326,19 +332,52 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                                    Path(plot_dir) / f"{stem}-error.png",
                                    title=f"{data.path.name} ({split}): error vs time")),
         ]
+    written = None
+    if save_predictions is not None:
+        written = str(_save_predictions(ckpt, data, subset, split, batch_size, device,
+                                        save_predictions, overwrite))
+    data_note = None
+    if data.attrs.get("prediction"):
+        data_note = (f"{data.path.name} holds a model's predictions, not ground truth: these "
+                     "errors compare the model with those predictions")
     return {"dataset": str(data.path), "system": data.system, "num_nodes": data.num_nodes,
             "topology": data.attrs.get("topology"), "split": split,
             "result": result.to_dict(), "baselines": baselines, "baselines_note": note,
-            "plots": plots}
+            "plots": plots, "predictions": written, "data_note": data_note}
+
+
+def _save_predictions(ckpt, data: TrajectoryData, subset: TrajectoryData, split: str,
+                      batch_size: int, device, path: Path, overwrite: bool) -> Path:
+    """Roll out a split from its first states and write the predictions beside the facts
+    of the data they were made for."""
+    pred = roll_out(ckpt, subset.states[:, 0].numpy(), subset.time.numpy(),
+                    subset.adjacency.numpy(),
+                    None if subset.controls is None else subset.controls.numpy(),
+                    batch_size=batch_size, device=device)
+    source = {"dataset": str(Path(data.path).resolve()), "fingerprint": data.fingerprint,
+              "split": split, "trajectories": _file_indices(data, split)}
+    config = {"verb": "evaluate", "checkpoint": str(ckpt.path), "dataset": str(data.path),
+              "split": split, "batch_size": batch_size, "topology": data.attrs.get("topology")}
+    return write_predictions(path, ckpt, pred, time=subset.time.numpy(),
+                             adjacency=subset.adjacency.numpy(),
+                             controls=None if subset.controls is None else
+                             subset.controls.numpy(),
+                             split=subset.split.numpy(), config=config, source=source,
+                             overwrite=overwrite)
+
+
+def _file_indices(data: TrajectoryData, split: str) -> list[int]:
+    """The indices in the file of a split's trajectories."""
+    if split == "all":
+        return list(range(len(data)))
+    from mpnode_cli.data.dataset import SPLITS
+
+    return torch.nonzero(data.split == SPLITS[split]).flatten().tolist()
 
 
 def _file_index(data: TrajectoryData, split: str, i: int) -> int:
     """The index in the file of the i-th trajectory of a split."""
-    if split == "all":
-        return i
-    from mpnode_cli.data.dataset import SPLITS
-
-    return int(torch.nonzero(data.split == SPLITS[split])[i])
+    return _file_indices(data, split)[i]
 
 
 def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):

@@ -57,9 +57,12 @@ def system_recipe(system: str, stored: dict[str, Any] | None) -> dict[str, dict[
     """What a dataset's system recommends: its stored attribute, else its declaration."""
     if stored:
         return stored
-    from mpnode_cli.systems.registry import SYSTEMS
+    from mpnode_cli.systems.registry import system_class
 
-    return SYSTEMS[system].recipe() if system in SYSTEMS else {}
+    try:  # built in, or a plug-in this process knows
+        return system_class(system).recipe()
+    except ValueError:
+        return {}
 
 
 def recipe_values(name: str, system: dict[str, dict[str, Any]], samples: int) -> dict[str, Any]:

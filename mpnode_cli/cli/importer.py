@@ -1,0 +1,80 @@
+"""`mpnode import --states S --adjacency A | --edge-list E --dt DT`: your arrays as a dataset.
+
+The command parses, builds an `ImportConfig` and calls
+`mpnode_cli.data.importers.import_arrays`; every input that cannot be used is one line and
+exit 2, before anything is written. Ctrl-C and SIGTERM leave no file (130 / 143).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mpnode_cli.cli.common import console, error_message, fail
+
+
+def import_command(
+    states: Path = typer.Option(
+        ..., help="Trajectories [K, T, N, D]: .npy, .npz (array 'states', optional 'time') "
+        "or a long CSV with columns trajectory, time, node and one per state.",
+        show_default=False),
+    adjacency: Path | None = typer.Option(
+        None, help="Graph(s) as .npy: [N, N] for all trajectories or [K, N, N] one each; "
+        "A[i, j] = 1 iff node j sends to node i."),
+    edge_list: Path | None = typer.Option(
+        None, help="Graph as a text file of 'i j' lines (optional weight column, 0 or 1), "
+        "undirected unless --directed (docs/dataset-format.md)."),
+    directed: bool = typer.Option(
+        False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
+    dt: float = typer.Option(..., help="Sample spacing.", show_default=False),
+    controls: Path | None = typer.Option(
+        None, help="Zero-order-hold controls [K, T, N, U] as .npy."),
+    state_names: str | None = typer.Option(
+        None, help="Comma-separated names of the D states (default: the CSV's columns, "
+        "else x0, x1, ...)."),
+    control_names: str | None = typer.Option(
+        None, help="Comma-separated names of the U controls (default u0, u1, ...)."),
+    split: str | None = typer.Option(
+        None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."),
+    seed: int | None = typer.Option(None, help="Seed of the split (default 0)."),
+    dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
+    out: Path | None = typer.Option(None, help="Output file (default datasets/<states>.h5)."),
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing output file (regular files only)."),
+    json_out: bool = typer.Option(
+        False, "--json", help="Print the summary as one JSON object on stdout."),
+) -> None:
+    """Turn your own trajectories and graph into an mpnode dataset (system "custom")."""
+    import json
+    from dataclasses import asdict
+
+    from mpnode_cli.config import ImportConfig
+    from mpnode_cli.data.importers import import_arrays
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
+
+    given = {"states": states, "adjacency": adjacency, "edge_list": edge_list,
+             "directed": directed, "dt": dt, "controls": controls, "state_names": state_names,
+             "control_names": control_names, "split": split, "seed": seed, "dtype": dtype,
+             "out": out}
+    try:
+        config = ImportConfig(**{k: v for k, v in given.items() if v is not None})
+        with interrupt_on_signals():
+            summary = import_arrays(config, overwrite=force)
+    except (FileExistsError, ValueError) as exc:
+        fail(error_message(exc))
+    except KeyboardInterrupt as exc:
+        typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
+        raise typer.Exit(code=exit_code(exc)) from None
+    if json_out:
+        typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
+        return
+    train, val, test = summary.split_counts
+    console().print(
+        f"wrote {summary.path}: {summary.trajectories} trajectories ({train} train / {val} "
+        f"val / {test} test) × {summary.samples} samples × {summary.nodes} nodes × "
+        f"{summary.node_dim} states"
+        + (f", {summary.control_dim} controls" if summary.control_dim else "")
+        + f", {summary.graphs} graph{'s' * (summary.graphs > 1)}", highlight=False)
+    console().print(f"fingerprint {summary.fingerprint}; check it with: mpnode check "
+                    f"{summary.path}", highlight=False)

@@ -1,0 +1,83 @@
+"""`mpnode simulate CKPT --x0 X0.npy --adjacency A.npy | --edge-list E --t-end T --dt DT`:
+a trained node model on graphs nobody has data for.
+
+The command parses, builds a `SimulateConfig` and calls
+`mpnode_cli.training.predict.simulate`, which writes the predictions as an
+`mpnode-dataset` file (docs/dataset-format.md, "Predictions"). Exit 2 for anything the
+user can fix, 1 when rollouts did not finish, 130 / 143 for Ctrl-C / SIGTERM (nothing
+written).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mpnode_cli.cli.common import THREADS, console, error_message, fail
+
+
+def simulate_command(
+    checkpoint: Path = typer.Argument(
+        ..., help="A checkpoint (.pt), or a run folder (its best.pt)."),
+    x0: Path = typer.Option(
+        ..., "--x0", help="Initial states [K, N, D] (or [N, D]) in physical units, .npy.",
+        show_default=False),
+    adjacency: Path | None = typer.Option(
+        None, help="Graph(s) as .npy: [N, N] for all or [K, N, N] one per trajectory."),
+    edge_list: Path | None = typer.Option(
+        None, help="Graph as a text file of 'i j' lines, undirected unless --directed."),
+    directed: bool = typer.Option(
+        False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
+    t_end: float = typer.Option(..., help="Last sample time (samples 0, dt, ..).",
+                                show_default=False),
+    dt: float = typer.Option(..., help="Sample spacing.", show_default=False),
+    controls: Path | None = typer.Option(
+        None, help="Controls [K, T, N, U] in physical units (zero-order hold), .npy."),
+    out: Path | None = typer.Option(
+        None, help="Output file (default predictions/<x0 file name>.h5)."),
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing output file (regular files only)."),
+    batch_size: int | None = typer.Option(None, help="Trajectories per rollout (128)."),
+    device: str | None = typer.Option(None, help="cpu (default) or cuda."),
+    dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
+    json_out: bool = typer.Option(
+        False, "--json", help="Print the summary as one JSON object on stdout."),
+    threads: str | None = THREADS,
+) -> None:
+    """Roll a trained model out from your initial states on your graph (no data needed)."""
+    import json
+    from dataclasses import asdict
+
+    from mpnode_cli.config import SimulateConfig
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
+    from mpnode_cli.training.predict import PredictionFailed, simulate
+
+    given = {"checkpoint": checkpoint, "x0": x0, "adjacency": adjacency,
+             "edge_list": edge_list, "directed": directed, "t_end": t_end, "dt": dt,
+             "controls": controls, "out": out, "batch_size": batch_size, "device": device,
+             "dtype": dtype}
+    try:
+        config = SimulateConfig(**{k: v for k, v in given.items() if v is not None})
+        if config.device == "cuda":
+            import torch
+
+            if not torch.cuda.is_available():
+                raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+        with interrupt_on_signals():
+            summary = simulate(config, overwrite=force)
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+        fail(error_message(exc))
+    except PredictionFailed as exc:
+        fail(str(exc), code=1)
+    except KeyboardInterrupt as exc:
+        typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
+        raise typer.Exit(code=exit_code(exc)) from None
+    if json_out:
+        typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
+        return
+    console().print(
+        f"wrote {summary.path}: {summary.trajectories} predicted trajectories × "
+        f"{summary.samples} samples × {summary.nodes} nodes on {summary.graphs} "
+        f"graph{'s' * (summary.graphs > 1)} ({summary.seconds:.2f} s, "
+        f"{summary.n_f_evals:,} RHS evaluations)", highlight=False)

@@ -1,0 +1,271 @@
+"""A trained model's predictions as an `mpnode-dataset` file: what `mpnode simulate` and
+`mpnode evaluate --save-predictions` write.
+
+`roll_out` predicts trajectories from initial states in physical units, on any graphs, with
+the checkpoint's normalization and solver, in batches. `write_predictions` stores them in
+the dataset format (docs/dataset-format.md), so that `info`, `check`, `evaluate --plot` and
+any h5py reader take them as they take data:
+
+- `states` are the predictions in physical units (not ground truth);
+- `hidden/messages [K, T, N, M]` the model's message states (MP-NODE; in the model's own,
+  normalized units);
+- `solver/status` and `solver/n_f_evals` the rollouts' (RHS evaluations: the maximum
+  within each trajectory's batch);
+- `system`, `state_names` and `control_names` are those of the checkpoint's training data,
+  so that `evaluate` takes the file without `--allow-other-system`;
+- the root attribute `prediction` (JSON) says what made the file: the checkpoint's path and
+  sha256, its model, the training data's system and fingerprint, the solver, and what the
+  rollouts started from; `config` holds the verb's resolved options.
+
+A rollout that fails (a blown-up solve) has no finite prediction to store, and a dataset
+holds only finite values, so failures are refused (`PredictionFailed`) instead of written.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from mpnode_cli.config import stored_solver, train_solver
+from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
+from mpnode_cli.paths import file_sha256
+from mpnode_cli.solver.options import SolverOptions
+
+
+class PredictionFailed(RuntimeError):
+    """Rollouts the solver could not finish: their predictions are not finite."""
+
+
+@dataclass(frozen=True)
+class Predicted:
+    """Predicted trajectories (numpy).
+
+    Attributes:
+        states: float64 `[K, T, N, D]` physical units.
+        messages: float64 `[K, T, N, M]` message states, or None for a model without them.
+        status: int8 `[K]` `mpnode_cli.solver.Status` of each rollout (0: finished).
+        n_f_evals: int32 `[K]` vector-field evaluations (the maximum within its batch).
+    """
+
+    states: np.ndarray
+    messages: np.ndarray | None
+    status: np.ndarray
+    n_f_evals: np.ndarray
+
+
+def rollout_solver(ckpt) -> SolverOptions:
+    """How a checkpoint's model is integrated outside training: its training solver, not
+    compiled (one pass over the data does not pay for compiling the step)."""
+    return stored_solver(ckpt.train_config, train_solver).model_copy(update={"compile": False})
+
+
+def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, adjacency: np.ndarray,
+             controls: np.ndarray | None = None, *, batch_size: int = 128,
+             device: str | torch.device = "cpu") -> Predicted:
+    """Predict trajectories from `x0` with a checkpoint's model.
+
+    Args:
+        ckpt: a `mpnode_cli.training.checkpoint.Checkpoint`.
+        x0: `[K, N, D]` initial states, physical units.
+        ts: `[T]` sample times (ts[0] is the time of x0).
+        adjacency: `[K, N, N]` each trajectory's graph (`A[k, i, j] = 1` iff j sends to i).
+        controls: `[K, T, N, U]` physical, zero-order hold, or None.
+        batch_size: trajectories per rollout.
+        device: where the rollouts run.
+
+    Raises:
+        ValueError: sizes that do not fit the model (one line).
+    """
+    model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
+    x0 = torch.as_tensor(np.asarray(x0), dtype=torch.float32)
+    ts = torch.as_tensor(np.asarray(ts), dtype=torch.float64)
+    adjacency = torch.as_tensor(np.asarray(adjacency), dtype=torch.float32)
+    k, n, d = x0.shape
+    u_dim = int(ckpt.model_config.get("control_dim", 0))
+    if d != int(ckpt.model_config["node_dim"]):
+        raise ValueError(f"the initial states have {d} components per node but the "
+                         f"checkpoint's model expects {ckpt.model_config['node_dim']}")
+    if u_dim and controls is None:
+        raise ValueError(f"the checkpoint's model takes {u_dim} controls per node: give "
+                         "--controls [K, T, N, U]")
+    if not u_dim and controls is not None:
+        raise ValueError("the checkpoint's model takes no controls, yet controls were given")
+    if not model.transferable and n != ckpt.dataset.get("num_nodes"):
+        raise ValueError(f"model '{ckpt.model_kind}' was trained on "
+                         f"{ckpt.dataset.get('num_nodes')} nodes and only runs on graphs of "
+                         f"that size, not {n}")
+    if model.initial_states > 1:
+        raise ValueError(f"model '{ckpt.model_kind}' starts from {model.initial_states} "
+                         "states, not one initial state")
+    u = None if controls is None else torch.as_tensor(np.asarray(controls), dtype=torch.float32)
+    solver = rollout_solver(ckpt)
+    states, messages = [], []
+    status = np.zeros(k, dtype=np.int8)
+    n_f_evals = np.zeros(k, dtype=np.int32)
+    model.eval()
+    with torch.no_grad():
+        for idx in torch.arange(k).split(batch_size):
+            x = normalizer.norm_x(x0[idx].to(device))  # (B, N, D)
+            ub = None if u is None else normalizer.norm_u(u[idx].to(device))  # (B, T, N, U)
+            out = model.rollout(x, ts.to(device), adjacency[idx].to(device), ub, solver=solver,
+                                return_messages=True)
+            states.append(normalizer.denorm_x(out.states).double().cpu())  # (B, T, N, D)
+            if out.messages is not None:
+                messages.append(out.messages.double().cpu())  # (B, T, N, M)
+            status[idx.numpy()] = out.status.cpu().numpy()
+            n_f_evals[idx.numpy()] = out.n_f_evals
+    return Predicted(states=torch.cat(states).numpy(),
+                     messages=torch.cat(messages).numpy() if messages else None,
+                     status=status, n_f_evals=n_f_evals)
+
+
+def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarray,
+                      adjacency: np.ndarray, controls: np.ndarray | None = None,
+                      split: np.ndarray | None = None, config: dict[str, Any],
+                      source: dict[str, Any], dtype: str = "float32",
+                      overwrite: bool = False) -> Path:
+    """Write predictions as an `mpnode-dataset` file (see the module docstring).
+
+    Args:
+        path: the file (written atomically, `write_dataset`).
+        ckpt: the checkpoint that predicted.
+        pred: `roll_out`'s result.
+        time: `[T]` sample times.
+        adjacency: `[K, N, N]` each trajectory's graph (distinct graphs are stored once).
+        controls: `[K, T, N, U]` physical, or None.
+        split: `[K]` split of each trajectory (default: all test, 2).
+        config: the verb's resolved options, stored as the file's `config`.
+        source: what the rollouts started from (JSON-able), stored in `prediction`.
+        dtype: storage dtype of states, messages and controls.
+        overwrite: replace an existing regular file.
+
+    Raises:
+        PredictionFailed: some rollouts did not finish (nothing is written).
+    """
+    failed = np.flatnonzero((pred.status != 0)
+                            | ~np.isfinite(pred.states).reshape(len(pred.states), -1).all(1))
+    if len(failed):
+        from mpnode_cli.solver import Status
+
+        first = Status(int(pred.status[failed[0]])) if pred.status[failed[0]] else None
+        why = f" ({first.name}: {first.message})" if first is not None else ""
+        raise PredictionFailed(
+            f"{len(failed)} of {len(pred.status)} rollouts did not finish (the first: "
+            f"trajectory {int(failed[0])}{why}); their predictions are not finite, so no "
+            "file was written")
+    k = len(pred.states)
+    graphs, graph_index = np.unique(np.asarray(adjacency, dtype=np.uint8), axis=0,
+                                    return_inverse=True)
+    graph_index = graph_index.reshape(k).astype(np.int32)
+    states = pred.states.astype(dtype)
+    time = np.asarray(time, dtype=np.float64)
+    record = {
+        "checkpoint": str(Path(ckpt.path).resolve()) if ckpt.path else None,
+        "checkpoint_sha256": file_sha256(ckpt.path) if ckpt.path else None,
+        "checkpoint_epoch": ckpt.epoch,
+        "model_kind": ckpt.model_kind,
+        "trained_on": {key: ckpt.dataset.get(key) for key in ("system", "fingerprint", "path",
+                                                              "num_nodes")},
+        "solver": rollout_solver(ckpt).model_dump(mode="json"),
+        "source": source,
+        "units": "states and controls physical; hidden/messages the model's own",
+    }
+    hidden = {} if pred.messages is None else {"messages": pred.messages.astype(dtype)}
+    dataset = Dataset(
+        system=str(ckpt.dataset.get("system") or "custom"),
+        dt=float(time[1] - time[0]),
+        state_names=tuple(ckpt.dataset.get("state_names")
+                          or (f"x{i}" for i in range(states.shape[-1]))),
+        control_names=tuple(ckpt.dataset.get("control_names") or ()),
+        seed=None, config={**config, "solver": record["solver"]}, time=time, states=states,
+        controls=None if controls is None else np.asarray(controls).astype(dtype),
+        hidden=hidden, adjacency=graphs, graph_index=graph_index,
+        split=np.full(k, 2, dtype=np.uint8) if split is None else np.asarray(split, np.uint8),
+        solver_status=pred.status, solver_n_f_evals=pred.n_f_evals,
+        extra_attrs={"prediction": json.dumps(record, sort_keys=True),
+                     "fingerprint": fingerprint(states, graphs, graph_index, time)},
+    )
+    return write_dataset(path, dataset, overwrite=overwrite)
+
+
+@dataclass(frozen=True)
+class SimulateSummary:
+    """What `simulate` wrote.
+
+    Attributes:
+        path: the prediction file. trajectories, samples, nodes: K, T, N.
+        graphs: distinct graphs. n_f_evals: vector-field evaluations, summed over
+            trajectories. seconds: wall time of the rollouts.
+    """
+
+    path: Path
+    trajectories: int
+    samples: int
+    nodes: int
+    graphs: int
+    n_f_evals: int
+    seconds: float
+
+
+def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
+    """Roll a checkpoint's model out from a user's initial states on a user's graph, and
+    write the predictions (`mpnode simulate`). No ground truth is needed.
+
+    Args:
+        config: a `mpnode_cli.config.SimulateConfig`.
+        overwrite: replace an existing regular file at the output path.
+
+    Raises:
+        FileNotFoundError, ValueError: a checkpoint, input or output that cannot be used
+            (one line; the output is checked before any rollout).
+        FileExistsError: the output exists and `overwrite` is False.
+        PredictionFailed: rollouts that did not finish (nothing written).
+        KeyboardInterrupt: SIGINT or SIGTERM (nothing written).
+    """
+    import time as clock
+
+    from mpnode_cli.data.importers import load_controls, load_graph, load_initial_states
+    from mpnode_cli.paths import check_output_file
+    from mpnode_cli.training.checkpoint import load_checkpoint
+
+    out = simulate_output(config)
+    check_output_file(out, overwrite=overwrite)
+    ckpt = load_checkpoint(config.checkpoint)
+    x0 = load_initial_states(config.x0)
+    k, n, _ = x0.shape
+    graphs, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
+                                     directed=config.directed)
+    ts = np.arange(config.num_steps + 1) * config.dt  # [T]
+    controls = None
+    if config.controls is not None:
+        controls = load_controls(config.controls, (k, len(ts), n))
+    start = clock.perf_counter()
+    pred = roll_out(ckpt, x0, ts, graphs[graph_index], controls,
+                    batch_size=config.batch_size, device=config.device)
+    seconds = clock.perf_counter() - start
+    sources = {name: {"path": str(Path(path).resolve()), "sha256": file_sha256(path)}
+               for name in ("x0", "adjacency", "edge_list", "controls")
+               if (path := getattr(config, name)) is not None}
+    resolved = config.model_copy(update={"out": out}).model_dump(mode="json")
+    write_predictions(out, ckpt, pred, time=ts, adjacency=graphs[graph_index],
+                      controls=controls, config={"verb": "simulate", **resolved,
+                                                 "topology": _topology(config)},
+                      source=sources, dtype=config.dtype, overwrite=overwrite)
+    return SimulateSummary(path=out, trajectories=k, samples=len(ts), nodes=n,
+                           graphs=len(graphs), n_f_evals=int(pred.n_f_evals.sum()),
+                           seconds=seconds)
+
+
+def simulate_output(config) -> Path:
+    """`config.out`, or `predictions/<x0 file stem>.h5`."""
+    return Path(config.out) if config.out is not None else Path(
+        "predictions", f"{Path(config.x0).stem}.h5")
+
+
+def _topology(config) -> str:
+    return "edgelist" if config.edge_list is not None else "adjacency"
