@@ -173,7 +173,8 @@ def main(argv=None) -> int:
     parser.add_argument("--ref-samples", type=int, default=32)
     parser.add_argument("--scipy-samples", type=int, default=64,
                         help="scipy is looped over at most this many samples, then extrapolated")
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads (1: the thread policy of every mpnode verb)")
     parser.add_argument("--compile-batches", type=int, nargs="*", default=[1, 512],
                         help="batch sizes at which the torch.compile variant is also timed")
     parser.add_argument("--out", type=Path, default=Path("bench/results/solver.md"))
