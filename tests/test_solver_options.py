@@ -145,7 +145,7 @@ def test_cli_flags_fill_the_solver_table(tmp_path):
     assert result.exit_code == 2 and "solver.method: Input should be 'tsit5'" in result.output
 
 
-def test_training_compiles_long_fixed_shape_runs_only(monkeypatch):
+def test_training_compiles_long_adaptive_runs_only(monkeypatch):
     from mpnode_cli.training import loop
 
     monkeypatch.setattr(loop, "_have_cxx", lambda: True)
@@ -156,7 +156,9 @@ def test_training_compiles_long_fixed_shape_runs_only(monkeypatch):
     assert loop.resolve_compile(long.model_copy(update={"epochs": 1499}), 64).solver.compile \
         is False
     curriculum = long.model_copy(update={"horizon_curriculum": True})
-    assert loop.resolve_compile(curriculum, 64).solver.compile is False  # shapes change
+    assert loop.resolve_compile(curriculum, 64).solver.compile is True  # dynamic shapes
+    fixed = long.model_copy(update={"solver": long.solver.model_copy(update={"fixed_dt": 0.1})})
+    assert loop.resolve_compile(fixed, 64).solver.compile is False  # compile is adaptive-only
     explicit = TrainConfig(dataset="d.h5", epochs=10, solver={"compile": True})
     assert loop.resolve_compile(explicit, 64).solver.compile is True
     monkeypatch.setattr(loop, "_have_cxx", lambda: False)

@@ -470,10 +470,13 @@ def _gather_outputs(cols: list[torch.Tensor], vals: list[torch.Tensor], n_out: i
 
 
 def _compiled_step():
-    """The step compiled once per process (torch.compile caches a graph per f and shape)."""
+    """The step compiled once per process (torch.compile caches a graph per f). Automatic
+    dynamic shapes (`dynamic=None`): a second size of a dimension (a horizon curriculum's
+    next horizon, a smaller last batch) recompiles once with that dimension symbolic, and
+    every later size reuses it, instead of one compile per size up to the cache limit."""
     global _STEP_COMPILED
     if _STEP_COMPILED is None:
-        _STEP_COMPILED = torch.compile(_step, dynamic=False)
+        _STEP_COMPILED = torch.compile(_step, dynamic=None)
     return _STEP_COMPILED
 
 

@@ -465,14 +465,15 @@ COMPILE_MIN_STEPS = 3000
 
 def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
     """Settle `solver.compile = "auto"`: compile when the run is long (≥ `COMPILE_MIN_STEPS`
-    optimizer steps), its shapes are fixed (equal batches, no horizon curriculum, whose
-    growing horizon would recompile) and a C++ compiler is there for inductor on CPU."""
+    optimizer steps), its steps are adaptive (compiling does not apply to `fixed_dt`) and a
+    C++ compiler is there for inductor on CPU. Shapes that change (a last smaller batch, the
+    horizon curriculum's growing horizon) cost one more compile, after which torch.compile
+    treats that size as dynamic (`solve`'s automatic dynamic shapes)."""
     if config.solver.compile != "auto":
         return config
     n = min(n_train, config.trajectories or n_train)
     steps = config.epochs * -(-n // config.batch_size)
-    decide = (steps >= COMPILE_MIN_STEPS and config.even_batches
-              and not config.horizon_curriculum and config.solver.fixed_dt is None
+    decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
               and (config.device != "cpu" or _have_cxx()))
     return config.model_copy(update={"solver": config.solver.model_copy(
         update={"compile": decide})})
