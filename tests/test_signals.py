@@ -100,8 +100,12 @@ def test_a_signal_during_the_hdf5_write_is_not_swallowed(tmp_path, monkeypatch, 
 @pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: signal.Signals(s).name)
 def test_train_stopped_leaves_a_summary_and_a_resumable_checkpoint(dataset, tmp_path, signum):
     run = tmp_path / "run"
+    # 20 000 optimizer steps would compile the solver's step (`compile = "auto"`), which
+    # takes longer than the epochs this test waits for; the signals are what is tested.
+    config = tmp_path / "eager.toml"
+    config.write_text("[solver]\ncompile = false\n")
     proc = _start("train", dataset, "--epochs", 5000, "--batch-size", 4, "--no-plots",
-                  "--run-dir", run)
+                  "--run-dir", run, "--config", config)
     _wait_for(lambda: len(read_metrics(run)) >= 3, proc)  # epochs 0, 1 and 2 done
     proc.send_signal(signum)
     _, err = proc.communicate(timeout=60)
