@@ -409,15 +409,14 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
              out_idx)
     step = _compiled_step() if compile and not _COMPILE_FAILED else _step
     while True:
-        if step is _step:
+        try:
             state, flags, extra = step(fun, consts, state)
-        else:
-            try:
-                state, flags, extra = step(fun, consts, state)
-            except Exception as exc:  # any compiler failure: run eagerly (f errors recur)
-                _compile_failed(exc)
-                step = _step
-                state, flags, extra = step(fun, consts, state)
+        except Exception as exc:
+            if step is _step:
+                raise
+            _compile_failed(exc)  # any compiler failure: run eagerly (f's own errors recur)
+            step = _step
+            state, flags, extra = step(fun, consts, state)
         any_running, width, any_jumped, any_failed = flags.tolist()  # the step's one sync
         jumped, n_cross, failed, code, (t_old, h, y_old, hk) = extra
         if any_failed:  # rare: record why those samples stopped

@@ -29,6 +29,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -135,11 +136,11 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     if not resume:  # a resumed run's config.json is already resolved
         config = resolve_config(config, data)
     device = _device(config.device)
-    config = resolve_compile(config, len(data.subset("train")))
     loss_fn = LOSSES[config.loss]
     train_set, val_set = data.subset("train"), data.subset("validation")
     if config.trajectories is not None:
         train_set = train_set.take(torch.arange(min(config.trajectories, len(train_set))))
+    config = resolve_compile(config, len(train_set))
     if len(train_set) == 0 or len(val_set) == 0:
         raise ValueError(f"{data.path.name} needs trajectories in both its train and "
                          "validation splits (regenerate with --split)")
@@ -464,15 +465,17 @@ COMPILE_MIN_STEPS = 3000
 
 
 def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
-    """Settle `solver.compile = "auto"`: compile when the run is long (≥ `COMPILE_MIN_STEPS`
-    optimizer steps), its steps are adaptive (compiling does not apply to `fixed_dt`) and a
-    C++ compiler is there for inductor on CPU. Shapes that change (a last smaller batch, the
-    horizon curriculum's growing horizon) cost one more compile, after which torch.compile
-    treats that size as dynamic (`solve`'s automatic dynamic shapes)."""
+    """Settle `solver.compile = "auto"` for a run over `n_train` trajectories.
+
+    Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps), its steps are
+    adaptive (compiling does not apply to `fixed_dt`) and a C++ compiler is there for
+    inductor on CPU. Shapes that change (a smaller last batch, the horizon curriculum's
+    growing horizon) cost one more compile, after which torch.compile treats that size as
+    dynamic (`solve`'s automatic dynamic shapes).
+    """
     if config.solver.compile != "auto":
         return config
-    n = min(n_train, config.trajectories or n_train)
-    steps = config.epochs * -(-n // config.batch_size)
+    steps = config.epochs * -(-n_train // config.batch_size)
     decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
               and (config.device != "cpu" or _have_cxx()))
     return config.model_copy(update={"solver": config.solver.model_copy(
@@ -489,8 +492,6 @@ def _describe_solver(config: TrainConfig) -> str:
 
 
 def _have_cxx() -> bool:
-    import shutil
-
     return shutil.which(os.environ.get("CXX", "g++")) is not None
 
 
