@@ -7,9 +7,9 @@ declarations (`mpnode_cli.models.options`), one per option any model declares; t
 model refuses the ones it does not declare. `--resume RUN_DIR` rebuilds the
 run's own config (only `--epochs`, `--device`, `--plots` and `--stream` may change), from
 any folder: the run knows its dataset's absolute path, and a dataset given beside
-`--resume` is accepted when its fingerprint is the run's. Exit codes: 2 for usage errors, 1 when training diverged,
-130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt` and a `summary.json` that
-says the run was interrupted).
+`--resume` is accepted when its fingerprint is the run's. Exit codes: 2 for usage errors,
+1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt`
+and a `summary.json` that says the run was interrupted).
 """
 
 from __future__ import annotations
