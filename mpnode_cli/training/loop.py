@@ -14,6 +14,10 @@ supplies the weights and the architecture (and, unless `renormalize`, the normal
 the optimizer is fresh. Resuming (`resume=True`) restores a run's `last.pt` — weights,
 optimizer, RNG states and the loop's counters — so 2 + 2 epochs equal 4.
 
+With `config.stream` the data stay in the file (`mpnode_cli.data.stream`): the batches are
+the same, read by a background thread as the epoch goes, and the normalization is fitted
+in a pass over the file, so the losses are those of the in-memory run.
+
 Under torchrun the processes train one model data-parallel (`mpnode_cli.training.distributed`):
 each takes its slice of every global batch, the update is one process's update of that
 batch, and rank 0 alone writes the run folder and reports progress. The run folder holds
