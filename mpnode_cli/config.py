@@ -132,6 +132,10 @@ class GenerateConfig(BaseModel):
         dtype: storage dtype of `states`.
         out: output file (default `datasets/<system>-n<N>-<topology>-s<seed>.h5`).
         chunk_size: trajectories solved together in one batch (bounds memory).
+        shard: `(i, n)`: write only shard i of n (0 ≤ i < n), whole solver chunks of the
+            trajectories, to `<out stem>.shard-<i>-of-<n><suffix>`
+            (`mpnode_cli.data.shards`); given as `"i/n"` or `[i, n]`. None: the whole
+            dataset, one file.
     """
 
     # No inf or NaN in any number (`--t-end inf` would never end).
@@ -156,6 +160,7 @@ class GenerateConfig(BaseModel):
     dtype: Literal["float32", "float64"] = "float32"
     out: Path | None = None
     chunk_size: int = Field(1024, ge=1)
+    shard: tuple[int, int] | None = None
 
     _parse_split = field_validator("split", mode="before")(_split_fractions)
     _check_split = field_validator("split")(_valid_split)
@@ -164,6 +169,22 @@ class GenerateConfig(BaseModel):
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
         return _over(generate_solver, value)
+
+    @field_validator("shard", mode="before")
+    @classmethod
+    def _parse_shard(cls, value: Any) -> Any:
+        """`"i/n"` (the command line's) or `[i, n]`, with 0 ≤ i < n."""
+        if value is None:
+            return None
+        parts = value.split("/") if isinstance(value, str) else value
+        try:
+            index, count = (int(str(p).strip()) for p in parts)
+        except (TypeError, ValueError):
+            index, count = -1, 0
+        if not 0 <= index < count:
+            raise ValueError(f"expected i/n with 0 ≤ i < n, e.g. 0/4 for the first of four "
+                             f"shards, got {value!r}")
+        return index, count
 
     @model_validator(mode="after")
     def _check_cross_fields(self) -> GenerateConfig:
@@ -340,6 +361,9 @@ class TrainConfig(BaseModel):
             reusing the checkpoint's.
         allow_other_system: finetune: accept a dataset whose `system` differs from the
             checkpoint's (refused by default: the model learned another system).
+        stream: read the batches from the dataset file as they are needed (a background
+            thread reads ahead) instead of loading every trajectory into memory; the
+            losses are the same (`mpnode_cli.data.stream`).
     """
 
     # No inf or NaN in any number (`--t-end inf` would never end).
@@ -373,6 +397,7 @@ class TrainConfig(BaseModel):
     trajectories: int | None = Field(None, ge=1)
     renormalize: bool = False
     allow_other_system: bool = False
+    stream: bool = False
 
     @field_validator("solver", mode="before")
     @classmethod

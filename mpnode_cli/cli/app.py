@@ -24,6 +24,7 @@ from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
 from mpnode_cli.cli.generate import generate_command
 from mpnode_cli.cli.importer import import_command
 from mpnode_cli.cli.info import info_command
+from mpnode_cli.cli.merge import merge_command
 from mpnode_cli.cli.simulate import simulate_command
 from mpnode_cli.cli.train import finetune_command, train_command
 from mpnode_cli.threads import ENV_VAR, apply_threads, choose_threads
@@ -81,6 +82,7 @@ class _Computing(TyperCommand):
 # Each verb's module imports only typer at load time; heavy imports live in its function.
 # compare only reads JSON, so it has no threads to size.
 app.command("generate", no_args_is_help=True, cls=_Computing)(generate_command)
+app.command("merge", no_args_is_help=True)(merge_command)
 app.command("import", no_args_is_help=True)(import_command)
 app.command("info")(info_command)
 app.command("check", no_args_is_help=True)(check_command)

@@ -102,8 +102,16 @@ def generate_command(
     fixed_dt: float | None = solver_option("fixed_dt", generate_solver()),
     dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
     out: Path | None = typer.Option(
-        None, help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5)."
+        None, "--out", "-o",
+        help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5); with "
+        "--shard, the name its shards are named after."
     ),
+    shard: str | None = typer.Option(
+        None, metavar="i/n",
+        help="Write only shard i of n (0 ≤ i < n) to <out stem>.shard-000i-of-000n.h5, for "
+        "n processes or machines; mpnode merge joins the n files into the one file "
+        "generate would write. Shards hold whole solver chunks (n ≤ trajectories / "
+        "chunk-size)."),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
     yes: bool = typer.Option(
@@ -133,6 +141,7 @@ def generate_command(
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
         "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
         "chunk_size": chunk_size, "directed": directed or None, "system_file": system_file,
+        "shard": shard,
     }  # fmt: skip
     options = {key: value for key, value in options.items() if value is not None}
     try:
@@ -216,14 +225,14 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
-    from mpnode_cli.data.generate import GenerateError, generate, resolve_config
+    from mpnode_cli.data.generate import GenerateError, generate, output_path, resolve_config
     from mpnode_cli.paths import check_output_file
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
     try:
         config = resolve_config(config, dry_run=False)
         _confirm_size(config, yes)
-        check_output_file(config.out, overwrite=force)
+        check_output_file(output_path(config), overwrite=force)
         config = resolve_config(config)
     except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))
@@ -254,8 +263,8 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
             raise typer.Exit(code=1) from None
         except KeyboardInterrupt as exc:
             bar.stop()
-            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written to {config.out}",
-                       err=True)
+            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written to "
+                       f"{output_path(config)}", err=True)
             raise typer.Exit(code=exit_code(exc)) from None
     if json_out:
         _print_json(config, summary)
@@ -271,12 +280,13 @@ def _confirm_size(config: Any, yes: bool) -> None:
     """
     import sys
 
-    from mpnode_cli.data.generate import estimate, format_bytes
+    from mpnode_cli.data.generate import estimate, format_bytes, trajectory_range
 
     size = estimate(config)
     if size.memory_bytes < SHOW_BYTES:
         return
-    typer.echo(f"this job: {config.trajectories} trajectories × {config.num_steps + 1} "
+    start, stop = trajectory_range(config)
+    typer.echo(f"this job: {stop - start} trajectories × {config.num_steps + 1} "
                f"samples × {config.nodes} nodes; file about {format_bytes(size.file_bytes)}, "
                f"memory about {format_bytes(size.memory_bytes)}", err=True)
     if size.memory_bytes < CONFIRM_BYTES or yes:
@@ -301,6 +311,7 @@ def _print_json(config: Any, summary: Any) -> None:
         "failed": summary.failed, "rejected": summary.rejected,
         "n_f_evals": summary.n_f_evals, "seconds": summary.seconds,
         "solve_seconds": summary.solve_seconds,
+        "shard": None if config.shard is None else list(config.shard),
     }))
 
 
@@ -321,6 +332,12 @@ def _print_summary(config: Any, summary: Any) -> None:
         ("RHS evaluations", f"{summary.n_f_evals:,}"),
         ("seconds", f"{summary.seconds:.2f} ({summary.solve_seconds:.2f} solving)"),
     ]
+    if config.shard is not None:
+        from mpnode_cli.data.generate import trajectory_range
+
+        (index, count), (start, stop) = config.shard, trajectory_range(config)
+        rows.insert(3, ("shard", f"{index} of {count}: trajectories {start}–{stop - 1} of "
+                                 f"{config.trajectories}"))
     for row in rows:
         table.add_row(*row)
     Console().print(table)

@@ -5,11 +5,11 @@ declared options hold the only defaults; a `--config` TOML file sits beneath the
 The model options (`--hidden`, `--message-dim`, ...) are built from the registry's
 declarations (`mpnode_cli.models.options`), one per option any model declares; the chosen
 model refuses the ones it does not declare. `--resume RUN_DIR` rebuilds the
-run's own config (only `--epochs`, `--device` and `--plots` may change), from any folder:
-the run knows its dataset's absolute path, and a dataset given beside `--resume` is accepted
-when its fingerprint is the run's. Exit codes: 2 for usage errors, 1 when training diverged,
-130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt` and a `summary.json` that
-says the run was interrupted).
+run's own config (only `--epochs`, `--device`, `--plots` and `--stream` may change), from
+any folder: the run knows its dataset's absolute path, and a dataset given beside
+`--resume` is accepted when its fingerprint is the run's. Exit codes: 2 for usage errors,
+1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt`
+and a `summary.json` that says the run was interrupted).
 """
 
 from __future__ import annotations
@@ -63,6 +63,10 @@ _CURR_EPOCHS = typer.Option(None, help="Curriculum: epochs to reach the full hor
 _BAD_STEPS = typer.Option(None, help="Bad batches in a row before a rollback (default 5).")
 _PLOTS = typer.Option(None, "--plots/--no-plots", help="Draw test plots at the end (on).")
 _TRAJECTORIES = typer.Option(None, help="Use only the first K train trajectories.")
+_STREAM = typer.Option(
+    None, "--stream/--in-memory",
+    help="Read batches from the dataset file as they are needed (a thread reads two "
+    "ahead), for datasets larger than memory; same losses as in memory (the default).")
 
 
 def train_command(
@@ -83,8 +87,8 @@ def train_command(
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
-    trajectories: int | None = _TRAJECTORIES, threads: str | None = THREADS,
-    json_out: bool = _JSON,
+    trajectories: int | None = _TRAJECTORIES, stream: bool | None = _STREAM,
+    threads: str | None = THREADS, json_out: bool = _JSON,
     **model_options: Any,
 ) -> None:
     """Train a model on a dataset's train split; results go to runs/<name>/."""
@@ -178,8 +182,8 @@ def finetune_command(
     fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
     curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
     max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
-    trajectories: int | None = _TRAJECTORIES, threads: str | None = THREADS,
-    json_out: bool = _JSON,
+    trajectories: int | None = _TRAJECTORIES, stream: bool | None = _STREAM,
+    threads: str | None = THREADS, json_out: bool = _JSON,
 ) -> None:
     """Train from a checkpoint's weights and architecture on another dataset (a new run).
 
@@ -222,7 +226,8 @@ def _config(config_file: Path | None, options: dict[str, Any],
     return TrainConfig(**{**fields, **options})
 
 
-_RESUMABLE = {"epochs", "device", "plots"}  # the rest would make the run something else
+# The rest would make the run something else (streaming reads the same batches).
+_RESUMABLE = {"epochs", "device", "plots", "stream"}
 
 
 def _resume_config(run_dir: Path, dataset: Path | None, options: dict[str, Any]):
@@ -233,7 +238,7 @@ def _resume_config(run_dir: Path, dataset: Path | None, options: dict[str, Any])
     if changed:
         shown = ", ".join("--" + name.replace("_", "-") for name in changed)
         raise ValueError(f"--resume continues {run_dir} as configured; only --epochs, "
-                         f"--device and --plots may change (got {shown})")
+                         f"--device, --plots and --stream may change (got {shown})")
     if dataset is None and not Path(config.dataset).is_file():
         raise ValueError(f"{run_dir} trained on {config.dataset}, which is not there any more: "
                          f"give its new path, mpnode train DATASET --resume {run_dir}")
@@ -328,6 +333,8 @@ class _Display:
                 self.console.print(f"threads: {threads.describe()}")
             if "solver" in event:
                 self.console.print(f"solver: {event['solver']}")
+            if event.get("stream"):
+                self.console.print("data: streamed from the file, two batches read ahead")
             if event.get("processes", 1) > 1:
                 self.console.print(f"processes: {event['processes']} ({event['backend']}), "
                                    "each training its slice of every batch")

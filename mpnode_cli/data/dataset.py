@@ -156,6 +156,11 @@ class TrajectoryData:
                        controls=None if self.controls is None else self.controls[index],
                        split=self.split[index])
 
+    def select(self, index: torch.Tensor) -> TrajectoryData:
+        """`take`: in memory, a view of some trajectories is those trajectories (a
+        `mpnode_cli.data.stream.StreamedTrajectories` selects without reading)."""
+        return self.take(index)
+
     def subset(self, which: str) -> TrajectoryData:
         """One split ("train", "validation", "test") or "all"."""
         if which == "all":

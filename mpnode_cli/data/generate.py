@@ -14,8 +14,11 @@
    none are left; the counts are stored;
 5. split by trajectory with a generator derived from `seed`, and write the file atomically.
 
-The same config gives bit-identical `states`. Nothing here prints; progress goes through
-an optional callback.
+The same config gives bit-identical `states`. With `config.shard = (i, n)` the same steps
+write shard i of n: all graphs and initial states are drawn, only the shard's solver
+chunks are solved, and its redraws come from a generator of its own
+(`mpnode_cli.data.shards`). Nothing here prints; progress goes through an optional
+callback.
 """
 
 from __future__ import annotations
@@ -31,6 +34,14 @@ from pathlib import Path
 import numpy as np
 
 from mpnode_cli.config import GenerateConfig
+from mpnode_cli.data.shards import (
+    SHARD_ATTR,
+    redraw_seed,
+    shard_attribute,
+    shard_chunks,
+    shard_path,
+    shard_range,
+)
 from mpnode_cli.graphs import read_edge_list
 from mpnode_cli.systems.base import System
 from mpnode_cli.systems.registry import get_system, load_system_file
@@ -95,9 +106,11 @@ class Estimate:
 
 
 def estimate(config: GenerateConfig) -> Estimate:
-    """The size of the file and the memory a resolved config will take (approximate)."""
+    """The size of the file and the memory a resolved config will take (approximate); for
+    a shard, its own trajectories'."""
     system = build_system(config)
-    k, t, n, g = config.trajectories, config.num_steps + 1, config.nodes, config.graphs
+    start, stop = trajectory_range(config)
+    k, t, n, g = stop - start, config.num_steps + 1, config.nodes, config.graphs
     d, u = len(system.state_names), len(system.control_names)
     store = 4 if config.dtype == "float32" else 8
     values = k * t * n * (d + u)
@@ -108,6 +121,24 @@ def estimate(config: GenerateConfig) -> Estimate:
               + chunk * n * d * _SOLVE_WORK)
     return Estimate(file_bytes=values * store + g * n * n, memory_bytes=memory,
                     values=k * t * n * d)
+
+
+def trajectory_range(config: GenerateConfig) -> tuple[int, int]:
+    """`(start, stop)`: the trajectories a resolved config's file holds (all, or a shard's).
+
+    Raises:
+        ValueError: more shards than solver chunks.
+    """
+    if config.shard is None:
+        return 0, config.trajectories
+    return shard_range(config.trajectories, config.chunk_size, *config.shard)
+
+
+def output_path(config: GenerateConfig) -> Path:
+    """The file a resolved config writes: `out`, or its shard's name beside it."""
+    if config.shard is None:
+        return Path(config.out)
+    return shard_path(config.out, *config.shard)
 
 
 def physical_memory() -> int | None:
@@ -158,6 +189,7 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
             f"{config.system}-n{fields['nodes']}-{fields['topology']}-s{config.seed}.h5",
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
+    trajectory_range(resolved)  # a shard spec that fits these trajectories
     need, have = estimate(resolved).memory_bytes, physical_memory()
     if have is not None and need > have:
         raise ValueError(
@@ -175,7 +207,8 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
 def generate(
     config: GenerateConfig, *, overwrite: bool = False, progress: Progress | None = None
 ) -> GenerateSummary:
-    """Simulate the dataset `config` describes and write it to `config.out`.
+    """Simulate the dataset `config` describes and write it to `config.out` (a shard: to
+    `output_path(config)`).
 
     Args:
         config: a generate config (resolved here if it is not already).
@@ -203,10 +236,10 @@ def generate(
     from mpnode_cli.paths import check_output_file
 
     config = resolve_config(config)
-    out = Path(config.out)
+    out = output_path(config)
     check_output_file(out, overwrite=overwrite)
     system = build_system(config)
-    k, g = config.trajectories, config.graphs
+    g = config.graphs
 
     # 1. Graphs and their parameters.
     adjacency = np.stack([_graph(system, config, i) for i in range(g)])  # [G, N, N] uint8
@@ -217,11 +250,22 @@ def generate(
     params = {name: np.stack([p[name] for p in per_graph]) for name in per_graph[0]}
 
     # 2. Trajectories in contiguous blocks per graph, sizes differing by at most one.
-    graph_index = (np.arange(k) * g // k).astype(np.int32)  # [K]
+    total_k = config.trajectories
+    graph_index = (np.arange(total_k) * g // total_k).astype(np.int32)  # [K]
     rng = np.random.default_rng(config.seed)
     draws = [system.sample(adjacency[i], int((graph_index == i).sum()), rng) for i in range(g)]
     y0 = np.concatenate([d[0] for d in draws])  # [K, N, D]
     inputs = {name: np.concatenate([d[1][name] for d in draws]) for name in draws[0][1]}
+    first_chunks = list(_chunks(np.arange(total_k), graph_index, config.chunk_size))
+    # A shard keeps its own solver chunks of the whole and redraws from its own generator.
+    lo, hi = trajectory_range(config)
+    if config.shard is not None:
+        first_chunks = first_chunks[shard_chunks(total_k, config.chunk_size, *config.shard)]
+        first_chunks = [(chunk - lo, gi) for chunk, gi in first_chunks]
+        rng = np.random.default_rng(redraw_seed(config.seed, *config.shard))
+        graph_index, y0 = graph_index[lo:hi], y0[lo:hi]  # [K_s], [K_s, N, D]
+        inputs = {name: value[lo:hi] for name, value in inputs.items()}
+    k = hi - lo
 
     # 3.–4. Solve, then redraw what failed or was rejected, until nothing is left.
     ts = torch.arange(config.num_steps + 1, dtype=torch.float64) * config.dt  # [T]
@@ -238,7 +282,9 @@ def generate(
     if progress is not None:
         progress(0, total)
     for round_ in range(MAX_REDRAW_ROUNDS + 1):
-        for chunk, gi in _chunks(pending, graph_index, config.chunk_size):
+        chunks = first_chunks if round_ == 0 else _chunks(pending, graph_index,
+                                                          config.chunk_size)
+        for chunk, gi in chunks:
             tic = time.perf_counter()
             # `[1, ...]` when the chunk shares one graph, else one copy per trajectory.
             which = slice(gi, gi + 1) if gi is not None else graph_index[chunk]
@@ -291,14 +337,19 @@ def generate(
         total += len(pending)
 
     # 5. Split by trajectory and write.
-    split = split_trajectories(k, config.split, config.seed)
+    split = split_trajectories(total_k, config.split, config.seed)[lo:hi]
+    sharding = {}
+    if config.shard is not None:
+        sharding[SHARD_ATTR] = shard_attribute(total_k, config.chunk_size, config.seed,
+                                                *config.shard)
     dataset = Dataset(
         system=system.name,
         dt=config.dt,
         state_names=system.state_names,
         control_names=system.control_names,
         seed=config.seed,
-        config=config.model_dump(mode="json"),
+        # A single file's config has no `shard` field: it reads as it did before shards.
+        config=config.model_dump(mode="json", exclude=set() if config.shard else {"shard"}),
         time=ts.numpy(),
         states=states.astype(config.dtype),
         controls=None if controls is None else controls.astype(config.dtype),
@@ -311,7 +362,7 @@ def generate(
         solver_status=status,
         solver_n_f_evals=n_f_evals.astype(np.int32),
         extra_attrs={"n_rejected": rejected, "n_failed": failed,
-                     "recipe": json.dumps(system.recipe(), sort_keys=True)},
+                     "recipe": json.dumps(system.recipe(), sort_keys=True), **sharding},
     )
     write_dataset(out, dataset, overwrite=overwrite)
     counts = np.bincount(split, minlength=3)

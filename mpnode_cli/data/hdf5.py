@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import uuid
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -159,28 +157,12 @@ def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> 
             be written (`mpnode_cli.paths.check_output_file`).
         KeyboardInterrupt: SIGINT or SIGTERM during the write; nothing is left behind.
     """
-    from mpnode_cli.paths import check_output_file
-    from mpnode_cli.signals import deferred_signals
+    from mpnode_cli.data.atomic import atomic_h5
 
-    path = Path(path)
     _check_shapes(ds)
-    check_output_file(path, overwrite=overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # A unique name beside the target (same filesystem, so the rename is atomic), created
-    # by h5py itself so that the file gets the user's usual permissions.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        # h5py would swallow an interrupt raised inside its calls and finish the file; the
-        # signal is taken between fields instead, and the temporary file removed.
-        with deferred_signals() as pending:
-            with h5py.File(tmp, "x") as f:
-                _write(f, ds, pending.check)
-            pending.check()
-            os.replace(tmp, path)
-    except BaseException:  # an interrupt too: never leave a half-written temp behind
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_h5(path, overwrite=overwrite) as (f, check):
+        _write(f, ds, check)
+    return Path(path)
 
 
 def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None) -> None:

@@ -174,7 +174,8 @@ class DegreeAwareAggregation:
         """The graph messages pass over: the data's, or complete with self-loops."""
         return torch.ones_like(adjacency) if self.graph == "full" else adjacency
 
-    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
+    def fit_statistics(self, states: torch.Tensor | None, dt: float,
+                       adjacency: torch.Tensor) -> None:
         """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` (states, dt unused)."""
         if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
             self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))

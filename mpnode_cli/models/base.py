@@ -73,6 +73,8 @@ class NeuralModel(nn.Module):
         transferable: runs on graphs of any node count. A model that is not is built for
             one N, which its `config` then records as `num_nodes`.
         Options: its declared options (`mpnode_cli.models.options`).
+        statistics_need_states: `fit_statistics` reads the train states (not only the
+            graphs); streamed training then reads them into memory for it.
 
     Args:
         node_dim: D, per-node state size.
@@ -84,6 +86,7 @@ class NeuralModel(nn.Module):
     kind: ClassVar[str]
     transferable: ClassVar[bool] = True
     Options: ClassVar[type[ModelOptions]]
+    statistics_need_states: ClassVar[bool] = False
 
     def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
                  options: ModelOptions | None = None):
@@ -125,13 +128,15 @@ class NeuralModel(nn.Module):
         """C, the data states a rollout starts from (1: x(t₀) alone)."""
         return 1
 
-    def fit_statistics(self, states: torch.Tensor, dt: float, adjacency: torch.Tensor) -> None:
+    def fit_statistics(self, states: torch.Tensor | None, dt: float,
+                       adjacency: torch.Tensor) -> None:
         """Fit statistics of the training data that are not learned by gradient (none here).
 
         Called once on a fresh model (and on a finetune that renormalizes), before training.
 
         Args:
-            states: `[K, T, N, D]` normalized train-split states.
+            states: `[K, T, N, D]` normalized train-split states; None in a streamed run
+                when `statistics_need_states` is False.
             dt: sample spacing.
             adjacency: `[K, N, N]` the train split's graphs.
         """

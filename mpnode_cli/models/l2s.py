@@ -45,6 +45,7 @@ class L2S(NeuralModel):
 
     kind: ClassVar[str] = "l2s"
     transferable: ClassVar[bool] = True
+    statistics_need_states: ClassVar[bool] = True  # the one-step differences' moments
     Options: ClassVar[type[L2SOptions]] = L2SOptions
 
     def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,

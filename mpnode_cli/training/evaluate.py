@@ -24,6 +24,7 @@ from typing import Any
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
+from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
 from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.solver.options import SolverOptions
@@ -84,7 +85,8 @@ class Prediction:
     status: torch.Tensor
 
 
-def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *,
+def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
+             normalizer: Normalizer, *,
              batch_size: int = 128, solver: SolverOptions | None = None,
              device: str | torch.device = "cpu",
              combine: Callable[[torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
@@ -92,7 +94,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
 
     Args:
         model: the model, already on `device`.
-        data: the trajectories (one split, or all); physical units.
+        data: the trajectories (one split, or all); physical units; in memory or read
+            batch by batch (`StreamedTrajectories`).
         normalizer: the training normalization (the model works in its units).
         batch_size: trajectories per rollout.
         solver: how the rollouts are integrated, normally as the model was trained
@@ -106,16 +109,15 @@ def evaluate(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer, *
         An `EvalResult`; errors are NaN when every rollout failed (or `data` is empty).
     """
     start = time.perf_counter()
-    k, t, _, d = data.states.shape
+    k, t, d = len(data), data.time.numel(), data.node_dim
     ts = data.time.to(device)
     sq_time = torch.zeros(t, dtype=torch.float64)  # Σ squared error per sample time
     sq_phys = torch.zeros(d, dtype=torch.float64)  # Σ squared physical error per state
     huber_sum, ok, failed, n_f_evals = 0.0, 0, 0, 0
     was_training = model.training
     model.eval()
-    with torch.no_grad():
-        for idx in torch.arange(k).split(batch_size):
-            batch = data.take(idx)
+    with torch.no_grad(), prefetched(data, torch.arange(k).split(batch_size)) as batches:
+        for batch in batches:
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
             out = model.rollout_from_data(x, ts, batch.adjacency.to(device), u, solver=solver)
             n_f_evals += out.n_f_evals
@@ -162,7 +164,8 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
                       messages=messages, status=out.status.cpu())
 
 
-def baseline_mse(train: TrajectoryData, data: TrajectoryData,
+def baseline_mse(train: TrajectoryData | StreamedTrajectories,
+                 data: TrajectoryData | StreamedTrajectories,
                  normalizer: Normalizer) -> dict[str, float]:
     """The MSE of two naive predictors on `data`, in `evaluate`'s units.
 
@@ -178,7 +181,8 @@ def baseline_mse(train: TrajectoryData, data: TrajectoryData,
 
     Args:
         train: trajectories whose per-time mean is the time_mean predictor (the split the
-            model was trained on). data: the trajectories to score; physical units both.
+            model was trained on). data: the trajectories to score; physical units both,
+            in memory or streamed (then read a block of trajectories at a time).
         normalizer: the training normalization.
 
     Returns:
@@ -187,18 +191,26 @@ def baseline_mse(train: TrajectoryData, data: TrajectoryData,
     """
     if len(data) == 0 or data.time.numel() < 2:
         return {"hold_x0": math.nan, "time_mean": math.nan}
-    x = normalizer.norm_x(data.states.double())  # (K, T, N, D)
-    hold = float((x[:, 1:] - x[:, :1]).pow(2).mean())
-    if len(train) == 0:
-        return {"hold_x0": hold, "time_mean": math.nan}
-    mean_t = normalizer.norm_x(train.states.double()).mean(dim=(0, 2))  # (T', D)
-    # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
-    ts, train_ts = data.time.double(), train.time.double()
-    slack = 1e-9 * max(1.0, float(ts.abs().max()))
-    at = torch.searchsorted(train_ts, ts + slack, right=True) - 1  # (T,) latest t' ≤ t_k
-    pred = mean_t[at.clamp(0, len(train_ts) - 1)]  # (T, D)
-    time_mean = float((x[:, 1:] - pred[None, 1:, None, :]).pow(2).mean())
-    return {"hold_x0": hold, "time_mean": time_mean}
+    pred = None
+    if len(train):
+        total = sum(normalizer.norm_x(block.states.double()).sum(dim=(0, 2))
+                    for block in in_blocks(train))
+        mean_t = total / (len(train) * train.num_nodes)  # (T', D)
+        # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
+        ts, train_ts = data.time.double(), train.time.double()
+        slack = 1e-9 * max(1.0, float(ts.abs().max()))
+        at = torch.searchsorted(train_ts, ts + slack, right=True) - 1  # (T,) latest t' ≤ t_k
+        pred = mean_t[at.clamp(0, len(train_ts) - 1)]  # (T, D)
+    hold = time_mean = 0.0
+    count = 0
+    for block in in_blocks(data):
+        x = normalizer.norm_x(block.states.double())  # (B, T, N, D)
+        hold += float((x[:, 1:] - x[:, :1]).pow(2).sum())
+        if pred is not None:
+            time_mean += float((x[:, 1:] - pred[None, 1:, None, :]).pow(2).sum())
+        count += x[:, 1:].numel()
+    return {"hold_x0": hold / count,
+            "time_mean": time_mean / count if pred is not None else math.nan}
 
 
 def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData, str]:
@@ -232,7 +244,7 @@ def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData, str]:
         source, limit = data, None
     train = source.subset("train")
     if limit is not None:
-        train = train.take(torch.arange(min(int(limit), len(train))))
+        train = train.select(torch.arange(min(int(limit), len(train))))
     return train, f"the train split of {source.path.name}{note}"
 
 

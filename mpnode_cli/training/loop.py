@@ -14,6 +14,10 @@ supplies the weights and the architecture (and, unless `renormalize`, the normal
 the optimizer is fresh. Resuming (`resume=True`) restores a run's `last.pt` — weights,
 optimizer, RNG states and the loop's counters — so 2 + 2 epochs equal 4.
 
+With `config.stream` the data stay in the file (`mpnode_cli.data.stream`): the batches are
+the same, read by a background thread as the epoch goes, and the normalization is fitted
+in a pass over the file, so the losses are those of the in-memory run.
+
 Under torchrun the processes train one model data-parallel (`mpnode_cli.training.distributed`):
 each takes its slice of every global batch, the update is one process's update of that
 batch, and rank 0 alone writes the run folder and reports progress. The run folder holds
@@ -40,6 +44,7 @@ import torch
 
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
+from mpnode_cli.data.stream import StreamedTrajectories, prefetched
 from mpnode_cli.models.registry import OPTIONS, build_model, resolve_options
 from mpnode_cli.paths import check_writable_dir
 from mpnode_cli.signals import deferred_signals, signal_name
@@ -127,8 +132,10 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     if not resume and world.main:  # the run folder's place must be writable before any work
         check_writable_dir(config.run_dir or runs.default_root())
 
-    # 1. Data: the train split (optionally its first K trajectories) and the validation split.
-    data = TrajectoryData.load(config.dataset)
+    # 1. Data: the train split (optionally its first K trajectories) and the validation split,
+    # in memory or (`stream`) read from the file batch by batch.
+    data = (StreamedTrajectories.open(config.dataset) if config.stream
+            else TrajectoryData.load(config.dataset))
     # Absolute paths, so that a run can be resumed and evaluated from any folder.
     config = config.model_copy(update={"dataset": Path(config.dataset).resolve()} | (
         {"init_checkpoint": Path(config.init_checkpoint).resolve()}
@@ -139,7 +146,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     loss_fn = LOSSES[config.loss]
     train_set, val_set = data.subset("train"), data.subset("validation")
     if config.trajectories is not None:
-        train_set = train_set.take(torch.arange(min(config.trajectories, len(train_set))))
+        train_set = train_set.select(torch.arange(min(config.trajectories, len(train_set))))
     config = resolve_compile(config, len(train_set))
     if len(train_set) == 0 or len(val_set) == 0:
         raise ValueError(f"{data.path.name} needs trajectories in both its train and "
@@ -183,6 +190,8 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     config = config.model_copy(update={"run_dir": run_dir})
     if source is not None and not (parent and config.renormalize):
         normalizer = source.build_normalizer()
+    elif config.stream:
+        normalizer = train_set.fit_normalizer()  # one pass over the file, in blocks
     else:
         normalizer = Normalizer.fit(train_set.states, train_set.controls)
     parent_sha = last.parent_sha256 if last else (
@@ -192,7 +201,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
         model.load_state_dict(source.state_dict)
     if source is None or (parent and config.renormalize):
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
-        model.fit_statistics(normalizer.norm_x(train_set.states),
+        model.fit_statistics(_statistics_states(model, train_set, normalizer),
                              float(train_set.time[1] - train_set.time[0]), train_set.adjacency)
     model.to(device)
     world.broadcast_module(model)
@@ -233,7 +242,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
         )  # fmt: skip
 
     # Each rank validates its part of the split; the error sums are added over ranks.
-    val_part = val_set.take(torch.arange(len(val_set))[world.shard(len(val_set))])
+    val_part = val_set.select(torch.arange(len(val_set))[world.shard(len(val_set))])
 
     def validate() -> EvalResult:
         return evaluate(model, val_part, normalizer, batch_size=config.val_batch_size,
@@ -249,7 +258,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     emit({"event": "start", "run_dir": str(run_dir), "first_epoch": state.epoch + 1,
           "epochs": config.epochs, "batches": batches, "parameters": _count(model),
           "solver": _describe_solver(config), "processes": world.size,
-          "backend": world.backend})
+          "backend": world.backend, "stream": config.stream})
     try:
         if state.epoch == 0 and not runs.checkpoint_path(run_dir, "best").exists():
             # Epoch 0: how good the starting weights are (again, if interrupted before).
@@ -314,7 +323,8 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     return summary
 
 
-def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normalizer,
+def _train_epoch(model, optimizer, train_set: TrajectoryData | StreamedTrajectories,
+                 normalizer: Normalizer,
                  loss_fn, config: TrainConfig, state: LoopState, snapshot: Checkpoint,
                  shuffle: torch.Generator, epoch: int, device, emit: Progress,
                  world: distributed.World) -> dict:
@@ -328,49 +338,63 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData, normalizer: Normal
         batches = order.tensor_split(math.ceil(len(order) / config.batch_size))
     else:  # full batches and a partial last one, as the authors' DataLoader
         batches = order.split(config.batch_size)
-    for b, idx in enumerate(batches, start=1):
-        part = world.shard(len(idx))  # this rank's slice of the global batch (all of it)
-        batch = train_set.take(idx[part])
-        x = normalizer.norm_x(batch.states[:, :horizon])  # (B_r, H, N, D)
-        # Noise is drawn on the CPU from the loop's generator for the whole global batch, so
-        # it is the same on any device, after a resume and with any number of processes.
-        noise = torch.randn((len(idx), *x.shape[1:]), generator=shuffle)[part]
-        x = (x + config.noise * noise).to(device)
-        u = None if batch.controls is None else normalizer.norm_u(
-            batch.controls[:, :horizon]).to(device)
-        loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
-                                               batch.adjacency.to(device), u, loss_fn, config,
-                                               world, len(batch) / len(idx))
-        evals_per_batch.append(evals)
-        if reason is None:
-            loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
-            grad_norms.append(grad_norm)
-            state.bad_run = 0
-            emit({"event": "batch", "epoch": epoch, "batch": b, "batches": len(batches),
-                  "loss": loss})
-            continue
-        skipped.append(f"batch {b}: {reason}")
-        state.skipped, state.bad_run = state.skipped + 1, state.bad_run + 1
-        emit({"event": "skip", "epoch": epoch, "batch": b, "reason": reason})
-        if state.bad_run >= config.max_bad_steps:
-            lr = optimizer.param_groups[0]["lr"] / 2
-            if lr < config.min_lr:
-                raise TrainingDiverged(
-                    f"{state.bad_run} bad steps in a row at lr {2 * lr:.3g} ({reason}); "
-                    "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
-            # Roll back to the last completed epoch's weights and moments at half the lr.
-            model.load_state_dict(snapshot.state_dict)
-            optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
-            _set_lr(optimizer, lr)
-            state.bad_run, state.restores = 0, state.restores + 1
-            state.lr_scale /= 2
-            emit({"event": "restore", "epoch": epoch, "lr": lr})
+    # This rank's slice of each global batch (all of it), read ahead when streamed.
+    parts = [idx[world.shard(len(idx))] for idx in batches]
+    with prefetched(train_set, parts) as taken:
+        for b, (idx, batch) in enumerate(zip(batches, taken, strict=True), start=1):
+            part = world.shard(len(idx))
+            x = normalizer.norm_x(batch.states[:, :horizon])  # (B_r, H, N, D)
+            # Noise is drawn on the CPU from the loop's generator for the whole global batch,
+            # so it is the same on any device, after a resume and with any number of processes.
+            noise = torch.randn((len(idx), *x.shape[1:]), generator=shuffle)[part]
+            x = (x + config.noise * noise).to(device)
+            u = None if batch.controls is None else normalizer.norm_u(
+                batch.controls[:, :horizon]).to(device)
+            loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
+                                                   batch.adjacency.to(device), u, loss_fn,
+                                                   config, world, len(batch) / len(idx))
+            evals_per_batch.append(evals)
+            if reason is None:
+                loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
+                grad_norms.append(grad_norm)
+                state.bad_run = 0
+                emit({"event": "batch", "epoch": epoch, "batch": b, "batches": len(batches),
+                      "loss": loss})
+                continue
+            skipped.append(f"batch {b}: {reason}")
+            state.skipped, state.bad_run = state.skipped + 1, state.bad_run + 1
+            emit({"event": "skip", "epoch": epoch, "batch": b, "reason": reason})
+            if state.bad_run >= config.max_bad_steps:
+                lr = optimizer.param_groups[0]["lr"] / 2
+                if lr < config.min_lr:
+                    raise TrainingDiverged(
+                        f"{state.bad_run} bad steps in a row at lr {2 * lr:.3g} ({reason}); "
+                        "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
+                # Roll back to the last completed epoch's weights and moments at half the lr.
+                model.load_state_dict(snapshot.state_dict)
+                optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
+                _set_lr(optimizer, lr)
+                state.bad_run, state.restores = 0, state.restores + 1
+                state.lr_scale /= 2
+                emit({"event": "restore", "epoch": epoch, "lr": lr})
     # A batch's RHS evaluations are its slowest trajectory's, wherever that was solved.
     n_f_evals = int(world.max(torch.tensor(evals_per_batch, dtype=torch.long)).sum())
     return {"train_loss": loss_sum / count if count else math.nan, "horizon": horizon,
             "grad_norm": sum(grad_norms) / len(grad_norms) if grad_norms else math.nan,
             "rhs_evals": n_f_evals, "skipped": len(skipped), "skip_reasons": skipped,
             "train_seconds": time.perf_counter() - start}
+
+
+def _statistics_states(model, train_set: TrajectoryData | StreamedTrajectories,
+                       normalizer: Normalizer) -> torch.Tensor | None:
+    """The normalized train states `fit_statistics` gets: in memory, all of them; streamed,
+    read for a model that fits on states (L2S) and None for the others (they need only
+    the graphs), so that a streamed MP-NODE run never holds the train split."""
+    if isinstance(train_set, TrajectoryData):
+        return normalizer.norm_x(train_set.states)
+    if not model.statistics_need_states:
+        return None
+    return normalizer.norm_x(train_set.take(torch.arange(len(train_set))).states)
 
 
 def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig,

@@ -1,0 +1,83 @@
+"""`mpnode merge SHARDS... -o OUT`: join the shards of `mpnode generate --shard i/n`.
+
+The command only parses and reports; `mpnode_cli.data.shards.merge_shards` checks that the
+files are every shard of one dataset and writes the merged file atomically. Exit codes: 2
+for files that do not belong together or an unusable output path, 130 for Ctrl-C and 143
+for SIGTERM (either leaves nothing at the output path). h5py is imported inside the
+function.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from mpnode_cli.cli.common import console, fail
+
+
+def merge_command(
+    shards: list[Path] = typer.Argument(
+        ..., metavar="SHARDS...", show_default=False,
+        help="Every shard file of one dataset (the *.shard-000i-of-000n.h5 that mpnode "
+        "generate --shard writes), in any order."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", show_default=False,
+        help="The merged dataset file: the file generate without --shard would write."),
+    virtual: bool = typer.Option(
+        False, "--virtual",
+        help="Write an HDF5 virtual dataset that reads the trajectories from the shards "
+        "instead of copying them (fast, no second copy on disk). The shards must then stay "
+        "where they are: the file finds them by their paths relative to its own folder."),
+    force: bool = typer.Option(
+        False, "--force", help="Overwrite an existing output file (regular files only)."),
+    json_out: bool = typer.Option(
+        False, "--json", help="Print the summary as one JSON object on stdout."),
+) -> None:
+    """Merge the shards of one dataset into one dataset file."""
+    import json
+
+    from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
+
+    from mpnode_cli.cli.common import error_message
+    from mpnode_cli.data.generate import format_bytes
+    from mpnode_cli.data.shards import merge_shards
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
+
+    display = console(stderr=True)
+    columns = ("[progress.description]{task.description}", BarColumn(),
+               "[progress.percentage]{task.percentage:>3.0f}%", TimeElapsedColumn(),
+               TimeRemainingColumn())
+    # No bar when stderr is not a terminal (pipes, logs, tests): it would only add noise.
+    with interrupt_on_signals(), Progress(*columns, console=display, transient=True,
+                                          disable=not display.is_terminal) as bar:
+        task = bar.add_task(f"merging {len(shards)} shards", total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        try:
+            summary = merge_shards(shards, out, overwrite=force, virtual=virtual,
+                                   progress=progress)
+        except (FileExistsError, ValueError) as exc:
+            bar.stop()
+            fail(error_message(exc))
+        except KeyboardInterrupt as exc:
+            bar.stop()
+            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written to {out}", err=True)
+            raise typer.Exit(code=exit_code(exc)) from None
+    if json_out:
+        typer.echo(json.dumps({"path": str(summary.path), "shards": summary.shards,
+                               "trajectories": summary.trajectories,
+                               "virtual": summary.virtual, "redrawn": summary.redrawn,
+                               "bytes": summary.bytes}))
+        return
+    how = "mapped (virtual; keep the shards in place)" if summary.virtual else "copied"
+    console().print(f"wrote {summary.path}: {summary.trajectories} trajectories from "
+                    f"{summary.shards} shards, {format_bytes(summary.bytes)} {how}",
+                    highlight=False)
+    if summary.redrawn:
+        console().print(
+            f"note: the shards redrew {summary.redrawn} trajectories from their own "
+            "generators, so those differ from a single-file generate of this config",
+            highlight=False)
