@@ -1,4 +1,4 @@
-"""Dataset files (format v1): round trip, atomic writes, and refusal of foreign or newer files."""
+"""Dataset files (format v2): round trip, atomic writes, and refusal of foreign or newer files."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ from mpnode_cli.data.hdf5 import (
     read_header,
     write_dataset,
 )
+from mpnode_cli.graphs import Graphs
 
 K, T, N, D, U, G = 5, 4, 3, 2, 1, 2
 
@@ -31,7 +32,8 @@ def _dataset(**overrides) -> Dataset:
         config={"system": "toy", "split": [0.6, 0.2, 0.2]},
         time=np.arange(T) * 0.1,
         states=rng.standard_normal((K, T, N, D)).astype(np.float32),
-        adjacency=np.stack([np.ones((N, N), np.uint8) - np.eye(N, dtype=np.uint8)] * G),
+        graphs=Graphs.from_adjacency(
+            np.stack([np.ones((N, N), np.uint8) - np.eye(N, dtype=np.uint8)] * G)),
         graph_index=np.array([0, 0, 0, 1, 1], dtype=np.int32),
         split=np.array([0, 0, 0, 1, 2], dtype=np.uint8),
         params={"coupling": rng.standard_normal((G, 3 * N, 3 * N))},
@@ -70,10 +72,10 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(back.solver_n_f_evals, ds.solver_n_f_evals)
 
 
-def test_layout_matches_format_v1(tmp_path):
+def test_layout_matches_format_v2(tmp_path):
     path = write_dataset(tmp_path / "d.h5", _dataset())
     with h5py.File(path) as f:
-        assert f.attrs["format"] == "mpnode-dataset" and f.attrs["format_version"] == 1
+        assert f.attrs["format"] == "mpnode-dataset" and f.attrs["format_version"] == 2
         assert (f.attrs["num_nodes"], f.attrs["node_dim"], f.attrs["control_dim"]) == (N, D, U)
         assert json.loads(f.attrs["state_names"]) == ["a", "b"]
         assert json.loads(f.attrs["config"])["system"] == "toy"
@@ -101,7 +103,7 @@ def test_header_without_data(tmp_path):
     header = read_header(path)
     assert header["shapes"]["states"] == ((K, T, N, D), "float32")
     assert header["attrs"]["state_names"] == ["a", "b"]
-    assert header["adjacency"].shape == (G, N, N)
+    assert header["graphs"].dense().shape == (G, N, N)
 
 
 def test_refuses_to_overwrite_unless_asked(tmp_path):
@@ -142,8 +144,8 @@ def test_interrupted_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
 def test_newer_version_is_rejected(tmp_path):
     path = write_dataset(tmp_path / "d.h5", _dataset())
     with h5py.File(path, "a") as f:
-        f.attrs["format_version"] = 2
-    with pytest.raises(DatasetFormatError, match=r"version 2, newer.*upgrade mpnode"):
+        f.attrs["format_version"] = 3
+    with pytest.raises(DatasetFormatError, match=r"version 3, newer.*upgrade mpnode"):
         read_dataset(path)
     with pytest.raises(DatasetFormatError, match="newer"):
         read_header(path)
@@ -170,7 +172,7 @@ def test_other_files_are_rejected(tmp_path):
 def test_inconsistent_shapes_are_refused(tmp_path):
     with pytest.raises(ValueError, match="graph_index has shape"):
         write_dataset(tmp_path / "d.h5", _dataset(graph_index=np.zeros(K + 1, np.int32)))
-    with pytest.raises(ValueError, match="outside graph/adjacency"):
+    with pytest.raises(ValueError, match="outside the graphs"):
         write_dataset(tmp_path / "d.h5", _dataset(graph_index=np.full(K, G, np.int32)))
     with pytest.raises(ValueError, match="would overwrite a format attribute"):
         write_dataset(tmp_path / "d.h5", _dataset(extra_attrs={"seed": 1}))
