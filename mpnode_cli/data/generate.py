@@ -109,7 +109,7 @@ def estimate(config: GenerateConfig) -> Estimate:
     chunk = min(config.chunk_size, k)
     # Chunks over several graphs carry one float64 copy of the adjacency per trajectory.
     chunk_graphs = chunk if g > 1 else 1
-    if n <= DENSE_GRAPH_MAX_NODES:
+    if n <= DENSE_GRAPH_MAX_NODES or not system.sparse:  # matrices
         graph_memory, graph_file = g * n * n * 9 + chunk_graphs * n * n * 8, g * n * n
     else:  # int64 senders and receivers, and a chunk's flattened copy of them
         messages = n * _EDGES_PER_NODE
@@ -167,17 +167,17 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
             f"{config.system}-n{fields['nodes']}-{fields['topology']}-s{config.seed}.h5",
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
-    if resolved.nodes > DENSE_GRAPH_MAX_NODES and not system.sparse:
-        raise ValueError(
-            f"system '{system.name}' needs its graph as an N×N matrix, which mpnode builds "
-            f"for at most {DENSE_GRAPH_MAX_NODES} nodes, not {resolved.nodes}; systems that "
-            "run on edge lists: those with `sparse = True` (kuramoto, gene, pendulum)")
     need, have = estimate(resolved).memory_bytes, physical_memory()
     if have is not None and need > have:
         raise ValueError(
             f"this dataset needs about {format_bytes(need)} of memory, more than this "
             f"machine's {format_bytes(have)}: lower --trajectories, --t-end or --nodes, or "
             "raise --dt")
+    if resolved.nodes > DENSE_GRAPH_MAX_NODES and not system.sparse:
+        raise ValueError(
+            f"system '{system.name}' needs its graph as an N×N matrix, which mpnode builds "
+            f"for at most {DENSE_GRAPH_MAX_NODES} nodes, not {resolved.nodes}; systems that "
+            "run on edge lists: those with `sparse = True` (kuramoto, gene, pendulum)")
     if not dry_run:
         return resolved
 
