@@ -28,7 +28,8 @@ def synthetic(k: int, t: int, seed: int, dt: float = 0.1) -> TrajectoryData:
     return TrajectoryData(
         states=torch.tensor(states, dtype=torch.float32), controls=None,
         graphs=Graphs.from_adjacency(np.ones((1, 3, 3), np.uint8)),
-        graph_index=torch.zeros(k, dtype=torch.long), time=torch.arange(t, dtype=torch.float64) * dt,
+        graph_index=torch.zeros(k, dtype=torch.long),
+        time=torch.arange(t, dtype=torch.float64) * dt,
         split=torch.zeros(k, dtype=torch.uint8), system="toy", state_names=("a", "b"),
         control_names=(), path=Path(f"toy{seed}.h5"), fingerprint=str(seed))
 
