@@ -93,3 +93,80 @@ def test_sum_lets_a_node_sense_its_degree_and_mean_does_not():
     m = torch.ones(1, 3, 1)
     assert aggregator(adj, "mean", "dense")(m)[0, [0, 2], 0].tolist() == [1.0, 1.0]
     assert aggregator(adj, "sum", "dense")(m)[0, [0, 2], 0].tolist() == [1.0, 2.0]
+
+
+# ----- from edge lists (what large graphs are): no [N, N] matrix on the scatter path ------------
+
+
+def random_edges(graphs: int, nodes: int, edges: int, seed: int):
+    """`graphs` random directed graphs as edge lists (duplicates merged, self-loops dropped),
+    and the same graphs as matrices written entry by entry: (Graphs, [G, N, N])."""
+    import numpy as np
+
+    from mpnode_cli.graphs import EdgeList, Graphs
+
+    rng = np.random.default_rng(seed)
+    lists, mats = [], torch.zeros(graphs, nodes, nodes)
+    for g in range(graphs):
+        s, r = rng.integers(0, nodes, edges), rng.integers(0, nodes, edges)
+        keep = s != r
+        lists.append(EdgeList.build(nodes, s[keep], r[keep]))
+        for j, i in zip(s[keep], r[keep], strict=True):
+            mats[g, i, j] = 1.0
+    return Graphs.from_edge_lists(nodes, lists), mats
+
+
+@pytest.mark.parametrize("how", AGGREGATES)
+@pytest.mark.parametrize("backend", ["auto", "dense", "scatter"])
+def test_aggregation_from_edges_matches_its_definition_and_the_dense_path(how, backend):
+    import numpy as np
+
+    graphs, mats = random_edges(3, 7, 12, seed=4)
+    graph_index = np.array([2, 0, 0, 1, 2])  # graphs shared and out of order
+    edges = graphs.batch(graph_index)
+    adj = mats[graph_index]  # [5, 7, 7]
+    assert (adj.sum(dim=2) == 0).any()  # some node hears nobody
+    m = torch.randn(5, 7, 4)
+    got = aggregator(edges, how, backend, 1.1)(m)
+    torch.testing.assert_close(got, loop_reference(adj, m, how, 1.1))
+    torch.testing.assert_close(got, aggregator(adj, how, "dense", 1.1)(m))
+    torch.testing.assert_close(in_degree(edges), adj.sum(dim=2))
+    assert mean_log_degree(edges) == pytest.approx(float(torch.log1p(adj.sum(dim=2)).mean()))
+
+
+@pytest.mark.parametrize("how", AGGREGATES)
+def test_aggregation_from_edges_is_permutation_equivariant(how):
+    import numpy as np
+
+    from mpnode_cli.graphs import EdgeList, Graphs
+
+    graphs, _ = random_edges(1, 9, 20, seed=6)
+    perm = np.random.default_rng(1).permutation(9)  # new node q is old node perm[q]
+    inv = np.argsort(perm)
+    old = graphs.edges(0)
+    relabelled = Graphs.from_edge_lists(9, [EdgeList.build(9, inv[old.senders],
+                                                           inv[old.receivers])])
+    m = torch.randn(2, 9, 3)
+    index = np.zeros(2, np.int64)
+    agg = aggregator(graphs.batch(index), how, "scatter", 0.8)(m)
+    agg_p = aggregator(relabelled.batch(index), how, "scatter", 0.8)(m[:, perm])
+    torch.testing.assert_close(agg_p, agg[:, perm])
+
+
+def test_large_graphs_aggregate_without_a_matrix():
+    """1 000 nodes: the scatter path runs from the edges; asking for matrices is refused."""
+    from mpnode_cli.graphs import Graphs, make_edges
+    from mpnode_cli.models.aggregate import full_graph
+
+    chain = make_edges("chain", 1000, seed=0)
+    edges = Graphs.from_edge_lists(1000, [chain]).batch([0, 0])
+    m = torch.arange(2 * 1000, dtype=torch.float64).reshape(2, 1000, 1)
+    got = aggregator(edges, "sum", "auto")(m)
+    want = torch.zeros_like(m)  # a path: node i hears i − 1 and i + 1
+    want[:, 1:] += m[:, :-1]
+    want[:, :-1] += m[:, 1:]
+    torch.testing.assert_close(got, want)
+    with pytest.raises(ValueError, match="at most 256"):
+        aggregator(edges, "mean", "dense")
+    with pytest.raises(ValueError, match="graph 'sys'"):
+        full_graph(edges)

@@ -14,6 +14,7 @@ import torch
 from mpnode_cli.config import GenerateConfig, TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.generate import generate
+from mpnode_cli.graphs import Graphs
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.evaluate import baseline_mse, evaluate_checkpoint, train_reference
 from mpnode_cli.training.loop import train
@@ -26,7 +27,9 @@ def synthetic(k: int, t: int, seed: int, dt: float = 0.1) -> TrajectoryData:
     states = rng.normal(size=(k, t, 3, 2)).cumsum(axis=1) * [1.0, 5.0] + [0.0, 2.0]
     return TrajectoryData(
         states=torch.tensor(states, dtype=torch.float32), controls=None,
-        adjacency=torch.ones(k, 3, 3), time=torch.arange(t, dtype=torch.float64) * dt,
+        graphs=Graphs.from_adjacency(np.ones((1, 3, 3), np.uint8)),
+        graph_index=torch.zeros(k, dtype=torch.long),
+        time=torch.arange(t, dtype=torch.float64) * dt,
         split=torch.zeros(k, dtype=torch.uint8), system="toy", state_names=("a", "b"),
         control_names=(), path=Path(f"toy{seed}.h5"), fingerprint=str(seed))
 

@@ -179,3 +179,61 @@ def test_read_edge_list_errors(tmp_path, text, message):
     path.write_text(text)
     with pytest.raises(ValueError, match=message):
         read_edge_list(path)
+
+
+# ----- edge lists without matrices -----------------------------------------------------------
+
+
+@pytest.mark.parametrize("topology", TOPOLOGIES)
+def test_make_edges_is_make_graph_without_the_matrix(topology):
+    from mpnode_cli.graphs import make_edges
+
+    a = make_graph(topology, 12, seed=7, **CASES[topology])
+    e = make_edges(topology, 12, seed=7, **CASES[topology])
+    assert e.shape == (12, 12) and e.symmetric()
+    senders, receivers = edges(a)  # the matrix's nonzero entries, row by row
+    np.testing.assert_array_equal(e.senders, senders)
+    np.testing.assert_array_equal(e.receivers, receivers)
+    np.testing.assert_array_equal(e.in_degree(), a.sum(axis=1))
+
+
+def test_read_edges_matches_read_edge_list(tmp_path):
+    from mpnode_cli.graphs import read_edges
+
+    path = tmp_path / "g.txt"
+    path.write_text("0 1\n1 2\n2 0\n3 2\n1 0\n")
+    for directed in (False, True):
+        e = read_edges(path, directed=directed)
+        np.testing.assert_array_equal(e.to_dense(), read_edge_list(path, directed=directed))
+        assert e.symmetric() is not directed
+
+
+def test_edge_batch_lays_graphs_out_over_the_batch():
+    """`EdgeBatch.flat` against a loop: trajectory b's edges shifted by b·N."""
+    from mpnode_cli.graphs import EdgeList, Graphs
+
+    lists = [EdgeList.build(4, [0, 1, 3], [1, 2, 0]), EdgeList.build(4, [2], [3]),
+             EdgeList.build(4, [], [])]
+    graphs = Graphs.from_edge_lists(4, lists)
+    index = np.array([1, 0, 2, 1, 0])
+    senders, receivers = graphs.batch(index).flat()
+    want_s = [s + 4 * b for b, g in enumerate(index) for s in lists[g].senders]
+    want_r = [r + 4 * b for b, g in enumerate(index) for r in lists[g].receivers]
+    assert senders.tolist() == want_s and receivers.tolist() == want_r
+    dense = graphs.batch(index).to_dense()
+    for b, g in enumerate(index):
+        np.testing.assert_array_equal(dense[b].numpy(), lists[g].to_dense())
+    np.testing.assert_array_equal(graphs.in_degree()[index],
+                                  graphs.batch(index).in_degree().numpy())
+
+
+def test_graphs_refuse_matrices_above_the_threshold():
+    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, Graphs, make_edges
+
+    n = DENSE_GRAPH_MAX_NODES + 1
+    graphs = Graphs.from_edge_lists(n, [make_edges("chain", n, seed=0)])
+    assert isinstance(graphs.graph(0), type(graphs.edges(0)))  # systems get the edge list
+    with pytest.raises(ValueError, match="edge lists"):
+        graphs.dense()
+    with pytest.raises(ValueError, match="edge list"):
+        graphs.batch([0]).to_dense()

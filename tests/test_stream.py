@@ -22,6 +22,7 @@ from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import Dataset, write_dataset
 from mpnode_cli.data.stream import StreamedTrajectories, prefetched
+from mpnode_cli.graphs import Graphs
 from mpnode_cli.training.evaluate import baseline_mse
 from mpnode_cli.training.loop import TrainingInterrupted, train
 from mpnode_cli.training.run import read_metrics
@@ -49,7 +50,8 @@ def controlled(tmp_path_factory):
         system="custom", dt=0.1, state_names=("p", "q"), control_names=("u",), seed=0,
         config={}, time=np.arange(t) * 0.1, states=states,
         controls=rng.normal(size=(k, t, n, 1)).astype(np.float32) * 3 - 1,
-        adjacency=np.ones((1, n, n), np.uint8) - np.eye(n, dtype=np.uint8)[None],
+        graphs=Graphs.from_adjacency(
+            np.ones((1, n, n), np.uint8) - np.eye(n, dtype=np.uint8)[None]),
         graph_index=np.zeros(k, np.int32), split=(np.arange(k) % 3).astype(np.uint8)))
     return out
 
@@ -72,9 +74,9 @@ def test_take_reads_what_memory_holds(gene):
     assert disk.fingerprint == memory.fingerprint
     index = torch.tensor([7, 2, 27, 2, 0])  # any order, repeats too
     a, b = memory.subset("train").take(index), disk.subset("train").take(index)
-    for name in ("states", "adjacency", "split"):
+    for name in ("states", "adjacency", "split", "graph_index"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
-    assert torch.equal(disk.adjacency, memory.adjacency)
+    assert torch.equal(disk.graph(), memory.graph())
     assert torch.equal(disk.split, memory.split)
 
 

@@ -501,3 +501,112 @@ def test_registry_import_is_cheap():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+# ----- the same systems on edge lists (graphs above DENSE_GRAPH_MAX_NODES) --------------------
+
+
+def _loop_ref(name: str, system: System, a: np.ndarray, y: np.ndarray, params: dict):
+    """The right-hand side of one trajectory, from the loops above."""
+    if name == "kuramoto":
+        return _kuramoto_ref(a, y, params["omega"], system.params["K"])
+    if name == "gene":
+        return _gene_ref(a, y, *(system.params[key] for key in ("b", "f", "h")))
+    return _pendulum_ref(a, y, system.params)
+
+
+@pytest.mark.parametrize("shared", [True, False], ids=["shared", "per_trajectory"])
+@pytest.mark.parametrize("name", ["kuramoto", "gene", "pendulum"])
+def test_rhs_on_edges_equals_dense_and_the_loop(name, shared):
+    from mpnode_cli.graphs import Graphs
+
+    rng = np.random.default_rng(RNG_SEED)
+    system = get_system(name)
+    assert system.sparse
+    graphs = _random_graphs(3, 8, rng)
+    graphs[1, 2, :] = 0  # a node that hears nobody
+    order = [1] * 5 if shared else BLOCKS
+    per_graph = [system.graph_params(a, rng) for a in graphs]
+    which = [order[0]] if shared else order
+    params = {key: torch.from_numpy(np.stack([per_graph[g][key] for g in which]))
+              for key in per_graph[0]}  # fmt: skip
+    if name == "pendulum":  # away from cos θ = 0
+        y = np.stack([rng.uniform(-1, 1, (len(order), 8)), rng.uniform(-2, 2, (len(order), 8))],
+                     axis=-1)
+    else:
+        y = np.concatenate([system.sample_initial(graphs[g], 1, rng) for g in order])
+    t = torch.zeros(len(order), dtype=torch.float64)
+    edges = Graphs.from_adjacency(graphs).batch(np.asarray(which))
+    dense = torch.from_numpy(graphs[which].astype(np.float64))  # [1 or K, N, N]
+    sparse_out = system.rhs(edges, params)(t, torch.from_numpy(y))
+    dense_out = system.rhs(dense, params)(t, torch.from_numpy(y))
+    torch.testing.assert_close(sparse_out, dense_out, rtol=1e-13, atol=1e-12)
+    for k, g in enumerate(order):
+        one = {key: value[k if not shared else 0].numpy() for key, value in params.items()}
+        np.testing.assert_allclose(sparse_out[k].numpy(), _loop_ref(name, system, graphs[g],
+                                                                    y[k], one),
+                                   rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["kuramoto", "gene"])
+def test_trajectories_on_edges_equal_the_dense_ones(name):
+    """A whole solve from edges (scatter sums) and from the matrix (GEMMs): the same
+    trajectories up to rounding, on a Barabási–Albert graph of 40 nodes."""
+    from mpnode_cli.graphs import Graphs, make_edges
+
+    rng = np.random.default_rng(RNG_SEED)
+    system = get_system(name)
+    a = make_graph("ba", 40, seed=3, m=3)
+    edge_list = make_edges("ba", 40, seed=3, m=3)
+    np.testing.assert_array_equal(edge_list.to_dense(), a)  # the same graph either way
+    params = {key: torch.from_numpy(v[None]) for key, v in system.graph_params(a, rng).items()}
+    y0 = torch.from_numpy(system.sample_initial(a, 4, rng))
+    ts = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
+    dense = torch.from_numpy(a[None].astype(np.float64))
+    edges = Graphs.from_edge_lists(40, [edge_list]).batch(np.zeros(1, np.int64))
+    kwargs = {"rtol": 1e-9, "atol": 1e-11}
+    by_matrix = solve(system.rhs(dense, params), y0, ts, **kwargs)
+    by_edges = solve(system.rhs(edges, params), y0, ts, **kwargs)
+    assert (by_edges.status == 0).all()
+    torch.testing.assert_close(by_edges.ys, by_matrix.ys, rtol=1e-8, atol=1e-8)
+
+
+def test_generate_above_the_threshold_runs_on_edges(tmp_path):
+    """Kuramoto on 300 nodes (above DENSE_GRAPH_MAX_NODES): the file holds edges only, the
+    graph is networkx's BA graph of the seed, and the states are those of a dense solve."""
+    import h5py
+
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import generate
+    from mpnode_cli.data.hdf5 import read_dataset
+    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES
+
+    n = 300
+    assert n > DENSE_GRAPH_MAX_NODES
+    config = GenerateConfig(system="kuramoto", nodes=n, trajectories=3, t_end=0.2, dt=0.1,
+                            seed=2, graph_seed=5, out=tmp_path / "k.h5", dtype="float64")
+    generate(config)
+    with h5py.File(tmp_path / "k.h5") as f:
+        assert "graph/adjacency" not in f and f["graph/edges"].shape[0] == 2
+    ds = read_dataset(tmp_path / "k.h5")
+    a = make_graph("ba", n, seed=5, m=5)  # the same graph, as a matrix (fine at this size)
+    np.testing.assert_array_equal(ds.graphs.edges(0).to_dense(), a)
+    with pytest.raises(ValueError, match="edge lists"):
+        ds.adjacency  # noqa: B018 (no N×N matrix above the threshold)
+    system = get_system("kuramoto")
+    y0 = system.sample_initial(a, 3, np.random.default_rng(2))  # the generator's draws
+    omega = system.graph_params(a, np.random.default_rng([5, 0]))["omega"]
+    sol = solve(system.rhs(torch.from_numpy(a[None].astype(np.float64)),
+                           {"omega": torch.from_numpy(omega[None])}),
+                torch.from_numpy(y0), torch.tensor([0.0, 0.1, 0.2], dtype=torch.float64),
+                rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(ds.states, sol.ys.numpy(), rtol=1e-9, atol=1e-9)
+
+
+def test_systems_that_need_the_matrix_are_refused_above_the_threshold():
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import resolve_config
+
+    with pytest.raises(ValueError, match=r"lorenz.*N×N matrix.*at most 256"):
+        resolve_config(GenerateConfig(system="lorenz", nodes=300, trajectories=2, t_end=0.1,
+                                      dt=0.05))

@@ -48,18 +48,18 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
 
     attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
     (k, t, n, d), states_dtype = shapes["states"]
-    adjacency = header["adjacency"]  # [G, N, N]
+    graphs = header["graphs"]  # edge lists: no [N, N] matrix, whatever N
     train, val, test = (int(c) for c in np.bincount(header["split"], minlength=3)[:3])
-    directed = not all(np.array_equal(a, a.T) for a in adjacency)
+    directed = not all(graphs.edges(g).symmetric() for g in range(len(graphs)))
     # An undirected edge is two messages (i → j and j → i); a directed one is one.
-    edges = adjacency.reshape(len(adjacency), -1).sum(axis=1) / (1 if directed else 2)
+    edges = graphs.num_edges / (1 if directed else 2)
     facts = {
         "format": f"{attrs['format']} v{attrs['format_version']}",
         "system": attrs["system"], "nodes": n, "node_dim": d,
         "state_names": attrs["state_names"], "control_names": attrs["control_names"],
         "trajectories": k, "split": {"train": train, "validation": val, "test": test},
         "samples": t, "dt": attrs["dt"], "t_end": attrs["dt"] * (t - 1),
-        "graphs": len(adjacency), "topology": config.get("topology"),
+        "graphs": len(graphs), "topology": config.get("topology"),
         "directed": directed, "edges_mean": float(edges.mean()),
         "parameters": header["scalar_params"],
         "per_graph_parameters": {name.removeprefix("params/"): list(shape)

@@ -1,8 +1,11 @@
 """Datasets as tensors for learning: splits, normalization, per-trajectory graphs.
 
-`TrajectoryData` holds a dataset file's trajectories as torch tensors with each trajectory's
-own adjacency (gathered from the file's `[G, N, N]` by `graph_index`), so a batch is just an
-index. `Normalizer` is the z-score of the authors' `ztransform` (MPNODE.jl
+`TrajectoryData` holds a dataset file's trajectories as torch tensors beside the file's G
+graphs and each trajectory's `graph_index`, so a batch is just an index and its graphs are
+built per batch (`TrajectoryData.graph`): `[B, N, N]` matrices for small graphs, an edge
+list above `DENSE_GRAPH_MAX_NODES` nodes (memory O(E), never O(K·N²)).
+
+`Normalizer` is the z-score of the authors' `ztransform` (MPNODE.jl
 `src/datatransform.jl:20-35`; docs/authors-code.md): one mean and std per node feature,
 pooled over nodes, time and trajectories — but fitted on the **train split only** (the
 authors fitted on all data, validation included).
@@ -20,6 +23,7 @@ import torch
 
 from mpnode_cli.data.hdf5 import fingerprint, read_dataset
 from mpnode_cli.data.validate import require_valid
+from mpnode_cli.graphs import EdgeBatch, Graphs
 
 SPLITS = {"train": 0, "validation": 1, "test": 2}
 _STD_FLOOR = 1e-8  # a constant feature is centred, not divided by zero
@@ -91,7 +95,7 @@ class TrajectoryData:
 
     Attributes:
         states: float32 `[K, T, N, D]`. controls: float32 `[K, T, N, U]` or None.
-        adjacency: float32 `[K, N, N]`, each trajectory's graph (`A[k, i, j] = 1` iff j → i).
+        graphs: the file's G graphs. graph_index: int64 `[K]`, each trajectory's graph.
         time: float64 `[T]`. split: uint8 `[K]` (0 train, 1 validation, 2 test).
         system, state_names, control_names: from the file. path: where it was read.
         fingerprint: sha256 of states, adjacency and time of the whole file.
@@ -100,7 +104,8 @@ class TrajectoryData:
 
     states: torch.Tensor
     controls: torch.Tensor | None
-    adjacency: torch.Tensor
+    graphs: Graphs
+    graph_index: torch.Tensor
     time: torch.Tensor
     split: torch.Tensor
     system: str
@@ -118,19 +123,19 @@ class TrajectoryData:
         require_valid(path)
         ds = read_dataset(path)
         states = np.ascontiguousarray(ds.states, dtype=np.float32)
-        adjacency = ds.adjacency[ds.graph_index].astype(np.float32)  # [K, N, N]
         controls = None
         if ds.controls is not None and ds.controls.shape[-1] > 0:
             controls = torch.from_numpy(np.ascontiguousarray(ds.controls, dtype=np.float32))
         topology = ds.config.get("topology") if isinstance(ds.config, dict) else None
         return TrajectoryData(
             states=torch.from_numpy(states), controls=controls,
-            adjacency=torch.from_numpy(adjacency),
+            graphs=ds.graphs,
+            graph_index=torch.from_numpy(ds.graph_index.astype(np.int64)),
             time=torch.from_numpy(np.asarray(ds.time, dtype=np.float64)),
             split=torch.from_numpy(ds.split.astype(np.uint8)),
             system=ds.system, state_names=tuple(ds.state_names),
             control_names=tuple(ds.control_names), path=Path(path),
-            fingerprint=fingerprint(states, ds.adjacency, ds.graph_index, ds.time),
+            fingerprint=fingerprint(states, ds.graphs, ds.graph_index, ds.time),
             attrs={"topology": topology, "config": ds.config, "dt": ds.dt,
                    "recipe": _recipe(ds.extra_attrs.get("recipe")),
                    "prediction": ds.extra_attrs.get("prediction")})
@@ -150,9 +155,28 @@ class TrajectoryData:
     def control_dim(self) -> int:
         return 0 if self.controls is None else self.controls.shape[3]
 
+    def graph(self, device: str | torch.device = "cpu") -> torch.Tensor | EdgeBatch:
+        """Each trajectory's graph, as models and `fit_statistics` take it: float32
+        `[K, N, N]` matrices (`A[k, i, j] = 1` iff j sends to i) when N ≤
+        `DENSE_GRAPH_MAX_NODES`, else an `EdgeBatch` (each distinct graph's edges once)."""
+        if self.graphs.dense_ok:
+            return self.adjacency.to(device)
+        return self.graphs.batch(self.graph_index.numpy(), device)
+
+    @property
+    def adjacency(self) -> torch.Tensor:
+        """float32 `[K, N, N]`, each trajectory's graph matrix (graphs of at most
+        `DENSE_GRAPH_MAX_NODES` nodes; `graph` serves any size).
+
+        Raises:
+            ValueError: N > `DENSE_GRAPH_MAX_NODES`.
+        """
+        dense = self.graphs.dense()[self.graph_index.numpy()]  # [K, N, N]
+        return torch.from_numpy(dense.astype(np.float32))
+
     def take(self, index: torch.Tensor) -> TrajectoryData:
         """The trajectories at `index` (`[K']` int64 or bool), sharing the file's facts."""
-        return replace(self, states=self.states[index], adjacency=self.adjacency[index],
+        return replace(self, states=self.states[index], graph_index=self.graph_index[index],
                        controls=None if self.controls is None else self.controls[index],
                        split=self.split[index])
 

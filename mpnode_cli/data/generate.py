@@ -42,7 +42,7 @@ from mpnode_cli.data.shards import (
     shard_path,
     shard_range,
 )
-from mpnode_cli.graphs import read_edge_list
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
 from mpnode_cli.systems.base import System
 from mpnode_cli.systems.registry import get_system, load_system_file
 
@@ -57,6 +57,9 @@ Progress = Callable[[float, int], None]
 # Bytes per float64 value a chunk's solve holds besides its output (the stages and the
 # step's temporaries, for a 7-stage method), per node state.
 _SOLVE_WORK = 16 * 8
+# Messages per node assumed by `estimate` for an edge-list graph (mean degree 32, far
+# above the sparse topologies' 4-10), so that the estimate errs on the large side.
+_EDGES_PER_NODE = 32
 
 
 class GenerateError(RuntimeError):
@@ -96,7 +99,9 @@ class Estimate:
     Attributes:
         file_bytes: the dataset file (states, controls, graphs).
         memory_bytes: peak memory: the float64 states of every trajectory, their cast for
-            storage, the graphs, and one chunk's solve.
+            storage, the graphs, and one chunk's solve. Graphs above
+            `DENSE_GRAPH_MAX_NODES` nodes are edge lists, counted at `_EDGES_PER_NODE`
+            messages per node (their true count is only known once they are built).
         values: numbers in `states` (K·T·N·D).
     """
 
@@ -117,9 +122,13 @@ def estimate(config: GenerateConfig) -> Estimate:
     chunk = min(config.chunk_size, k)
     # Chunks over several graphs carry one float64 copy of the adjacency per trajectory.
     chunk_graphs = chunk if g > 1 else 1
-    memory = (values * (8 + store) + g * n * n * 9 + chunk_graphs * n * n * 8
-              + chunk * n * d * _SOLVE_WORK)
-    return Estimate(file_bytes=values * store + g * n * n, memory_bytes=memory,
+    if n <= DENSE_GRAPH_MAX_NODES or not system.sparse:  # matrices
+        graph_memory, graph_file = g * n * n * 9 + chunk_graphs * n * n * 8, g * n * n
+    else:  # int64 senders and receivers, and a chunk's flattened copy of them
+        messages = n * _EDGES_PER_NODE
+        graph_memory, graph_file = (g + chunk_graphs) * messages * 16, g * messages * 8
+    memory = values * (8 + store) + graph_memory + chunk * n * d * _SOLVE_WORK
+    return Estimate(file_bytes=values * store + graph_file, memory_bytes=memory,
                     values=k * t * n * d)
 
 
@@ -172,7 +181,7 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
             fields[key] = value
 
     if config.edge_list is not None:
-        n = _read_edge_list(config.edge_list, config.directed).shape[0]
+        n = _read_edge_list(config.edge_list, config.directed).num_nodes
         asked = config.nodes or (config.grid**2 if config.grid else None)
         if asked not in (None, n):
             raise ValueError(f"{asked} nodes asked for, but the edge list has {n}")
@@ -196,11 +205,16 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
             f"this dataset needs about {format_bytes(need)} of memory, more than this "
             f"machine's {format_bytes(have)}: lower --trajectories, --t-end or --nodes, or "
             "raise --dt")
+    if resolved.nodes > DENSE_GRAPH_MAX_NODES and not system.sparse:
+        raise ValueError(
+            f"system '{system.name}' needs its graph as an N×N matrix, which mpnode builds "
+            f"for at most {DENSE_GRAPH_MAX_NODES} nodes, not {resolved.nodes}; systems that "
+            "run on edge lists: those with `sparse = True` (kuramoto, gene, pendulum)")
     if not dry_run:
         return resolved
 
-    adjacency = _graph(system, resolved, 0)
-    system.sample_initial(adjacency, 1, np.random.default_rng(0))
+    graph = _graph(system, resolved, 0)
+    system.sample_initial(graph, 1, np.random.default_rng(0))
     return resolved
 
 
@@ -241,10 +255,13 @@ def generate(
     system = build_system(config)
     g = config.graphs
 
-    # 1. Graphs and their parameters.
-    adjacency = np.stack([_graph(system, config, i) for i in range(g)])  # [G, N, N] uint8
+    # 1. Graphs and their parameters: `[G, N, N]` uint8 matrices up to
+    # DENSE_GRAPH_MAX_NODES nodes, edge lists above (memory O(E), not O(N²)).
+    built = [_graph(system, config, i) for i in range(g)]
+    graphs = (Graphs.from_adjacency(np.stack(built)) if isinstance(built[0], np.ndarray)
+              else Graphs.from_edge_lists(config.nodes, built))
     per_graph = [
-        system.graph_params(adjacency[i], np.random.default_rng([config.graph_seed, i]))
+        system.graph_params(graphs.graph(i), np.random.default_rng([config.graph_seed, i]))
         for i in range(g)
     ]
     params = {name: np.stack([p[name] for p in per_graph]) for name in per_graph[0]}
@@ -253,7 +270,8 @@ def generate(
     total_k = config.trajectories
     graph_index = (np.arange(total_k) * g // total_k).astype(np.int32)  # [K]
     rng = np.random.default_rng(config.seed)
-    draws = [system.sample(adjacency[i], int((graph_index == i).sum()), rng) for i in range(g)]
+    draws = [system.sample(graphs.graph(i), int((graph_index == i).sum()), rng)
+             for i in range(g)]
     y0 = np.concatenate([d[0] for d in draws])  # [K, N, D]
     inputs = {name: np.concatenate([d[1][name] for d in draws]) for name in draws[0][1]}
     first_chunks = list(_chunks(np.arange(total_k), graph_index, config.chunk_size))
@@ -292,8 +310,9 @@ def generate(
             chunk_inputs = {name: value[chunk] for name, value in inputs.items()}
             within = None if progress is None else functools.partial(
                 _within_chunk, progress, done, len(chunk), total)
-            sim = _solve_chunk(system, config, ts, adjacency[which], chunk_params, y0[chunk],
-                               chunk_inputs, within)
+            sim = _solve_chunk(system, config, ts, graphs,
+                               np.atleast_1d(which if gi is None else gi),
+                               chunk_params, y0[chunk], chunk_inputs, within)
             solve_seconds += time.perf_counter() - tic
             states[chunk] = sim.states.numpy()
             status[chunk] = sim.status.numpy()
@@ -331,7 +350,7 @@ def generate(
             )
         for i in np.unique(graph_index[pending]):
             redo = pending[graph_index[pending] == i]
-            y0[redo], redo_inputs = system.sample(adjacency[i], len(redo), rng)
+            y0[redo], redo_inputs = system.sample(graphs.graph(i), len(redo), rng)
             for name, value in redo_inputs.items():
                 inputs[name][redo] = value
         total += len(pending)
@@ -354,7 +373,7 @@ def generate(
         states=states.astype(config.dtype),
         controls=None if controls is None else controls.astype(config.dtype),
         hidden={name: value.astype(config.dtype) for name, value in hidden.items()},
-        adjacency=adjacency,
+        graphs=graphs,
         graph_index=graph_index,
         split=split,
         params=params,
@@ -394,17 +413,19 @@ def build_system(config: GenerateConfig) -> System:
     return get_system(config.system, **config.params)
 
 
-def _graph(system: System, config: GenerateConfig, g: int) -> np.ndarray:
-    """uint8 `[N, N]`: graph g, built with seed `graph_seed + g` (or the edge list)."""
+def _graph(system: System, config: GenerateConfig, g: int) -> np.ndarray | EdgeList:
+    """Graph g, built with seed `graph_seed + g` (or the edge list): uint8 `[N, N]` up to
+    `DENSE_GRAPH_MAX_NODES` nodes, an `EdgeList` above."""
     if config.edge_list is not None:
-        return _read_edge_list(config.edge_list, config.directed)
+        graph = _read_edge_list(config.edge_list, config.directed)
+        return graph.to_dense() if graph.num_nodes <= DENSE_GRAPH_MAX_NODES else graph
     return system.graph(config.topology, config.nodes, config.graph_seed + g)
 
 
-def _read_edge_list(path: Path, directed: bool = False) -> np.ndarray:
-    """`graphs.read_edge_list` with a missing or unreadable file as a ValueError."""
+def _read_edge_list(path: Path, directed: bool = False) -> EdgeList:
+    """`graphs.read_edges` with a missing or unreadable file as a ValueError."""
     try:
-        return read_edge_list(path, directed=directed)
+        return read_edges(path, directed=directed)
     except OSError as exc:
         raise ValueError(f"cannot read edge list {path}: {exc.strerror or exc}") from None
 
@@ -429,11 +450,14 @@ def _within_chunk(progress: Progress, done: int, size: int, total: int, frac: fl
     progress(done + frac * size, total)
 
 
-def _solve_chunk(system, config, ts, adjacency, params, y0, inputs, progress=None):
+def _solve_chunk(system, config, ts, graphs, which, params, y0, inputs, progress=None):
     """Simulate one chunk of trajectories in float64 (`System.simulate`).
 
     Args:
-        adjacency: uint8 `[1, N, N]` shared or `[B, N, N]`; params: `[1, ...]` or `[B, ...]`;
+        graphs: the dataset's graphs; which: `[1]` the chunk's shared graph or `[B]` each
+            trajectory's. The system gets float64 `[1 or B, N, N]` matrices up to
+            `DENSE_GRAPH_MAX_NODES` nodes, an `EdgeBatch` above.
+        params: `[1, ...]` or `[B, ...]`;
         y0: `[B, N, D]`; ts: torch `[T]`; inputs: name → `[B, ...]`.
         progress: called with the fraction of the chunk's horizon solved, or None.
 
@@ -445,8 +469,10 @@ def _solve_chunk(system, config, ts, adjacency, params, y0, inputs, progress=Non
     def tensor(x: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(x))
 
+    graph = (tensor(graphs.dense()[which].astype(np.float64)) if graphs.dense_ok
+             else graphs.batch(which))
     return system.simulate(
-        tensor(adjacency.astype(np.float64)),
+        graph,
         {name: tensor(v) for name, v in params.items()},
         tensor(y0),
         ts,

@@ -1,10 +1,13 @@
-"""Dataset files, format "mpnode-dataset" version 1: writer and reader.
+"""Dataset files, format "mpnode-dataset" version 2: writer and reader (reads version 1).
 
 The layout is documented field by field in `docs/dataset-format.md`. In short: root
 attributes describe the system and carry the resolved generate config; `states [K, T, N, D]`
-holds the trajectories (one HDF5 chunk per trajectory); `graph/adjacency [G, N, N]` with
+holds the trajectories (one HDF5 chunk per trajectory); the graphs are edge lists,
+`graph/edges [2, E]` (senders, receivers) with `graph/num_edges [G]`, plus the matrices
+`graph/adjacency [G, N, N]` for graphs of at most `DENSE_GRAPH_MAX_NODES` nodes, and
 `graph_index [K]` says which graph each trajectory ran on; `params/` holds the system's
-parameters; `split [K]` assigns trajectories to train/validation/test.
+parameters; `split [K]` assigns trajectories to train/validation/test. Version 1 stored
+only `graph/adjacency`; its edge lists are derived when it is read.
 
 Writes are atomic: the file is written under a temporary name in the target folder and
 renamed when complete, so an interrupted run (Ctrl-C included) leaves nothing at the target.
@@ -24,9 +27,10 @@ import numpy as np
 
 from mpnode_cli import __version__
 from mpnode_cli.config import upgrade_solver_fields
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 
 FORMAT = "mpnode-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 SPLIT_NAMES: tuple[str, ...] = ("train", "validation", "test")
 
 # Root attributes every file must have, and those a file may leave out (with the value a
@@ -58,7 +62,9 @@ class Dataset:
             holds none, e.g. data that mpnode did not generate).
         time: float64 `[T]`.
         states: `[K, T, N, D]` (float32 or float64).
-        adjacency: uint8 `[G, N, N]`, `A[g, i, j] = 1` iff node j sends to node i.
+        graphs: the G graphs (`mpnode_cli.graphs.Graphs`: edge lists, and the `[G, N, N]`
+            matrices, `A[g, i, j] = 1` iff node j sends to node i, only for N ≤
+            `DENSE_GRAPH_MAX_NODES`).
         graph_index: int32 `[K]`, the graph of each trajectory.
         split: uint8 `[K]`, 0 train, 1 validation, 2 test.
         params: per-graph parameters, each with a leading `[G]` axis.
@@ -79,7 +85,7 @@ class Dataset:
     config: dict[str, Any]
     time: np.ndarray
     states: np.ndarray
-    adjacency: np.ndarray
+    graphs: Graphs
     graph_index: np.ndarray
     split: np.ndarray
     params: dict[str, np.ndarray] = field(default_factory=dict)
@@ -115,19 +121,33 @@ class Dataset:
     @property
     def num_graphs(self) -> int:
         """G."""
-        return self.adjacency.shape[0]
+        return len(self.graphs)
+
+    @property
+    def adjacency(self) -> np.ndarray:
+        """`[G, N, N]` the graphs' matrices, for graphs of at most `DENSE_GRAPH_MAX_NODES`
+        nodes (larger ones are only edge lists: `graphs`).
+
+        Raises:
+            ValueError: N > `DENSE_GRAPH_MAX_NODES`.
+        """
+        return self.graphs.dense()
 
 
-def fingerprint(states: Any, adjacency: np.ndarray, graph_index: np.ndarray,
+def fingerprint(states: Any, graphs: Graphs, graph_index: np.ndarray,
                 time: np.ndarray, *, rows: int | None = None) -> str:
-    """The data's identity: sha256 of states (as float32), adjacency, graph_index and time,
-    each as stored. Runs and checkpoints record it; a file whose data are the same has
+    """The data's identity: sha256 of states (as float32), the graphs, graph_index and
+    time, each as stored. Runs and checkpoints record it; a file whose data are the same has
     the same fingerprint wherever it lies.
+
+    The graphs enter as `Graphs.fingerprint_arrays`: the `[G, N, N]` matrices up to
+    `DENSE_GRAPH_MAX_NODES` nodes (so a file's fingerprint is the one format version 1
+    gave it), the edge lists above.
 
     Args:
         states: `[K, T, N, D]`, a numpy array or an h5py dataset (read `rows`
             trajectories at a time; the digest is the same).
-        adjacency, graph_index, time: as stored in the file.
+        graphs, graph_index, time: as stored in the file.
         rows: trajectories per read (default: all at once).
     """
     digest = hashlib.sha256()
@@ -135,7 +155,7 @@ def fingerprint(states: Any, adjacency: np.ndarray, graph_index: np.ndarray,
     for start in range(0, len(states), step):
         block = np.asarray(states[start:start + step], dtype=np.float32)
         digest.update(np.ascontiguousarray(block).tobytes())
-    for array in (adjacency, graph_index, time):
+    for array in (*graphs.fingerprint_arrays(), graph_index, time):
         digest.update(np.ascontiguousarray(array).tobytes())
     return digest.hexdigest()
 
@@ -196,7 +216,7 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None) -> None:
     check()
     if ds.controls is not None and len(ds.control_names) > 0:
         f.create_dataset("controls", data=ds.controls, chunks=(1, *ds.controls.shape[1:]))
-    f.create_dataset("graph/adjacency", data=np.asarray(ds.adjacency, dtype=np.uint8))
+    _write_graphs(f, ds.graphs)
     f.create_dataset("graph_index", data=np.asarray(ds.graph_index, dtype=np.int32))
     params = f.create_group("params")
     for name, value in ds.params.items():
@@ -219,7 +239,6 @@ def _check_shapes(ds: Dataset) -> None:
     k, t, n, d = ds.states.shape
     expected = {
         "time": (ds.time, (t,)),
-        "adjacency": (ds.adjacency, (ds.adjacency.shape[0], n, n)),
         "graph_index": (ds.graph_index, (k,)),
         "split": (ds.split, (k,)),
     }
@@ -227,15 +246,56 @@ def _check_shapes(ds: Dataset) -> None:
         expected["controls"] = (ds.controls, (k, t, n, len(ds.control_names)))
     for name, value in ds.hidden.items():
         expected[f"hidden/{name}"] = (value, (k, t, *value.shape[2:]))
+    if ds.graphs.num_nodes != n:
+        raise ValueError(f"the graphs have {ds.graphs.num_nodes} nodes, the states {n}")
     for name, (array, shape) in expected.items():
         if np.shape(array) != shape:
             raise ValueError(f"{name} has shape {np.shape(array)}, expected {shape}")
     if len(ds.state_names) != d:
         raise ValueError(f"{len(ds.state_names)} state names for node_dim {d}")
     if k and not 0 <= int(np.min(ds.graph_index)) <= int(np.max(ds.graph_index)) < len(
-        ds.adjacency
+        ds.graphs
     ):
-        raise ValueError("graph_index points outside graph/adjacency")
+        raise ValueError("graph_index points outside the graphs")
+
+
+def _write_graphs(f: h5py.File, graphs: Graphs) -> None:
+    """`graph/edges [2, E]` int32 and `graph/num_edges [G]`, for every file; and
+    `graph/adjacency [G, N, N]` uint8 when N ≤ `DENSE_GRAPH_MAX_NODES` (so that small
+    files read as they always did, by h5py users and version 1 readers' habits alike)."""
+    # int32 ids: half of int64 on disk, and 2³¹ nodes is beyond any graph mpnode solves.
+    f.create_dataset("graph/edges", data=np.stack([graphs.senders, graphs.receivers]).astype(
+        np.int32).reshape(2, -1))
+    f.create_dataset("graph/num_edges", data=np.asarray(graphs.num_edges, dtype=np.int64))
+    if graphs.dense_ok:
+        f.create_dataset("graph/adjacency", data=np.asarray(graphs.dense(), dtype=np.uint8))
+
+
+def read_graphs(f: h5py.File) -> Graphs:
+    """The graphs of an open dataset file, without an N×N matrix above
+    `DENSE_GRAPH_MAX_NODES` nodes.
+
+    Version 2: the edge lists (each graph's put in canonical order), with the stored
+    matrices kept for small N. Version 1: the matrices, from which the edge lists are
+    derived graph by graph (so a large version-1 graph is in memory one at a time).
+
+    Raises:
+        KeyError: neither `graph/edges` nor `graph/adjacency` in the file.
+        ValueError: edges that do not fit `num_nodes` or `graph/num_edges`.
+    """
+    n = int(f["states"].shape[2])
+    if "graph/edges" in f:
+        edges = f["graph/edges"][()].astype(np.int64).reshape(2, -1)
+        graphs = Graphs.from_concatenated(n, edges[0], edges[1], f["graph/num_edges"][()])
+        if graphs.dense_ok and "graph/adjacency" in f:
+            return Graphs(n, graphs.senders, graphs.receivers, graphs.num_edges,
+                          f["graph/adjacency"][()])
+        return graphs
+    adjacency = f["graph/adjacency"]
+    if n <= DENSE_GRAPH_MAX_NODES:
+        return Graphs.from_adjacency(adjacency[()])
+    return Graphs.from_edge_lists(n, [EdgeList.from_adjacency(adjacency[g])
+                                      for g in range(adjacency.shape[0])])
 
 
 def read_dataset(path: str | Path) -> Dataset:
@@ -257,7 +317,7 @@ def read_dataset(path: str | Path) -> Dataset:
             config=_config(attrs["config"]),
             time=f["time"][()],
             states=f["states"][()],
-            adjacency=f["graph/adjacency"][()],
+            graphs=read_graphs(f),
             graph_index=f["graph_index"][()],
             split=f["split"][()],
             params={name: value[()] for name, value in _group(f, "params").items()},
@@ -277,7 +337,7 @@ def read_header(path: str | Path) -> dict[str, Any]:
 
     Returns:
         `{"attrs": {...}, "shapes": {name: (shape, dtype str)}, "split": [K] uint8,
-        "solver_status": [K] int8, "adjacency": [G, N, N], "scalar_params": {...}}`; the
+        "solver_status": [K] int8, "graphs": `Graphs`, "scalar_params": {...}}`; the
         JSON attributes (`config`, `state_names`, `control_names`) are decoded.
 
     Raises:
@@ -303,7 +363,7 @@ def read_header(path: str | Path) -> dict[str, Any]:
             "split": f["split"][()],
             "solver_status": (f["solver/status"][()] if "solver/status" in f
                               else np.zeros(k, dtype=np.int8)),
-            "adjacency": f["graph/adjacency"][()],
+            "graphs": read_graphs(f),
             "scalar_params": _scalar_params(f),
         }
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from mpnode_cli.config import ImportConfig
 from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
+from mpnode_cli.graphs import Graphs
 from mpnode_cli.paths import file_sha256
 
 # Columns of a long-format CSV besides the states (case does not matter).
@@ -84,8 +85,8 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
     k, t, n, d = states.shape
     time = _time(loaded.time, config.dt, t, config.states)
     names = _names(config.state_names, loaded.names, d, "state", "x", config.states)
-    adjacency, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
-                                        directed=config.directed)
+    graphs, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
+                                     directed=config.directed)
     controls, control_names = None, ()
     if config.controls is not None:
         controls = load_controls(config.controls, (k, t, n))
@@ -95,7 +96,7 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
         raise ValueError("--control-names given without --controls")
     split = split_trajectories(k, config.split, config.seed)
     stored = states.astype(config.dtype)
-    digest = fingerprint(stored, adjacency, graph_index, time)
+    digest = fingerprint(stored, graphs, graph_index, time)
     sources = {name: {"path": str(path.resolve()), "sha256": file_sha256(path)}
                for name in ("states", "adjacency", "edge_list", "controls")
                if (path := getattr(config, name)) is not None}
@@ -108,11 +109,11 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
         system="custom", dt=config.dt, state_names=names, control_names=control_names,
         seed=config.seed, config=provenance, time=time, states=stored,
         controls=None if controls is None else controls.astype(config.dtype),
-        adjacency=adjacency, graph_index=graph_index, split=split,
+        graphs=graphs, graph_index=graph_index, split=split,
         extra_attrs={"fingerprint": digest}), overwrite=overwrite)
     counts = np.bincount(split, minlength=3)
     return ImportSummary(path=out, trajectories=k, samples=t, nodes=n, node_dim=d,
-                         control_dim=len(control_names), graphs=len(adjacency),
+                         control_dim=len(control_names), graphs=len(graphs),
                          split_counts=(int(counts[0]), int(counts[1]), int(counts[2])),
                          fingerprint=digest)
 
@@ -166,16 +167,15 @@ def load_states(path: str | Path) -> Loaded:
 
 
 def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: int, n: int,
-               *, directed: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The graphs of `k` trajectories on `n` nodes: `(adjacency uint8 [G, N, N],
-    graph_index int32 [K])`.
+               *, directed: bool = False) -> tuple[Graphs, np.ndarray]:
+    """The graphs of `k` trajectories on `n` nodes: `(Graphs, graph_index int32 [K])`.
 
     Args:
         adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory);
             each distinct graph is stored once (`graph_index` says which trajectory ran
             on which).
-        edge_list: or a text file of `i j` lines (`mpnode_cli.graphs.read_edge_list`),
-            one graph for all.
+        edge_list: or a text file of `i j` lines (`mpnode_cli.graphs.read_edges`), one
+            graph for all, read without an `[N, N]` matrix.
         k, n: the trajectories' and nodes' count.
         directed: read the edge list's `i j` as the one edge i → j.
 
@@ -183,18 +183,18 @@ def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: in
         ValueError: a graph that cannot be read, has another number of nodes than the
             states, or values other than 0 and 1.
     """
-    from mpnode_cli.graphs import read_edge_list
+    from mpnode_cli.graphs import read_edges
 
     if edge_list is not None:
         try:
-            a = read_edge_list(edge_list, directed=directed)
+            a = read_edges(edge_list, directed=directed)
         except OSError as exc:
             raise ValueError(f"cannot read edge list {edge_list}: "
                              f"{exc.strerror or exc}") from None
-        if a.shape[0] != n:
-            raise ValueError(f"{edge_list} has {a.shape[0]} nodes (ids 0..{a.shape[0] - 1})"
+        if a.num_nodes != n:
+            raise ValueError(f"{edge_list} has {a.num_nodes} nodes (ids 0..{a.num_nodes - 1})"
                              f" but the states have {n}")
-        return a[None], np.zeros(k, dtype=np.int32)
+        return Graphs.from_edge_lists(n, [a]), np.zeros(k, dtype=np.int32)
     if adjacency is None:
         raise ValueError("give the graph as an adjacency array or an edge list")
     path = Path(adjacency)
@@ -209,9 +209,9 @@ def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: in
         raise ValueError(f"{path}: adjacency holds {a[off][0]:g} at [{where}]; mpnode's graphs "
                          "are unweighted: A[i, j] = 1 iff node j sends to node i, else 0")
     if len(a) == 1:
-        return a.astype(np.uint8), np.zeros(k, dtype=np.int32)
+        return Graphs.from_adjacency(a.astype(np.uint8)), np.zeros(k, dtype=np.int32)
     unique, index = np.unique(a.astype(np.uint8), axis=0, return_inverse=True)
-    return unique, index.reshape(k).astype(np.int32)
+    return Graphs.from_adjacency(unique), index.reshape(k).astype(np.int32)
 
 
 def load_initial_states(path: str | Path) -> np.ndarray:

@@ -31,8 +31,9 @@ import numpy as np
 import torch
 
 from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData, _recipe
-from mpnode_cli.data.hdf5 import fingerprint, read_header
+from mpnode_cli.data.hdf5 import fingerprint, read_graphs, read_header
 from mpnode_cli.data.validate import require_valid
+from mpnode_cli.graphs import EdgeBatch, Graphs
 
 _STD_FLOOR = 1e-8  # as `Normalizer.fit`: a constant feature is centred, not divided by zero
 # Values per read in whole-file passes (normalizer, fingerprint): about 32 MiB of float32.
@@ -45,7 +46,7 @@ class StreamedTrajectories:
 
     Attributes:
         path: the file. rows: int64 `[K]`, the trajectories' indices in the file.
-        graphs: float32 `[G, N, N]`, the file's distinct graphs. graph_index: int64 `[K_file]`.
+        graphs: the file's G distinct graphs. graph_index: int64 `[K_file]`.
         file_split: uint8 `[K_file]`. time: float64 `[T]`.
         shape: `(T, N, D)` of one trajectory; control_dim: U (0 if none).
         system, state_names, control_names, fingerprint, attrs: as `TrajectoryData`'s.
@@ -53,7 +54,7 @@ class StreamedTrajectories:
 
     path: Path
     rows: np.ndarray
-    graphs: torch.Tensor
+    graphs: Graphs
     graph_index: np.ndarray
     file_split: np.ndarray
     time: torch.Tensor
@@ -77,14 +78,14 @@ class StreamedTrajectories:
             graph_index = f["graph_index"][()].astype(np.int64)
             time = f["time"][()]
             rows = max(1, _BLOCK_VALUES // int(np.prod(states.shape[1:])))
-            digest = fingerprint(states, f["graph/adjacency"][()], f["graph_index"][()], time,
-                                 rows=rows)
+            graphs = read_graphs(f)
+            digest = fingerprint(states, graphs, f["graph_index"][()], time, rows=rows)
             shape = tuple(states.shape[1:])
             control_dim = f["controls"].shape[-1] if "controls" in f else 0
         topology = config.get("topology") if isinstance(config, dict) else None
         return StreamedTrajectories(
             path=Path(path), rows=np.arange(len(graph_index)),
-            graphs=torch.from_numpy(header["adjacency"].astype(np.float32)),
+            graphs=graphs,
             graph_index=graph_index, file_split=header["split"].astype(np.uint8),
             time=torch.from_numpy(np.asarray(time, dtype=np.float64)), shape=shape,
             control_dim=int(control_dim), system=attrs["system"],
@@ -110,13 +111,17 @@ class StreamedTrajectories:
         """uint8 `[K]`, the split of each of these trajectories."""
         return torch.from_numpy(self.file_split[self.rows])
 
-    @property
-    def adjacency(self) -> torch.Tensor:
-        """float32 `[K, N, N]`, each trajectory's graph; a view of the one graph when the
-        file has one (no copy), else gathered."""
-        if len(self.graphs) == 1:
-            return self.graphs.expand(len(self), *self.graphs.shape[1:])
-        return self.graphs[torch.from_numpy(self.graph_index[self.rows])]
+    def graph(self, device: str | torch.device = "cpu") -> torch.Tensor | EdgeBatch:
+        """Each trajectory's graph, as `TrajectoryData.graph` gives it: float32 `[K, N, N]`
+        up to `DENSE_GRAPH_MAX_NODES` nodes (a view of the one graph when the file has one,
+        no copy), else an `EdgeBatch`."""
+        index = self.graph_index[self.rows]
+        if not self.graphs.dense_ok:
+            return self.graphs.batch(index, device)
+        dense = torch.from_numpy(self.graphs.dense().astype(np.float32))  # [G, N, N]
+        if len(dense) == 1:
+            return dense.to(device).expand(len(self), *dense.shape[1:])
+        return dense[torch.from_numpy(index)].to(device)
 
     def select(self, index: torch.Tensor) -> StreamedTrajectories:
         """The trajectories at `index` (`[K']` int64 or bool), still on disk."""
@@ -146,9 +151,9 @@ class StreamedTrajectories:
         controls = None
         if self.control_dim > 0:
             controls = torch.from_numpy(_read_rows(f["controls"], rows))
-        adjacency = self.graphs[torch.from_numpy(self.graph_index[rows])]  # [B, N, N]
         return TrajectoryData(
-            states=torch.from_numpy(states), controls=controls, adjacency=adjacency,
+            states=torch.from_numpy(states), controls=controls, graphs=self.graphs,
+            graph_index=torch.from_numpy(self.graph_index[rows]),
             time=self.time, split=torch.from_numpy(self.file_split[rows]), system=self.system,
             state_names=self.state_names, control_names=self.control_names, path=self.path,
             fingerprint=self.fingerprint, attrs=self.attrs)

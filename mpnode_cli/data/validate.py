@@ -22,6 +22,7 @@ import h5py
 import numpy as np
 
 from mpnode_cli.data.hdf5 import (
+    DENSE_GRAPH_MAX_NODES,
     FORMAT,
     FORMAT_VERSION,
     OPTIONAL_ATTRS,
@@ -30,6 +31,7 @@ from mpnode_cli.data.hdf5 import (
     DatasetFormatError,
     _py,
 )
+from mpnode_cli.graphs import Graphs
 
 # Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
 _BLOCK_VALUES = 1 << 26
@@ -104,6 +106,7 @@ class _Checker:
     def __init__(self, f: h5py.File, report: Report):
         self.f, self.report = f, report
         self.problems, self.summary = report.problems, report.summary
+        self.edge_graphs: Graphs | None = None  # version 2's edge lists, once checked
 
     def problem(self, text: str) -> None:
         self.problems.append(text)
@@ -133,7 +136,7 @@ class _Checker:
         names = self._names(attrs, "state_names", d, "node_dim")
         u = self._controls(attrs, k, t, n)
         self._attrs(attrs, n, d, u)
-        g = self._graph(k, n)
+        g = self._graph(k, n, attrs.get("format_version"))
         self._time(attrs, t)
         self._split(k)
         self._optional(k, t, g)
@@ -146,10 +149,10 @@ class _Checker:
 
     def _fingerprint(self, stored: Any, states: h5py.Dataset) -> None:
         """A recorded fingerprint (`mpnode import`, predictions) must still be the data's."""
-        from mpnode_cli.data.hdf5 import fingerprint
+        from mpnode_cli.data.hdf5 import fingerprint, read_graphs
 
         per_row = max(1, int(np.prod(states.shape[1:])))
-        have = fingerprint(states, self.f["graph/adjacency"][()], self.f["graph_index"][()],
+        have = fingerprint(states, read_graphs(self.f), self.f["graph_index"][()],
                            self.f["time"][()], rows=max(1, _BLOCK_VALUES // per_row))
         self.summary["fingerprint"] = have
         if stored != have:
@@ -244,26 +247,73 @@ class _Checker:
         if not isinstance(parsed, dict):
             self.problem(f"attribute config must be a JSON object, got {config!r:.60}")
 
-    def _graph(self, k: int, n: int) -> int:
-        adjacency = self._array("graph/adjacency", required=True)
-        g = 0
+    def _graph(self, k: int, n: int, version: Any) -> int:
+        """The graphs: edge lists (version 2) and the matrices (required in version 1,
+        optional in version 2, where they must agree with the edges); returns G."""
+        v1 = version == 1
+        g = self._edges(n) if not v1 else None
+        adjacency = self._array("graph/adjacency", required=v1)
         if adjacency is not None and self._shape("graph/adjacency", adjacency, (None, n, n),
                                                   "[G, N, N]"):
+            if g is not None and adjacency.shape[0] != g:
+                self.problem(f"graph/adjacency holds {adjacency.shape[0]} graphs but "
+                             f"graph/num_edges {g}")
             g = adjacency.shape[0]
-            values = adjacency[()]
             if g < 1:
                 self.problem("graph/adjacency holds no graph (G = 0)")
-            elif not np.isin(values, (0, 1)).all():
+            # Above the threshold a matrix is only scanned, one graph at a time.
+            bad = any(not np.isin(adjacency[i], (0, 1)).all() for i in range(g))
+            if bad:
                 self.problem("graph/adjacency must hold only 0 and 1 "
                              "(A[g, i, j] = 1 iff node j sends to node i)")
-            self.summary["graphs"] = g
+            elif self.edge_graphs is not None and n <= DENSE_GRAPH_MAX_NODES and (
+                    len(self.edge_graphs) == g):
+                if not np.array_equal(self.edge_graphs.dense(), adjacency[()] != 0):
+                    self.problem("graph/adjacency and graph/edges hold different graphs")
+        g = g or 0
+        self.summary["graphs"] = g
         index = self._array("graph_index", required=True)
         if index is not None and self._shape("graph_index", index, (k,), "[K]"):
             if index.dtype.kind not in "iu":
                 self.problem(f"graph_index must be integers, not {index.dtype}")
             elif k and g and not (0 <= int(np.min(index)) and int(np.max(index)) < g):
-                self.problem(f"graph_index points outside graph/adjacency: values "
+                self.problem(f"graph_index points outside the graphs: values "
                              f"{int(np.min(index))}..{int(np.max(index))}, graphs 0..{g - 1}")
+        return g
+
+    def _edges(self, n: int) -> int | None:
+        """`graph/edges [2, E]` and `graph/num_edges [G]`: ids in 0..N−1, counts that add
+        up, no message twice within a graph. Returns G (None when unreadable)."""
+        edges = self._array("graph/edges", required=True)
+        counts = self._array("graph/num_edges", required=True)
+        if edges is None or counts is None:
+            return None
+        ok = self._shape("graph/edges", edges, (2, None), "[2, E] (senders, receivers)")
+        ok &= self._shape("graph/num_edges", counts, (None,), "[G]")
+        if not ok:
+            return None
+        if edges.dtype.kind not in "iu" or counts.dtype.kind not in "iu":
+            self.problem("graph/edges and graph/num_edges must be integers")
+            return None
+        g, ids, per_graph = counts.shape[0], edges[()].astype(np.int64), counts[()]
+        if g < 1:
+            self.problem("graph/num_edges holds no graph (G = 0)")
+        if (per_graph < 0).any() or int(per_graph.sum()) != ids.shape[1]:
+            self.problem(f"graph/num_edges adds up to {int(per_graph.sum())} but graph/edges "
+                         f"holds {ids.shape[1]} edges")
+            return g
+        if ids.size and (ids.min() < 0 or ids.max() >= n):
+            self.problem(f"graph/edges holds node ids {int(ids.min())}..{int(ids.max())}; "
+                         f"they must lie in 0..{n - 1}")
+            return g
+        graph_of_edge = np.repeat(np.arange(g, dtype=np.int64), per_graph)
+        key = (graph_of_edge * n + ids[1]) * n + ids[0]
+        if len(np.unique(key)) != len(key):
+            self.problem("graph/edges holds a message twice within a graph (graphs are "
+                         "unweighted: each sender → receiver pair at most once)")
+        else:
+            self.edge_graphs = Graphs.from_concatenated(n, ids[0], ids[1], per_graph)
+        self.summary["edges"] = int(ids.shape[1])
         return g
 
     def _time(self, attrs: dict[str, Any], t: int) -> None:

@@ -24,6 +24,12 @@ Two implementations of each, tested equal (`backend`):
 - scatter: `index_add_` over the edges of the whole batch flattened to `B·N` nodes; memory
   O(E) rather than O(B·N²), for large sparse graphs. `auto` picks dense up to
   `DENSE_MAX_NODES` nodes.
+
+A batch's graphs come as `[B, N, N]` matrices or as an `EdgeBatch` (`mpnode_cli.graphs`;
+what training and evaluation pass above `DENSE_GRAPH_MAX_NODES` nodes). From an
+`EdgeBatch`, the scatter backend and the degrees (PNA's scalers and δ) use the edges
+directly; no `[N, N]` matrix is built unless the dense backend is chosen for a graph small
+enough to hold one.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from typing import get_args
 
 import torch
 
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch
 from mpnode_cli.models.options import Aggregate, Backend
 
 AGGREGATES: tuple[str, ...] = get_args(Aggregate)
@@ -47,14 +54,45 @@ def channels(how: str, features: int) -> int:
     return 3 * features if how == "pna" else features
 
 
-def in_degree(adjacency: torch.Tensor) -> torch.Tensor:
-    """`adjacency: [B, N, N]` → in-degree `[B, N]` (float), counting nonzero entries."""
+Graph = torch.Tensor | EdgeBatch  # `[B, N, N]` matrices, or the same graphs' edges
+
+
+def in_degree(adjacency: Graph) -> torch.Tensor:
+    """`adjacency: [B, N, N]` (nonzero entries counted) or an `EdgeBatch` → in-degree
+    `[B, N]` float64."""
+    if isinstance(adjacency, EdgeBatch):
+        return adjacency.in_degree()
     return adjacency.ne(0).sum(dim=2).to(torch.float64)
 
 
-def mean_log_degree(adjacency: torch.Tensor) -> float:
-    """PNA's δ: the mean of log(d + 1) over every node of every graph in `[B, N, N]`."""
+def mean_log_degree(adjacency: Graph) -> float:
+    """PNA's δ: the mean of log(d + 1) over every node of every graph in the batch."""
     return float(torch.log1p(in_degree(adjacency)).mean())
+
+
+def as_graph(adjacency: Graph, x: torch.Tensor) -> Graph:
+    """The graphs ready to act on states `x`: matrices in `x`'s dtype and device, edges on
+    its device."""
+    if isinstance(adjacency, EdgeBatch):
+        return adjacency.to(x.device)
+    return adjacency.to(device=x.device, dtype=x.dtype)
+
+
+def dense(adjacency: Graph, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The graphs as `[B, N, N]` matrices (an `EdgeBatch` is expanded, which it may only
+    be up to `DENSE_GRAPH_MAX_NODES` nodes).
+
+    Raises:
+        ValueError: an `EdgeBatch` of more than `DENSE_GRAPH_MAX_NODES` nodes.
+    """
+    if isinstance(adjacency, EdgeBatch):
+        if adjacency.num_nodes > DENSE_GRAPH_MAX_NODES:
+            raise ValueError(
+                f"dense aggregation needs [N, N] matrices, which mpnode builds for at most "
+                f"{DENSE_GRAPH_MAX_NODES} nodes, not {adjacency.num_nodes}: use "
+                "backend auto or scatter")
+        return adjacency.to_dense(dtype)
+    return adjacency
 
 
 @dataclass(frozen=True)
@@ -75,13 +113,24 @@ class EdgeIndex:
     nodes: int
 
     @staticmethod
-    def from_adjacency(adjacency: torch.Tensor) -> EdgeIndex:
-        """`adjacency: [B, N, N]` (nonzero = edge j → i) → the batch's edge list."""
+    def from_adjacency(adjacency: Graph) -> EdgeIndex:
+        """`adjacency: [B, N, N]` (nonzero = edge j → i) or an `EdgeBatch` → the batch's
+        edge list (in the same order either way: by trajectory, receiver, sender)."""
+        if isinstance(adjacency, EdgeBatch):
+            return EdgeIndex.from_edges(adjacency)
         batch, nodes, _ = adjacency.shape
         b, i, j = torch.nonzero(adjacency, as_tuple=True)
         degree = adjacency.ne(0).sum(dim=2).reshape(-1, 1).to(adjacency.dtype)  # [B·N, 1]
         inv = torch.where(degree > 0, 1.0 / degree.clamp_min(1), torch.zeros_like(degree))
         return EdgeIndex(b * nodes + j, b * nodes + i, inv, batch, nodes)
+
+    @staticmethod
+    def from_edges(edges: EdgeBatch) -> EdgeIndex:
+        """An `EdgeBatch` → the batch's edge list over `B·N` nodes, degrees from its edges."""
+        senders, receivers = edges.flat()
+        degree = edges.in_degree().reshape(-1, 1)  # [B·N, 1]
+        inv = torch.where(degree > 0, 1.0 / degree.clamp_min(1), torch.zeros_like(degree))
+        return EdgeIndex(senders, receivers, inv, edges.batch, edges.num_nodes)
 
 
 def scatter_sum(edges: EdgeIndex, m: torch.Tensor) -> torch.Tensor:
@@ -97,8 +146,9 @@ def scatter_mean(edges: EdgeIndex, m: torch.Tensor) -> torch.Tensor:
     return (summed * edges.inv_degree.to(m.dtype)).view_as(m)
 
 
-def pna_scalers(adjacency: torch.Tensor, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """PNA's amplification and attenuation scalers `[B, N, 1]` for `adjacency: [B, N, N]`.
+def pna_scalers(adjacency: Graph, delta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """PNA's amplification and attenuation scalers `[B, N, 1]` for `adjacency: [B, N, N]`
+    or an `EdgeBatch`.
 
     An isolated node (d = 0) gets 0 for both: its mean is zero anyway, and δ / log(1) would
     be infinite.
@@ -112,12 +162,14 @@ def pna_scalers(adjacency: torch.Tensor, delta: float) -> tuple[torch.Tensor, to
     return amp, att
 
 
-def aggregator(adjacency: torch.Tensor, how: str = "mean", backend: str = "auto",
+def aggregator(adjacency: Graph, how: str = "mean", backend: str = "auto",
                delta: float | None = None) -> Callable[[torch.Tensor], torch.Tensor]:
     """The aggregation over one batch of graphs, with its graph work done once.
 
     Args:
-        adjacency: `[B, N, N]` float, `A[b, i, j] ≠ 0` iff j sends to i.
+        adjacency: `[B, N, N]` float, `A[b, i, j] ≠ 0` iff j sends to i, or an `EdgeBatch`
+            (the dense backend then expands it, for graphs of at most
+            `DENSE_GRAPH_MAX_NODES` nodes).
         how: "mean", "sum" or "pna".
         backend: "auto", "dense" or "scatter".
         delta: PNA's δ (required for "pna").
@@ -129,10 +181,10 @@ def aggregator(adjacency: torch.Tensor, how: str = "mean", backend: str = "auto"
         raise ValueError(f"unknown aggregation '{how}' (choose from: {', '.join(AGGREGATES)})")
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend '{backend}' (choose from: {', '.join(BACKENDS)})")
-    nodes = adjacency.shape[1]
-    dense = backend == "dense" or (backend == "auto" and nodes <= DENSE_MAX_NODES)
-    if dense:
-        a = adjacency.ne(0).to(adjacency.dtype)
+    nodes = adjacency.num_nodes if isinstance(adjacency, EdgeBatch) else adjacency.shape[1]
+    if backend == "dense" or (backend == "auto" and nodes <= DENSE_MAX_NODES):
+        matrices = dense(adjacency)
+        a = matrices.ne(0).to(matrices.dtype)
         if how != "sum":
             a = a / a.sum(dim=2, keepdim=True).clamp_min(1.0)  # isolated rows stay zero
         base = lambda m: torch.bmm(a.to(m.dtype), m)  # noqa: E731
@@ -153,6 +205,21 @@ def aggregator(adjacency: torch.Tensor, how: str = "mean", backend: str = "auto"
     return pna
 
 
+def full_graph(adjacency: Graph) -> torch.Tensor:
+    """The complete graph with self-loops on the batch's nodes, `[B, N, N]` ones.
+
+    Raises:
+        ValueError: more than `DENSE_GRAPH_MAX_NODES` nodes (N² messages per graph).
+    """
+    if isinstance(adjacency, EdgeBatch):
+        n = adjacency.num_nodes
+        if n > DENSE_GRAPH_MAX_NODES:
+            raise ValueError(f"graph 'full' passes N² messages, too many for {n} nodes (at "
+                             f"most {DENSE_GRAPH_MAX_NODES}): use graph 'sys'")
+        return torch.ones(adjacency.batch, n, n, device=adjacency.device)
+    return torch.ones_like(adjacency)
+
+
 class DegreeAwareAggregation:
     """What MP-NODE and GNN-ODE share about their neighbours: the graph mode, PNA's δ and the
     aggregation over one batch of graphs.
@@ -170,21 +237,21 @@ class DegreeAwareAggregation:
         # `fit_statistics`, saved with the weights, used unchanged on any other graph.
         self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
 
-    def _graph(self, adjacency: torch.Tensor) -> torch.Tensor:
+    def _graph(self, adjacency: Graph) -> Graph:
         """The graph messages pass over: the data's, or complete with self-loops."""
-        return torch.ones_like(adjacency) if self.graph == "full" else adjacency
+        return full_graph(adjacency) if self.graph == "full" else adjacency
 
-    def fit_statistics(self, states: torch.Tensor | None, dt: float,
-                       adjacency: torch.Tensor) -> None:
-        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` (states, dt unused)."""
+    def fit_statistics(self, states: torch.Tensor | None, dt: float, adjacency: Graph) -> None:
+        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` or an `EdgeBatch`
+        (states, dt unused)."""
         if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
             self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
 
-    def aggregator(self, adjacency: torch.Tensor, backend: str = "auto"):
+    def aggregator(self, adjacency: Graph, backend: str = "auto"):
         """The aggregation over in-neighbours: `m [B, N, F] → [B, N, channels(F)]`.
 
         Args:
-            adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff j sends to i.
+            adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff j sends to i, or an `EdgeBatch`.
         """
         delta = float(self.degree_delta) if self.aggregate == "pna" else None
         return aggregator(self._graph(adjacency), self.aggregate, backend, delta)

@@ -21,7 +21,7 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
+from mpnode_cli.models.aggregate import DegreeAwareAggregation, Graph, as_graph, channels
 from mpnode_cli.models.base import NeuralModel, Rollout, zoh_controls
 from mpnode_cli.models.options import GNODEOptions
 from mpnode_cli.solver import solve
@@ -58,7 +58,7 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
             nn.init.zeros_(layer.bias)
         self._register_degree_statistic()
 
-    def vector_field(self, adjacency: torch.Tensor, u=None):
+    def vector_field(self, adjacency: Graph, u=None):
         """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`."""
         aggregate = self.aggregator(adjacency)
 
@@ -73,7 +73,7 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
 
         return f
 
-    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
                 controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
                 return_messages: bool = False) -> Rollout:
         """Integrate from x(t₀); same arguments as `MPNODE.rollout` (no message states)."""
@@ -83,7 +83,7 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
         ts = ts.to(device=x0.device, dtype=torch.float64)
         u = zoh_controls(controls, ts) if self.control_dim else None
         options = solver.solve_kwargs() if solver is not None else {}
-        sol = solve(self.vector_field(adjacency.to(x0.dtype), u), x0, ts, **options,
+        sol = solve(self.vector_field(as_graph(adjacency, x0), u), x0, ts, **options,
                     tstops=ts[1:-1] if u is not None else None)
         return Rollout(states=sol.ys, messages=None, status=sol.status,
                        n_f_evals=int(sol.stats["n_f_evals"].max()))

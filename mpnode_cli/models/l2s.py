@@ -23,7 +23,8 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import EdgeIndex
+from mpnode_cli.graphs import EdgeBatch
+from mpnode_cli.models.aggregate import EdgeIndex, Graph, as_graph, full_graph
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout, mlp
 from mpnode_cli.models.options import L2SOptions
 
@@ -72,9 +73,10 @@ class L2S(NeuralModel):
         return self.history
 
     # -------------------------------------------------------------- one step
-    def _edges(self, adjacency: torch.Tensor) -> EdgeIndex:
+    def _edges(self, adjacency: Graph) -> EdgeIndex:
+        """`[B, N, N]` or an `EdgeBatch` → the edges messages pass over."""
         if self.graph == "full":
-            adjacency = torch.ones_like(adjacency)
+            adjacency = full_graph(adjacency)
         return EdgeIndex.from_adjacency(adjacency)
 
     def delta(self, window: torch.Tensor, edges: EdgeIndex, u: torch.Tensor | None):
@@ -133,7 +135,8 @@ class L2S(NeuralModel):
                               device=windows.device) * (noise_std / c**0.5)
             windows = windows + eps.cumsum(dim=1)
         target = states[:, c:].reshape(batch * steps, *states.shape[2:]) - windows[:, -1]
-        adj = adjacency.repeat_interleave(steps, dim=0)
+        repeat = torch.arange(batch, device=states.device).repeat_interleave(steps)  # [B·steps]
+        adj = adjacency.take(repeat) if isinstance(adjacency, EdgeBatch) else adjacency[repeat]
         u = None
         if self.control_dim:
             u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
@@ -175,7 +178,7 @@ class L2S(NeuralModel):
         if c > 1 and history is None:
             raise ValueError(f"this L2S model needs the first {c} states (history={c})")
         window = history if c > 1 else x0.unsqueeze(1)
-        edges = self._edges(adjacency.to(x0.dtype))
+        edges = self._edges(as_graph(adjacency, x0))
         states = list(window.unbind(1))
         for k in range(c - 1, ts.numel() - 1):
             u = controls[:, k] if self.control_dim else None

@@ -26,7 +26,7 @@ from typing import ClassVar
 
 import torch
 
-from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
+from mpnode_cli.models.aggregate import DegreeAwareAggregation, Graph, as_graph, channels
 from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
@@ -60,11 +60,11 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
                        o.layers, node_dim + o.message_dim, o.activation)
         self._register_degree_statistic()
 
-    def vector_field(self, adjacency: torch.Tensor, u=None):
+    def vector_field(self, adjacency: Graph, u=None):
         """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]` for `solve`.
 
         Args:
-            adjacency: `[B, N, N]`.
+            adjacency: `[B, N, N]`, or an `EdgeBatch` (large graphs).
             u: `u(t [B]) → [B, N, U]` (zero-order hold), or None when U = 0.
         """
         aggregate = self.aggregator(adjacency, self.backend)
@@ -78,7 +78,7 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
 
         return f
 
-    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
+    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
                 controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
                 return_messages: bool = False) -> Rollout:
         """Integrate from x(t₀) over the whole horizon.
@@ -86,7 +86,7 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         Args:
             x0: `[B, N, D]` normalized states at `ts[0]`.
             ts: `[T]` sample times.
-            adjacency: `[B, N, N]`.
+            adjacency: `[B, N, N]`, or an `EdgeBatch` (large graphs).
             controls: `[B, T, N, U]` normalized, zero-order hold, or None.
             solver: how to integrate (None: `solve`'s defaults; training passes its
                 config's, `TrainConfig.solver`).
@@ -105,7 +105,7 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         # Steps must not straddle a control switch: stop at every sample time.
         tstops = ts[1:-1] if u is not None else None
         options = solver.solve_kwargs() if solver is not None else {}
-        sol = solve(self.vector_field(adjacency.to(x0.dtype), u), z0, ts, **options,
+        sol = solve(self.vector_field(as_graph(adjacency, x0), u), z0, ts, **options,
                     tstops=tstops)
         d = self.node_dim
         return Rollout(states=sol.ys[..., :d],

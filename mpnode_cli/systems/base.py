@@ -21,6 +21,13 @@ swarm: a closed-loop flight with controls, a hidden load and per-flight plans):
 them into a `Simulation` (states, optional controls and hidden states, solver status, and
 the system's own rejections). Their defaults are `sample_initial` and one `solve` of `rhs`.
 
+Graphs of at most `mpnode_cli.graphs.DENSE_GRAPH_MAX_NODES` nodes reach a system as
+matrices: `[N, N]` ndarrays for `graph_params` and `sample`, `[K, N, N]` (or `[1, N, N]`)
+tensors for `rhs`. Larger graphs reach only systems that declare `sparse = True`, as an
+`EdgeList` (which has the matrix's `shape`, so code that only reads N takes either) and an
+`EdgeBatch` for `rhs`; `NeighbourSum` takes both forms, so a system whose coupling is a
+neighbour sum runs on either without knowing which.
+
 Systems know nothing of files. torch and the solver are imported inside methods so that
 importing the registry (for the CLI's choices) stays cheap.
 """
@@ -36,7 +43,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.graphs import make_graph
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch, EdgeList, make_edges, make_graph
 
 if TYPE_CHECKING:
     import torch
@@ -130,6 +137,9 @@ class System(ABC):
         presets: named datasets, name → partial generate config (`system` is added);
             `mpnode generate --preset NAME`.
         paper_loss, recommended: how to learn it (see `recipe`).
+        sparse: runs on graphs given as edge lists (`EdgeList`, `EdgeBatch`), hence on
+            graphs above `DENSE_GRAPH_MAX_NODES` nodes; a system that needs the matrix
+            itself (Lorenz's coupling H is `[3N, 3N]`) leaves it False and is refused there.
     """
 
     name: ClassVar[str]
@@ -149,6 +159,7 @@ class System(ABC):
     # for it, and train-config fields mpnode's own recipe sets for it.
     paper_loss: ClassVar[str] = "mse"
     recommended: ClassVar[dict[str, object]] = {}
+    sparse: ClassVar[bool] = False
 
     @classmethod
     def recipe(cls) -> dict[str, dict[str, object]]:
@@ -197,7 +208,7 @@ class System(ABC):
         """The scalar parameters by their ASCII names (a copy)."""
         return dict(self.params)
 
-    def graph(self, topology: str, n: int, seed: int) -> np.ndarray:
+    def graph(self, topology: str, n: int, seed: int) -> np.ndarray | EdgeList:
         """This system's graph of the given topology and size.
 
         Args:
@@ -207,7 +218,8 @@ class System(ABC):
             seed: graph seed.
 
         Returns:
-            uint8 `[n, n]` adjacency, `A[i, j] = 1` iff j sends to i.
+            uint8 `[n, n]` adjacency, `A[i, j] = 1` iff j sends to i, for n ≤
+            `DENSE_GRAPH_MAX_NODES`; above, the same graph as an `EdgeList` (no matrix).
 
         Raises:
             ValueError: a topology this system does not use, or a size it cannot have.
@@ -217,7 +229,8 @@ class System(ABC):
                 f"system '{self.name}' has no topology '{topology}' "
                 f"(choose from: {', '.join(self.topologies)}, or an edge list)"
             )
-        return make_graph(topology, n, seed, **self.graph_kwargs(topology, n))
+        build = make_graph if n <= DENSE_GRAPH_MAX_NODES else make_edges
+        return build(topology, n, seed, **self.graph_kwargs(topology, n))
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """The `make_graph` parameters this system uses for `topology` at size `n`."""
@@ -229,7 +242,7 @@ class System(ABC):
         """Parameters drawn once per graph (e.g. Lorenz coupling); none by default.
 
         Args:
-            adjacency: `[N, N]` the graph.
+            adjacency: `[N, N]` the graph (an `EdgeList` above `DENSE_GRAPH_MAX_NODES` nodes).
             rng: the generator to draw from.
 
         Returns:
@@ -239,21 +252,24 @@ class System(ABC):
 
     @abstractmethod
     def sample_initial(self, adjacency: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
-        """Draw `k` initial states on the graph `adjacency` `[N, N]`.
+        """Draw `k` initial states on the graph `adjacency` `[N, N]` (or `EdgeList`).
 
         Returns:
             float64 `[k, N, D]`.
         """
 
     @abstractmethod
-    def rhs(self, adjacency: torch.Tensor, params: dict[str, torch.Tensor]) -> RHS:
+    def rhs(self, adjacency: torch.Tensor | EdgeBatch,
+            params: dict[str, torch.Tensor]) -> RHS:
         """The batched vector field for K trajectories.
 
         Args:
             adjacency: `[K, N, N]` float64, the graph of each trajectory, or `[1, N, N]`
                 when all K trajectories share one graph (the generator's usual case). With
                 several graphs the generator keeps each graph's trajectories in one block,
-                which `NeighbourSum` turns into one product per graph.
+                which `NeighbourSum` turns into one product per graph. Above
+                `DENSE_GRAPH_MAX_NODES` nodes (`sparse` systems only) an `EdgeBatch` of
+                batch K, or 1 when shared.
             params: `graph_params` of each trajectory's graph, stacked on a leading `[K]`
                 axis (e.g. `coupling: [K, 3N, 3N]`), or `[1, ...]` when shared.
 
@@ -268,7 +284,7 @@ class System(ABC):
         """Draw `k` initial states and the per-trajectory inputs `simulate` needs.
 
         Args:
-            adjacency: `[N, N]` the graph.
+            adjacency: `[N, N]` the graph (an `EdgeList` above `DENSE_GRAPH_MAX_NODES` nodes).
             k: number of trajectories.
             rng: the generator to draw from.
 
@@ -337,18 +353,30 @@ class NeighbourSum:
     trajectories on 64 nodes, most of a gene solve). When runs are short (distinct graphs
     in most trajectories) that batched matmul is kept, as it is then one call, not many.
 
-    The result equals `adjacency @ x` up to rounding (summation order inside the GEMM).
+    Given an `EdgeBatch` instead (graphs above `DENSE_GRAPH_MAX_NODES` nodes), the sum is
+    a scatter over the messages, `out[i] += x[j]` for each j → i (`index_add_`), in O(K·E)
+    time and memory instead of O(K·N²): over the shared graph's edges for every
+    trajectory at once when the batch is 1, else over the batch's K·N flattened nodes.
+
+    The result equals `adjacency @ x` up to rounding (summation order).
     """
 
-    def __init__(self, adjacency: torch.Tensor) -> None:
+    def __init__(self, adjacency: torch.Tensor | EdgeBatch) -> None:
         """Plan the product.
 
         Args:
             adjacency: `[K, N, N]` per trajectory, or `[1, N, N]` shared by all (also any
-                `[K, M, M]` matrices acting on `[K, M, D]`, e.g. Lorenz's coupling H).
+                `[K, M, M]` matrices acting on `[K, M, D]`, e.g. Lorenz's coupling H); or
+                an `EdgeBatch` of batch K or 1.
         """
         import torch
 
+        self.edges: tuple[torch.Tensor, torch.Tensor] | None = None  # (senders, receivers)
+        self.shared = False
+        if isinstance(adjacency, EdgeBatch):
+            self.shared = adjacency.batch == 1
+            self.edges = adjacency.flat()
+            return
         k = adjacency.shape[0]
         new = torch.ones(k, dtype=torch.bool, device=adjacency.device)  # [K] a run starts
         new[1:] = (adjacency[1:] != adjacency[:-1]).flatten(1).any(1)
@@ -370,6 +398,12 @@ class NeighbourSum:
         import torch
 
         k, n, d = x.shape
+        if self.edges is not None:
+            senders, receivers = self.edges
+            if self.shared:  # one graph: scatter along the node axis of every trajectory
+                return torch.zeros_like(x).index_add_(1, receivers, x[:, senders])
+            flat = x.reshape(k * n, d)  # (K·N, D)
+            return torch.zeros_like(flat).index_add_(0, receivers, flat[senders]).view_as(x)
         xt = x.transpose(1, 2)  # (K, D, N)
         # Products over explicit (rows, N) blocks: `xt @ Aᵀ` on this transposed view is not
         # folded into one GEMM but run as a batched matmul over a stride-0 Aᵀ, 2-3× slower

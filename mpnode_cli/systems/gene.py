@@ -44,6 +44,8 @@ class Gene(System):
         "uniform", "Initial states: uniform (U(0, 50) per node) or hotspot (three "
         "rectangles on the grid).", choices=INITS)}
     init: str
+    # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
+    sparse: ClassVar[bool] = True
     # Regulation sums over in-neighbours, so a node must sense its in-degree; PNA does, and
     # transfers to unseen topologies far better than a plain sum (docs/training-recipe.md).
     recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
@@ -75,7 +77,8 @@ class Gene(System):
         return np.stack([_hotspots(side, rng) for _ in range(k)]).reshape(k, n, 1)
 
     def rhs(self, adjacency: torch.Tensor, params: dict[str, torch.Tensor]) -> RHS:
-        """f(t [K], y [K, N, 1]) → [K, N, 1]; `adjacency` `[K, N, N]`, `params` unused."""
+        """f(t [K], y [K, N, 1]) → [K, N, 1]; `adjacency` `[K, N, N]` or an `EdgeBatch`;
+        `params` unused."""
         b, f_exp, h = (self.params[key] for key in ("b", "f", "h"))
         neighbour_sum = NeighbourSum(adjacency)
 

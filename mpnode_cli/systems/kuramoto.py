@@ -37,6 +37,8 @@ class Kuramoto(System):
     default_nodes: ClassVar[int] = 10
     defaults: ClassVar[dict[str, float]] = {"K": 1.0 / 3.0}
     paper_loss: ClassVar[str] = "huber"  # the paper's App. A.4
+    # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
+    sparse: ClassVar[bool] = True
     # The coupling sums over neighbours: as for gene, PNA lets a node sense its in-degree.
     recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
     # The paper gives 500 trajectories at dt 0.05 but no horizon; the authors' 50 steps.

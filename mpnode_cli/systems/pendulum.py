@@ -53,6 +53,8 @@ class Pendulum(System):
         "small", "Initial-state box: small (the authors' code) or paper (the appendix's).",
         choices=tuple(IC_RANGES))}
     ic_range: str
+    # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
+    sparse: ClassVar[bool] = True
     # The springs' pull sums over neighbours.
     recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
     # The paper's 500 trajectories, dt 0.1, 10 s (App. A.1).
@@ -68,11 +70,13 @@ class Pendulum(System):
         return rng.uniform(-1.0, 1.0, size=(k, n, 2)) * half_widths
 
     def rhs(self, adjacency: torch.Tensor, params: dict[str, torch.Tensor]) -> RHS:
-        """f(t [K], y [K, N, 2]) → [K, N, 2]; `adjacency` `[K, N, N]`, `params` unused."""
+        """f(t [K], y [K, N, 2]) → [K, N, 2]; `adjacency` `[K, N, N]` or an `EdgeBatch`;
+        `params` unused."""
         import torch
 
         m, length, k, g = (self.params[key] for key in ("m", "l", "k", "g"))
-        degree = adjacency.sum(dim=-1)  # [K, N]
+        degree = (adjacency.sum(dim=-1) if isinstance(adjacency, torch.Tensor)
+                  else adjacency.in_degree())  # [K, N] (or [1, N] when shared)
         neighbour_sum = NeighbourSum(adjacency)
 
         def f(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

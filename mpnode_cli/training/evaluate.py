@@ -119,7 +119,7 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     with torch.no_grad(), prefetched(data, torch.arange(k).split(batch_size)) as batches:
         for batch in batches:
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
-            out = model.rollout_from_data(x, ts, batch.adjacency.to(device), u, solver=solver)
+            out = model.rollout_from_data(x, ts, batch.graph(device), u, solver=solver)
             n_f_evals += out.n_f_evals
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
             failed += int((~good).sum())
@@ -157,7 +157,7 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
     batch = data.take(index)
     x, u = _normalized(batch, normalizer, device)
     with torch.no_grad():
-        out = model.rollout_from_data(x, data.time.to(device), batch.adjacency.to(device), u,
+        out = model.rollout_from_data(x, data.time.to(device), batch.graph(device), u,
                                       solver=solver, return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
@@ -363,7 +363,7 @@ def _save_predictions(ckpt, data: TrajectoryData, subset: TrajectoryData, split:
     """Roll out a split from its first states and write the predictions beside the facts
     of the data they were made for."""
     pred = roll_out(ckpt, subset.states[:, 0].numpy(), subset.time.numpy(),
-                    subset.adjacency.numpy(),
+                    subset.graphs, subset.graph_index.numpy(),
                     None if subset.controls is None else subset.controls.numpy(),
                     batch_size=batch_size, device=device)
     source = {"dataset": str(Path(data.path).resolve()), "fingerprint": data.fingerprint,
@@ -371,7 +371,7 @@ def _save_predictions(ckpt, data: TrajectoryData, subset: TrajectoryData, split:
     config = {"verb": "evaluate", "checkpoint": str(ckpt.path), "dataset": str(data.path),
               "split": split, "batch_size": batch_size, "topology": data.attrs.get("topology")}
     return write_predictions(path, ckpt, pred, time=subset.time.numpy(),
-                             adjacency=subset.adjacency.numpy(),
+                             graphs=subset.graphs, graph_index=subset.graph_index.numpy(),
                              controls=None if subset.controls is None else
                              subset.controls.numpy(),
                              split=subset.split.numpy(), config=config, source=source,

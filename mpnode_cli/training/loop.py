@@ -202,7 +202,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     if source is None or (parent and config.renormalize):
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
         model.fit_statistics(_statistics_states(model, train_set, normalizer),
-                             float(train_set.time[1] - train_set.time[0]), train_set.adjacency)
+                             float(train_set.time[1] - train_set.time[0]), train_set.graph())
     model.to(device)
     world.broadcast_module(model)
     optimizer = Adam(model.parameters(), lr=config.lr)
@@ -351,7 +351,7 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData | StreamedTrajector
             u = None if batch.controls is None else normalizer.norm_u(
                 batch.controls[:, :horizon]).to(device)
             loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
-                                                   batch.adjacency.to(device), u, loss_fn,
+                                                   batch.graph(device), u, loss_fn,
                                                    config, world, len(batch) / len(idx))
             evals_per_batch.append(evals)
             if reason is None:

@@ -33,6 +33,7 @@ import torch
 
 from mpnode_cli.config import stored_solver, train_solver
 from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
+from mpnode_cli.graphs import Graphs
 from mpnode_cli.paths import file_sha256
 from mpnode_cli.solver.options import SolverOptions
 
@@ -64,7 +65,7 @@ def rollout_solver(ckpt) -> SolverOptions:
     return stored_solver(ckpt.train_config, train_solver).model_copy(update={"compile": False})
 
 
-def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, adjacency: np.ndarray,
+def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: np.ndarray,
              controls: np.ndarray | None = None, *, batch_size: int = 128,
              device: str | torch.device = "cpu") -> Predicted:
     """Predict trajectories from `x0` with a checkpoint's model.
@@ -73,7 +74,9 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, adjacency: np.ndarray,
         ckpt: a `mpnode_cli.training.checkpoint.Checkpoint`.
         x0: `[K, N, D]` initial states, physical units.
         ts: `[T]` sample times (ts[0] is the time of x0).
-        adjacency: `[K, N, N]` each trajectory's graph (`A[k, i, j] = 1` iff j sends to i).
+        graphs: the graphs; graph_index: `[K]` the graph of each trajectory. A batch's
+            graphs go to the model as `[B, N, N]` matrices up to `DENSE_GRAPH_MAX_NODES`
+            nodes, as an `EdgeBatch` above.
         controls: `[K, T, N, U]` physical, zero-order hold, or None.
         batch_size: trajectories per rollout.
         device: where the rollouts run.
@@ -84,7 +87,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, adjacency: np.ndarray,
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
     x0 = torch.as_tensor(np.asarray(x0), dtype=torch.float32)
     ts = torch.as_tensor(np.asarray(ts), dtype=torch.float64)
-    adjacency = torch.as_tensor(np.asarray(adjacency), dtype=torch.float32)
+    graph_index = np.asarray(graph_index, dtype=np.int64)
     k, n, d = x0.shape
     u_dim = int(ckpt.model_config.get("control_dim", 0))
     if d != int(ckpt.model_config["node_dim"]):
@@ -112,8 +115,9 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, adjacency: np.ndarray,
         for idx in torch.arange(k).split(batch_size):
             x = normalizer.norm_x(x0[idx].to(device))  # (B, N, D)
             ub = None if u is None else normalizer.norm_u(u[idx].to(device))  # (B, T, N, U)
-            out = model.rollout(x, ts.to(device), adjacency[idx].to(device), ub, solver=solver,
-                                return_messages=True)
+            out = model.rollout(x, ts.to(device), _batch_graph(graphs, graph_index[idx.numpy()],
+                                                               device),
+                                ub, solver=solver, return_messages=True)
             states.append(normalizer.denorm_x(out.states).double().cpu())  # (B, T, N, D)
             if out.messages is not None:
                 messages.append(out.messages.double().cpu())  # (B, T, N, M)
@@ -124,8 +128,15 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, adjacency: np.ndarray,
                      status=status, n_f_evals=n_f_evals)
 
 
+def _batch_graph(graphs: Graphs, graph_index: np.ndarray, device):
+    """A batch's graphs as models take them: float32 `[B, N, N]` or an `EdgeBatch`."""
+    if graphs.dense_ok:
+        return torch.from_numpy(graphs.dense()[graph_index].astype(np.float32)).to(device)
+    return graphs.batch(graph_index, device)
+
+
 def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarray,
-                      adjacency: np.ndarray, controls: np.ndarray | None = None,
+                      graphs: Graphs, graph_index: np.ndarray, controls: np.ndarray | None = None,
                       split: np.ndarray | None = None, config: dict[str, Any],
                       source: dict[str, Any], dtype: str = "float32",
                       overwrite: bool = False) -> Path:
@@ -136,7 +147,8 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         ckpt: the checkpoint that predicted.
         pred: `roll_out`'s result.
         time: `[T]` sample times.
-        adjacency: `[K, N, N]` each trajectory's graph (distinct graphs are stored once).
+        graphs, graph_index: the graphs and `[K]` each trajectory's (only the graphs some
+            trajectory ran on are stored).
         controls: `[K, T, N, U]` physical, or None.
         split: `[K]` split of each trajectory (default: all test, 2).
         config: the verb's resolved options, stored as the file's `config`.
@@ -159,8 +171,8 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
             f"trajectory {int(failed[0])}{why}); their predictions are not finite, so no "
             "file was written")
     k = len(pred.states)
-    graphs, graph_index = np.unique(np.asarray(adjacency, dtype=np.uint8), axis=0,
-                                    return_inverse=True)
+    used, graph_index = np.unique(np.asarray(graph_index), return_inverse=True)
+    graphs = graphs.take(used)
     graph_index = graph_index.reshape(k).astype(np.int32)
     states = pred.states.astype(dtype)
     time = np.asarray(time, dtype=np.float64)
@@ -184,7 +196,7 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         control_names=tuple(ckpt.dataset.get("control_names") or ()),
         seed=None, config={**config, "solver": record["solver"]}, time=time, states=states,
         controls=None if controls is None else np.asarray(controls).astype(dtype),
-        hidden=hidden, adjacency=graphs, graph_index=graph_index,
+        hidden=hidden, graphs=graphs, graph_index=graph_index,
         split=np.full(k, 2, dtype=np.uint8) if split is None else np.asarray(split, np.uint8),
         solver_status=pred.status, solver_n_f_evals=pred.n_f_evals,
         extra_attrs={"prediction": json.dumps(record, sort_keys=True),
@@ -245,14 +257,14 @@ def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
     if config.controls is not None:
         controls = load_controls(config.controls, (k, len(ts), n))
     start = clock.perf_counter()
-    pred = roll_out(ckpt, x0, ts, graphs[graph_index], controls,
+    pred = roll_out(ckpt, x0, ts, graphs, graph_index, controls,
                     batch_size=config.batch_size, device=config.device)
     seconds = clock.perf_counter() - start
     sources = {name: {"path": str(Path(path).resolve()), "sha256": file_sha256(path)}
                for name in ("x0", "adjacency", "edge_list", "controls")
                if (path := getattr(config, name)) is not None}
     resolved = config.model_copy(update={"out": out}).model_dump(mode="json")
-    write_predictions(out, ckpt, pred, time=ts, adjacency=graphs[graph_index],
+    write_predictions(out, ckpt, pred, time=ts, graphs=graphs, graph_index=graph_index,
                       controls=controls, config={"verb": "simulate", **resolved,
                                                  "topology": _topology(config)},
                       source=sources, dtype=config.dtype, overwrite=overwrite)
