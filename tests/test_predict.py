@@ -64,7 +64,7 @@ def ring(n, chords=()):
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """64 trajectories on a 5-node graph, imported and trained for 60 epochs (~15 s)."""
+    """64 trajectories on a 5-node graph, imported and trained for 30 epochs (~8 s)."""
     root = tmp_path_factory.mktemp("vdp")
     rng = np.random.default_rng(0)
     a = ring(5, [(0, 2)])
@@ -76,7 +76,7 @@ def trained(tmp_path_factory):
                     root / "graph.npy", "--dt", DT, "--state-names", "x,v", "--out", data)
     assert result.exit_code == 0, result.output
     run = root / "run"
-    result = invoke("train", data, "--epochs", 60, "--lr", "1e-2", "--batch-size", 16,
+    result = invoke("train", data, "--epochs", 30, "--lr", "1e-2", "--batch-size", 16,
                     "--no-plots", "--run-dir", run)
     assert result.exit_code == 0, result.output
     return {"root": root, "data": data, "run": run, "states": states}
@@ -104,7 +104,7 @@ def test_simulate_on_a_larger_graph_matches_scipy(trained, tmp_path):
     model = mse(pred.states)
     hold = mse(truth[:, :1])
     time_mean = mse(trained["states"].mean(axis=(0, 2))[None, :, None, :])
-    # Measured 0.08 against 2.5 and 1.8 after 60 epochs: a short training, a loose bound.
+    # Measured 0.14 against 2.5 and 1.8 after 30 epochs: a short training, a loose bound.
     assert model < 0.25 * min(hold, time_mean), (model, hold, time_mean)
     assert np.sqrt(model) < 0.6  # RMSE in the states' units (|x|, |ẋ| up to about 2.7)
 
