@@ -177,3 +177,18 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     assert all(" < " in row or " > " in row for row in rows)
     saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
     assert saved["scale"] == "tiny" and len(saved["claims"]) == len(experiment.claims)
+
+
+def test_table2_per_mean_does_not_depend_on_the_normalization():
+    # One run's validation errors in two normalizations: the same predictions, scaled by
+    # the square of a std ratio, as a finetune (parent's normalization) and a scratch run.
+    run = {"best_epoch": 40, "table2": 40 * 0.02, "val": {"mse": 0.02, "time_mean": 0.5}}
+    scaled = {**run, "table2": 40 * 0.02 * 9.0, "val": {"mse": 0.02 * 9.0,
+                                                         "time_mean": 0.5 * 9.0}}
+    results = {"a": run, "b": scaled}
+    assert spec.with_derived(run)["table2_per_mean"] == pytest.approx(40 * 0.02 / 0.5)
+    assert spec.judge("a.table2 < b.table2", results)[0] is True  # units differ
+    holds, shown = spec.judge("a.table2_per_mean < b.table2_per_mean", results)
+    assert holds is False and shown == "1.6 < 1.6"
+    assert spec.with_derived({"best_epoch": 3, "val": {"mse": None}}) == {
+        "best_epoch": 3, "val": {"mse": None}}  # nothing to derive from

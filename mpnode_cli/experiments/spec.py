@@ -437,12 +437,28 @@ def parse_claim(text: str) -> tuple[tuple[float, str | None], str, tuple[float, 
     return side("a"), match["op"], side("b")
 
 
+def with_derived(result: Any) -> Any:
+    """A step's results with `table2_per_mean` added where a training run's are: the
+    Table-2 figure with the best checkpoint's validation MSE divided by the time-mean
+    predictor's (best epoch × val MSE ÷ time-mean MSE). Both MSEs are in the run's own
+    normalization, so the ratio is not: a finetune keeps its parent's normalization, and
+    its training loss is in other units than a scratch run's on the same data."""
+    if not isinstance(result, dict) or "best_epoch" not in result:
+        return result
+    val = result.get("val") or {}
+    mse, mean = val.get("mse"), val.get("time_mean")
+    if isinstance(mse, int | float) and isinstance(mean, int | float) and mean > 0:
+        return {**result, "table2_per_mean": result["best_epoch"] * mse / mean}
+    return result
+
+
 def judge(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str]:
     """Whether a claim holds on `results` (step id → its results), and the numbers shown.
 
     Returns:
         (True/False, or None when a number is missing; e.g. "0.025 < 0.62").
     """
+    results = {step: with_derived(result) for step, result in results.items()}
     left, op, right = parse_claim(text)
     values = []
     for factor, ref in (left, right):
