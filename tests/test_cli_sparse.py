@@ -99,3 +99,28 @@ def test_simulate_from_edges_equals_a_rollout_from_the_matrix(trained, tmp_path)
                              dense, solver=rollout_solver(ckpt))
     np.testing.assert_allclose(predicted, norm.denorm_x(roll.states).numpy(), rtol=1e-4,
                                atol=1e-5)
+
+
+def test_big_graph_rollouts_are_batched_by_edges_with_the_same_errors(trained, monkeypatch):
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training import evaluate as ev
+    from mpnode_cli.training.checkpoint import load_checkpoint
+
+    ckpt = load_checkpoint(trained["run"] / "checkpoints" / "best.pt")
+    model, normalizer = ckpt.build_model(), ckpt.build_normalizer()
+    data = TrajectoryData.load(trained["data"])
+    edges = int(data.graphs.num_edges.max())
+    whole = ev.evaluate(model, data, normalizer, batch_size=1024)  # 6 trajectories ≤ cap
+    sizes = []
+    rollout = type(model).rollout_from_data
+
+    def spy(self, x, *args, **kwargs):
+        sizes.append(x.shape[0])
+        return rollout(self, x, *args, **kwargs)
+
+    monkeypatch.setattr(type(model), "rollout_from_data", spy)
+    monkeypatch.setattr(ev, "EDGE_ROWS", 2 * edges + 1)  # two trajectories' edges per batch
+    capped = ev.evaluate(model, data, normalizer, batch_size=1024)
+    assert sizes == [2, 2, 2]
+    assert capped.mse == pytest.approx(whole.mse, rel=1e-6)
+    assert capped.trajectories == whole.trajectories == 6
