@@ -3,6 +3,8 @@ exceptions into one line for the user and an exit code."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import typer
@@ -69,6 +71,24 @@ def console(stderr: bool = False):
 
     probe = Console(stderr=stderr)
     return probe if probe.is_terminal else Console(stderr=stderr, width=120)
+
+
+@contextmanager
+def task_bar(description: str, columns: tuple, total: float | None = None) -> Iterator[tuple]:
+    """A transient rich progress bar on stderr, and the `progress(done, total)` callback
+    that moves it: `(bar, progress)`. No bar when stderr is not a terminal (pipes, logs,
+    tests): it would only add noise."""
+    from rich.progress import Progress
+
+    display = console(stderr=True)
+    with Progress(*columns, console=display, transient=True,
+                  disable=not display.is_terminal) as bar:
+        task = bar.add_task(description, total=total)
+
+        def progress(done: float, total: float | None) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield bar, progress
 
 
 def hide_flag_types() -> None:

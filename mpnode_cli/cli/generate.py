@@ -222,9 +222,9 @@ generate_command = _with_system_options(generate_command)
 
 def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
     """Check the job and its output, generate with a progress bar, then print the summary."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
 
+    from mpnode_cli.cli.common import task_bar
     from mpnode_cli.data.generate import GenerateError, generate, output_path, resolve_config
     from mpnode_cli.paths import check_output_file
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
@@ -242,16 +242,8 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         MofNCompleteColumn(),
         TimeElapsedColumn(),
     )
-    console = Console(stderr=True)
-    # No bar when stderr is not a terminal (pipes, logs, tests): it would only add noise.
-    with interrupt_on_signals(), Progress(
-        *columns, console=console, transient=True, disable=not console.is_terminal
-    ) as bar:
-        task = bar.add_task(f"solving {config.system}", total=config.trajectories)
-
-        def progress(done: float, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
+    with interrupt_on_signals(), task_bar(f"solving {config.system}", columns,
+                                          config.trajectories) as (bar, progress):
         try:
             summary = generate(config, overwrite=force, progress=progress)
         except (FileExistsError, ValueError) as exc:

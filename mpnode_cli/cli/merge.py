@@ -37,25 +37,18 @@ def merge_command(
     """Merge the shards of one dataset into one dataset file."""
     import json
 
-    from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import BarColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    from mpnode_cli.cli.common import error_message
+    from mpnode_cli.cli.common import error_message, task_bar
     from mpnode_cli.data.generate import format_bytes
     from mpnode_cli.data.shards import merge_shards
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
-    display = console(stderr=True)
     columns = ("[progress.description]{task.description}", BarColumn(),
                "[progress.percentage]{task.percentage:>3.0f}%", TimeElapsedColumn(),
                TimeRemainingColumn())
-    # No bar when stderr is not a terminal (pipes, logs, tests): it would only add noise.
-    with interrupt_on_signals(), Progress(*columns, console=display, transient=True,
-                                          disable=not display.is_terminal) as bar:
-        task = bar.add_task(f"merging {len(shards)} shards", total=None)
-
-        def progress(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
+    with interrupt_on_signals(), task_bar(f"merging {len(shards)} shards",
+                                          columns) as (bar, progress):
         try:
             summary = merge_shards(shards, out, overwrite=force, virtual=virtual,
                                    progress=progress)

@@ -187,9 +187,18 @@ class TrajectoryData:
 
     def subset(self, which: str) -> TrajectoryData:
         """One split ("train", "validation", "test") or "all"."""
-        if which == "all":
-            return self
-        if which not in SPLITS:
-            raise ValueError(f"unknown split '{which}' (choose from: train, validation, "
-                             "test, all)")
-        return self.take(self.split == SPLITS[which])
+        return split_subset(self, which)
+
+
+def split_subset(data: Any, which: str) -> Any:
+    """One split ("train", "validation", "test") or "all" of `data`: anything with a
+    `split [K]` and a `select(index)`, in memory or on disk.
+
+    Raises:
+        ValueError: another name.
+    """
+    if which == "all":
+        return data
+    if which not in SPLITS:
+        raise ValueError(f"unknown split '{which}' (choose from: train, validation, test, all)")
+    return data.select(data.split == SPLITS[which])

@@ -30,7 +30,7 @@ import h5py
 import numpy as np
 import torch
 
-from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData, _recipe
+from mpnode_cli.data.dataset import Normalizer, TrajectoryData, _recipe, split_subset
 from mpnode_cli.data.hdf5 import fingerprint, read_graphs, read_header
 from mpnode_cli.data.validate import require_valid
 from mpnode_cli.graphs import EdgeBatch, Graphs
@@ -129,12 +129,7 @@ class StreamedTrajectories:
 
     def subset(self, which: str) -> StreamedTrajectories:
         """One split ("train", "validation", "test") or "all", still on disk."""
-        if which == "all":
-            return self
-        if which not in SPLITS:
-            raise ValueError(f"unknown split '{which}' (choose from: train, validation, "
-                             "test, all)")
-        return self.select(self.split == SPLITS[which])
+        return split_subset(self, which)
 
     def take(self, index: torch.Tensor, f: h5py.File | None = None) -> TrajectoryData:
         """Read the trajectories at `index` into memory, as `TrajectoryData.take` gives them.
