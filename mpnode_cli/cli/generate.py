@@ -17,7 +17,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, solver_option
+from mpnode_cli.cli.common import THREADS, solver_option, task_bar
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.config import generate_solver
@@ -224,7 +224,6 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
     """Check the job and its output, generate with a progress bar, then print the summary."""
     from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
 
-    from mpnode_cli.cli.common import task_bar
     from mpnode_cli.data.generate import GenerateError, generate, output_path, resolve_config
     from mpnode_cli.paths import check_output_file
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
