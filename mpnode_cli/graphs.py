@@ -43,6 +43,10 @@ if TYPE_CHECKING:
 # `[B, N, N]` batch. 256² = 65 536 entries, 64 KiB per uint8 graph: as small as the edge
 # list of a graph of mean degree ≈ 4, and far below any memory concern.
 DENSE_GRAPH_MAX_NODES = 256
+# Trajectory × edge rows one rollout may hold on graphs kept as edge lists: each row carries
+# a message per feature and its two node ids through every solver stage, so 2**22 rows are
+# some hundreds of MiB. Rollouts are independent, so batching changes no number.
+EDGE_ROWS = 2**22
 
 TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws")
 
@@ -387,6 +391,13 @@ class Graphs:
     def offsets(self) -> np.ndarray:
         """int64 `[G + 1]`: where each graph's edges start (and the total at the end)."""
         return np.concatenate([[0], np.cumsum(self.num_edges)]).astype(np.int64)
+
+    def rollout_batch(self, batch_size: int) -> int:
+        """`batch_size`, lowered above `DENSE_GRAPH_MAX_NODES` nodes so that a rollout
+        batch holds at most `EDGE_ROWS` trajectory × edge rows (at least one trajectory)."""
+        if self.dense_ok or len(self.num_edges) == 0:
+            return batch_size
+        return max(1, min(batch_size, EDGE_ROWS // max(1, int(self.num_edges.max()))))
 
     @property
     def dense_ok(self) -> bool:

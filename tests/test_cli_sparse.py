@@ -102,6 +102,7 @@ def test_simulate_from_edges_equals_a_rollout_from_the_matrix(trained, tmp_path)
 
 
 def test_big_graph_rollouts_are_batched_by_edges_with_the_same_errors(trained, monkeypatch):
+    from mpnode_cli import graphs as graphs_module
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training import evaluate as ev
     from mpnode_cli.training.checkpoint import load_checkpoint
@@ -119,7 +120,7 @@ def test_big_graph_rollouts_are_batched_by_edges_with_the_same_errors(trained, m
         return rollout(self, x, *args, **kwargs)
 
     monkeypatch.setattr(type(model), "rollout_from_data", spy)
-    monkeypatch.setattr(ev, "EDGE_ROWS", 2 * edges + 1)  # two trajectories' edges per batch
+    monkeypatch.setattr(graphs_module, "EDGE_ROWS", 2 * edges + 1)  # two per batch
     capped = ev.evaluate(model, data, normalizer, batch_size=1024)
     assert sizes == [2, 2, 2]
     assert capped.mse == pytest.approx(whole.mse, rel=1e-6)

@@ -85,21 +85,6 @@ class Prediction:
     status: torch.Tensor
 
 
-# Trajectory × edge rows one rollout may hold on graphs kept as edge lists: each row carries
-# a message per feature and its two node ids through every solver stage, so 2**22 rows are
-# some hundreds of MiB. Rollouts are independent, so batching changes no number.
-EDGE_ROWS = 2**22
-
-
-def edge_capped(batch_size: int, data: TrajectoryData | StreamedTrajectories) -> int:
-    """`batch_size`, lowered on graphs above `DENSE_GRAPH_MAX_NODES` nodes so that a batch
-    holds at most `EDGE_ROWS` trajectory × edge rows (at least one trajectory)."""
-    graphs = data.graphs
-    if graphs.dense_ok or len(graphs.num_edges) == 0:
-        return batch_size
-    return max(1, min(batch_size, EDGE_ROWS // max(1, int(graphs.num_edges.max()))))
-
-
 def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
              normalizer: Normalizer, *,
              batch_size: int = 128, solver: SolverOptions | None = None,
@@ -125,7 +110,7 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     """
     start = time.perf_counter()
     k, t, d = len(data), data.time.numel(), data.node_dim
-    batch_size = edge_capped(batch_size, data)
+    batch_size = data.graphs.rollout_batch(batch_size)
     ts = data.time.to(device)
     sq_time = torch.zeros(t, dtype=torch.float64)  # Σ squared error per sample time
     sq_phys = torch.zeros(d, dtype=torch.float64)  # Σ squared physical error per state

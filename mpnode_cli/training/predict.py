@@ -112,7 +112,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
     n_f_evals = np.zeros(k, dtype=np.int32)
     model.eval()
     with torch.no_grad():
-        for idx in torch.arange(k).split(batch_size):
+        for idx in torch.arange(k).split(graphs.rollout_batch(batch_size)):
             x = normalizer.norm_x(x0[idx].to(device))  # (B, N, D)
             ub = None if u is None else normalizer.norm_u(u[idx].to(device))  # (B, T, N, U)
             out = model.rollout(x, ts.to(device), _batch_graph(graphs, graph_index[idx.numpy()],
