@@ -66,7 +66,7 @@ RESULTS = HERE / "results" / "quality.md"
 L2S_CI = ("--model", "l2s", "--latent", "32", "--hidden", "32", "--steps", "5")
 GENE_AGGREGATES = ("mean", "sum", "pna")
 TIMING_EPOCHS = 3  # epochs an equal-time case trains to measure its seconds per epoch
-GENE_EQUAL_SECONDS = 420.0  # the gene baselines' training budget (× --scale)
+GENE_EQUAL_SECONDS = 300.0  # the gene baselines' training budget (× --scale)
 
 
 @dataclass(frozen=True)
@@ -109,27 +109,27 @@ class Case:
 
 GENE_PAPER = {"val": 0.0051, "test": 0.0045, "gene-er-4x4": 0.0026, "gene-ws-4x4": 0.0023}
 CASES = {c.name: c for c in [
-    *(Case(f"gene-ba-{agg}", "gene-ba-4x4", 1500, ("--aggregate", agg), val=True,
+    *(Case(f"gene-ba-{agg}", "gene-ba-4x4", 500, ("--aggregate", agg), val=True,
            zeroshot=("gene-er-4x4", "gene-ws-4x4"), paper=GENE_PAPER,
-           s_per_epoch={"mean": 0.8, "sum": 0.65, "pna": 0.6}[agg])
+           s_per_epoch={"mean": 0.91, "sum": 0.75, "pna": 0.71}[agg])
       for agg in GENE_AGGREGATES),
     Case("gene-ba-l2s", "gene-ba-4x4", 26, L2S_CI, val=True, equal_time="gene-default",
-         budget=GENE_EQUAL_SECONDS, paper={"val": 0.0106}, s_per_epoch=17.0,
+         budget=GENE_EQUAL_SECONDS, paper={"val": 0.0106}, s_per_epoch=11.8,
          note="L2S CI-sized (latent/hidden 32, 5 steps), trained for the same wall time as "
               "the default-aggregation MP-NODE gene run's 'val within' row; the paper's L2S "
               "is full size."),
     Case("gene-ba-gnode", "gene-ba-4x4", 1300, ("--model", "gnode"), val=True,
-         equal_time="gene-default", budget=GENE_EQUAL_SECONDS, s_per_epoch=0.35,
+         equal_time="gene-default", budget=GENE_EQUAL_SECONDS, s_per_epoch=1.0,
          note="GNN-ODE, trained for the same wall time as the default-aggregation MP-NODE "
               "gene run's 'val within' row."),
-    Case("pendulum-messages", "pendulum", 400, zeroed=True, s_per_epoch=3.5,
+    Case("pendulum-messages", "pendulum", 150, zeroed=True, s_per_epoch=3.6,
          note="'messages zeroed at test': the same checkpoint with messages=False (library)."),
-    Case("pendulum-no-messages", "pendulum", 400, ("--no-messages",), s_per_epoch=3.5),
-    *(Case(f"kuramoto-m{m}", "kuramoto10-ba", 250, ("--message-dim", str(m)),
-           s_per_epoch={1: 1.0, 3: 1.1, 7: 1.4, 13: 1.4}[m]) for m in (1, 3, 7, 13)),
-    Case("lorenz3", "lorenz3", 500, zeroshot=("lorenz7", "lorenz10"), s_per_epoch=4.0),
-    Case("quad3-mpnode", "quad3", 150, s_per_epoch=5.8),
-    Case("quad3-l2s", "quad3", 240, L2S_CI, equal_time="quad3-mpnode", s_per_epoch=1.9,
+    Case("pendulum-no-messages", "pendulum", 150, ("--no-messages",), s_per_epoch=3.7),
+    *(Case(f"kuramoto-m{m}", "kuramoto10-ba", 150, ("--message-dim", str(m)),
+           s_per_epoch={1: 1.5, 3: 1.1, 7: 1.4, 13: 1.4}[m]) for m in (1, 3, 7, 13)),
+    Case("lorenz3", "lorenz3", 200, zeroshot=("lorenz7", "lorenz10"), s_per_epoch=5.8),
+    Case("quad3-mpnode", "quad3", 100, s_per_epoch=6.5),
+    Case("quad3-l2s", "quad3", 320, L2S_CI, equal_time="quad3-mpnode", s_per_epoch=2.06,
          note="L2S CI-sized (latent/hidden 32, 5 steps), at MP-NODE's quad3 wall time."),
 ]}
 # Seconds to generate each preset (one thread), for the plan.
