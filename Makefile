@@ -24,8 +24,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	bash examples/demo.sh
 
+# Two test processes (pytest-xdist), one per core, each on one torch thread (tests/conftest.py);
+# a file's tests stay together so its module-scoped fixtures (datasets, trained runs) are built
+# once. `make test TEST_WORKERS=0` runs them in this process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 lint: $(STAMP)
 	$(PY) -m ruff check mpnode_cli tests bench examples

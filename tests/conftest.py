@@ -2,8 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs two worker processes on a 2-core machine: at torch's default of one
+    # thread per core they would oversubscribe it (the CLI's thread policy is the same rule).
+    torch.set_num_threads(1)
 
 
 @pytest.fixture
