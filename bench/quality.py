@@ -66,7 +66,7 @@ RESULTS = HERE / "results" / "quality.md"
 L2S_CI = ("--model", "l2s", "--latent", "32", "--hidden", "32", "--steps", "5")
 GENE_AGGREGATES = ("mean", "sum", "pna")
 TIMING_EPOCHS = 3  # epochs an equal-time case trains to measure its seconds per epoch
-BUDGET_STAGES = 6  # at most this many resumes to fill an equal-time budget
+BUDGET_STAGES = 16  # at most this many resumes to fill an equal-time budget
 BUDGET_STAGE_SHARE = 0.6  # share of the budget left that one resume aims at
 GENE_EQUAL_SECONDS = 300.0  # the gene baselines' training budget (× --scale)
 
@@ -287,18 +287,22 @@ def epochs_to_budget(run: Path, budget: float) -> int:
     """How many more epochs to train towards `budget` seconds of training (the epochs'
     seconds in `metrics.jsonl`, as `val_within` counts them).
 
-    Epochs slow down as a model's learned dynamics stiffen (an adaptive solver takes more
-    steps): a GNN-ODE's first three epochs took 0.44 s each, its later ones 0.65–0.81 s. So the rate
-    is the recent epochs', and a stage covers only part of what is left unless little is
-    left; the next stage measures again.
+    Epochs slow down as training goes on: a GNN-ODE's learned dynamics stiffen (its first
+    three epochs took 0.44 s each, later ones 0.65–0.81 s), and the horizon curriculum
+    lengthens the trajectories (a quad3 L2S epoch: 0.57 s at first, 1.7–1.8 s once the
+    horizon is whole). So the rate is the latest epochs', and a stage covers only part of
+    what is left, at most as many epochs as are done (the curriculum's growth shows), unless
+    little is left; the next stage measures again.
     """
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     rows = [r for r in rows if r.get("epoch", 0) > 0] or rows
     spent = sum(r["seconds"] for r in rows)
-    recent = rows[-20:]
+    recent = rows[-10:]
     per_epoch = max(sum(r["seconds"] for r in recent) / len(recent), 1e-6)
     left = (budget - spent) / per_epoch
-    return math.floor(left if left <= 30 else BUDGET_STAGE_SHARE * left)
+    if left <= 10:
+        return math.floor(left)
+    return math.floor(min(BUDGET_STAGE_SHARE * left, max(len(rows), TIMING_EPOCHS)))
 
 
 def val_within(run: Path, seconds: float, preset: str) -> dict[str, Any]:
