@@ -8,6 +8,9 @@ changed one, and reruns a step whose folder an interruption left unfinished.
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import threading
 import tomllib
 from pathlib import Path
 
@@ -18,7 +21,7 @@ from mpnode_cli.cli.app import app
 from mpnode_cli.data.presets import PRESETS
 from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.report import write_report
-from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
+from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment, step_lock
 
 runner = CliRunner()
 # The issue's experiments (the paper's §4 and App. B), each one command.
@@ -192,3 +195,43 @@ def test_table2_per_mean_does_not_depend_on_the_normalization():
     assert holds is False and shown == "1.6 < 1.6"
     assert spec.with_derived({"best_epoch": 3, "val": {"mse": None}}) == {
         "best_epoch": 3, "val": {"mse": None}}  # nothing to derive from
+
+
+HOLD_LOCK = """
+import sys
+from pathlib import Path
+from mpnode_cli.experiments.runner import step_lock
+with step_lock(Path(sys.argv[1])):
+    print("held", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def test_a_step_held_by_another_process_waits_for_it(tmp_path):
+    """Two runs sharing a work folder: the second waits for the step the first holds, and
+    goes on once the first lets go (the first process simply exits, as a finished run does)."""
+    folder = tmp_path / "train-lorenz3-0123456789ab"
+    other = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(folder)], text=True,
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert other.stdout.readline().strip() == "held"
+        waited, entered = [], threading.Event()
+
+        def second_run():
+            with step_lock(folder, lambda: waited.append(True)):
+                entered.set()
+
+        thread = threading.Thread(target=second_run, daemon=True)
+        thread.start()
+        assert not entered.wait(1.0), "entered a step another process holds"
+        assert waited == [True]
+        other.stdin.write("\n")
+        other.stdin.flush()
+        other.wait(timeout=30)
+        assert entered.wait(10.0), "still waiting after the other process let go"
+    finally:
+        other.kill()
+    # Free now: no waiting.
+    with step_lock(folder, lambda: waited.append("again")):
+        pass
+    assert waited == [True]

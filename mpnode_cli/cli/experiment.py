@@ -146,6 +146,9 @@ class _Steps:
             self.inner.on_event(event["event_data"])
         elif kind == "generate" and self.inner is not None:
             self.inner.update(event["done"], event["total"])
+        elif kind == "waiting":
+            self.console.print(f"    step {event['id']} is being run by another process "
+                               f"(lock {event['lock']}); waiting for it")
         elif kind == "step-done":
             self.close()
             if event["status"] != "skipped":

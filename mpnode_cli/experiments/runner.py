@@ -13,9 +13,15 @@ interrupted step left, and is cleared and run again, except for training, which 
 from its `last.pt` (`mpnode train --resume`). Changing a step's options changes its
 fingerprint and those of every step that reads it, so exactly those run again.
 
+Two runs may share a work folder at once (two experiments that share a step, started side
+by side): each step is taken under an exclusive lock on `WORK/<folder name>.lock` (`flock`,
+released when the process ends, however it ends), so the second run waits for the first to
+finish a shared step and then reuses it, instead of clearing or resuming it under the first.
+
 `progress`, if given, gets one dict per event: `step` (index, total, id, verb, status:
 run/resume/skip, folder), `generate` (done, total), `train` (the training loop's event,
-under `event_data`), `step-done` (id, seconds, line).
+under `event_data`), `step-done` (id, seconds, line), `waiting` (id, lock: another process
+holds the step).
 """
 
 from __future__ import annotations
@@ -27,9 +33,11 @@ import platform
 import shutil
 import subprocess
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from datetime import datetime
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -113,18 +121,21 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         fingerprint = _fingerprint(step.verb, options, [records[i].fingerprint
                                                         for i in step.inputs()])
         folder = work / f"{step.id}-{fingerprint[:12]}"
-        done = _finished(folder, fingerprint)
-        status = "skipped" if done else ("resumed" if _resumable(folder, fingerprint)
-                                         else "ran")
-        emit({"event": "step", "index": index, "total": total, "id": step.id,
-              "verb": step.verb, "status": status, "folder": str(folder)})
-        if done is not None:
-            # What the step is called and the paper's numbers come from today's spec.
-            record = StepRecord(**{**done, "status": "skipped", "label": step.label or step.id,
-                                   "reported": dict(step.reported),
-                                   "reported_in": step.reported_in})
-        else:
-            record = _run_step(step, options, fingerprint, folder, records, status, emit)
+        waiting = {"event": "waiting", "id": step.id, "lock": str(_lock_path(folder))}
+        with step_lock(folder, partial(emit, waiting)):
+            done = _finished(folder, fingerprint)
+            status = "skipped" if done else ("resumed" if _resumable(folder, fingerprint)
+                                             else "ran")
+            emit({"event": "step", "index": index, "total": total, "id": step.id,
+                  "verb": step.verb, "status": status, "folder": str(folder)})
+            if done is not None:
+                # What the step is called and the paper's numbers come from today's spec.
+                record = StepRecord(**{**done, "status": "skipped",
+                                       "label": step.label or step.id,
+                                       "reported": dict(step.reported),
+                                       "reported_in": step.reported_in})
+            else:
+                record = _run_step(step, options, fingerprint, folder, records, status, emit)
         records[step.id] = record
         emit({"event": "step-done", "id": step.id, "status": record.status,
               "seconds": record.seconds, "line": _line(record)})
@@ -133,6 +144,35 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
                      recipe=recipe, command=command, started=started,
                      wall_seconds=time.perf_counter() - start, machine=machine,
                      steps=list(records.values()))
+
+
+def _lock_path(folder: Path) -> Path:
+    return folder.with_name(folder.name + ".lock")
+
+
+@contextmanager
+def step_lock(folder: Path, on_wait: Callable[[], None] = lambda: None) -> Iterator[None]:
+    """Hold an exclusive lock on `folder`'s step while the block runs; if another process
+    holds it, call `on_wait` once and block until it is free (Ctrl-C still stops the wait).
+
+    Where `fcntl` is missing (Windows) the step runs unlocked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on Linux or macOS
+        yield
+        return
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    with open(_lock_path(folder), "a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            on_wait()
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _fingerprint(verb: str, options: dict[str, Any], inputs: list[str]) -> str:
