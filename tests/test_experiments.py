@@ -197,6 +197,24 @@ def test_table2_per_mean_does_not_depend_on_the_normalization():
         "best_epoch": 3, "val": {"mse": None}}  # nothing to derive from
 
 
+def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
+    # Two training runs below and at the time-mean predictor, and an evaluation that is
+    # meant to be worse (messages zeroed): only the unlearned training run is named.
+    learned = {"best_epoch": 9, "test": {"mse": 0.1, "time_mean": 1.0}}
+    flat = {"best_epoch": 9, "test": {"mse": 1.08, "time_mean": 1.06}}
+    zeroed = {"mse": 2.0, "time_mean": 1.0}
+    results = {"on": learned, "off": flat, "zeroed": zeroed}
+    assert spec.not_learned("on.test.mse < off.test.mse", results) == ["off"]
+    assert spec.not_learned("zeroed.mse > on.test.mse", results) == []
+    assert spec.not_learned("2 * off.test.mse > off.min_val_loss", results) == ["off"]
+    assert spec.verdict("on.test.mse < off.test.mse", results)[2] == (
+        "yes (off: not below the time mean)")
+    assert spec.verdict("off.test.mse < on.test.mse", results)[2] == (
+        "**no** (off: not below the time mean)")
+    assert spec.verdict("zeroed.mse > on.test.mse", results)[2] == "yes"
+    assert spec.verdict("on.val.mse < 1", results)[2] == "—"
+
+
 HOLD_LOCK = """
 import sys
 from pathlib import Path

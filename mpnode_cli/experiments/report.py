@@ -46,10 +46,7 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
             names.append(name)
         step["figures"] = names
     results = {r["id"]: r["result"] for r in data["steps"]}
-    data["claims"] = [{**claim.model_dump(), **dict(zip(("holds_now", "ours"),
-                                                         spec.judge(claim.holds, results),
-                                                         strict=True))}
-                      for claim in experiment.claims]
+    data["claims"] = [_claim(claim, results) for claim in experiment.claims]
     (tmp / RESULTS).write_text(json.dumps(data, indent=2, default=str) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
     os.replace(tmp, folder)
@@ -95,9 +92,7 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     for run in _runs(out, experiment.name):
         # Claims judged anew from the spec, so a claim added later is judged on old results.
         results = {s["id"]: s["result"] for s in run["steps"]}
-        run["claims"] = [{**claim.model_dump(), **dict(zip(
-            ("holds_now", "ours"), spec.judge(claim.holds, results), strict=True))}
-            for claim in experiment.claims]
+        run["claims"] = [_claim(claim, results) for claim in experiment.claims]
         lines += _section(run)
     path = out / experiment.name / REPORT
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -125,7 +120,7 @@ def _section(run: dict[str, Any]) -> list[str]:
                   "| claim | the paper | where | ours | holds |", "|---|---|---|---|---|"]
         for c in run["claims"]:
             lines.append(f"| {c['claim']} | {c['paper']} | {c['where']} | `{c['holds']}`: "
-                         f"{c['ours']} | {_yes(c['holds_now'])} |")
+                         f"{c['ours']} | {c['verdict']} |")
         lines.append("")
     lines += _errors(run["steps"])
     lines += _training(run["steps"])
@@ -257,7 +252,9 @@ def rebuild_index(out: Path) -> Path:
         "comparison on our results, from the largest scale run (`paper`, else `small`) with "
         "the paper's recipe (`--recipe paper`) and with mpnode's default (`--recipe "
         "mpnode`); *holds* says whether the paper's direction holds in each (paper recipe / "
-        "mpnode recipe). Each experiment's report has its tables, figures, commands and "
+        "mpnode recipe), and names the training runs it compares whose test error is not "
+        "below the time-mean predictor's: those have not learned, and the comparison says "
+        "little. Each experiment's report has its tables, figures, commands and "
         "machine; run one with `mpnode experiment run NAME --scale small`.", "",
         "| experiment | claim | the paper | where | ours, `--recipe paper` | ours, `--recipe "
         "mpnode` | holds |", "|---|---|---|---|---|---|---|"]
@@ -276,9 +273,9 @@ def rebuild_index(out: Path) -> Path:
                     verdicts.append("—")
                     continue
                 results = {s["id"]: s["result"] for s in run["steps"]}
-                holds, shown = spec.judge(claim.holds, results)
+                _, shown, said = spec.verdict(claim.holds, results)
                 cells.append(f"{shown} ({run['scale']})")
-                verdicts.append(_yes(holds))
+                verdicts.append(said)
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
     path = out / INDEX
@@ -287,8 +284,9 @@ def rebuild_index(out: Path) -> Path:
     return path
 
 
-def _yes(value: bool | None) -> str:
-    return "—" if value is None else ("yes" if value else "**no**")
+def _claim(claim: spec.Claim, results: dict[str, Any]) -> dict[str, Any]:
+    holds, shown, said = spec.verdict(claim.holds, results)
+    return {**claim.model_dump(), "holds_now": holds, "ours": shown, "verdict": said}
 
 
 def _f(value: Any, digits: int = 4) -> str:

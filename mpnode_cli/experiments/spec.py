@@ -452,6 +452,35 @@ def with_derived(result: Any) -> Any:
     return result
 
 
+def not_learned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
+    """The training runs a claim reads whose test MSE is not below the time-mean
+    predictor's (the train split's mean state at each sample time). Such a run has not
+    learned, so a claim comparing it says little whichever way it goes. Evaluate and
+    zero-shot steps are not listed: a model with its messages zeroed is meant to be bad."""
+    out: list[str] = []
+    for _, ref in parse_claim(text)[::2]:
+        step = (ref or "").partition(".")[0]
+        result = results.get(step)
+        if not isinstance(result, dict) or "best_epoch" not in result or step in out:
+            continue
+        test = result.get("test") or {}
+        mse, mean = test.get("mse"), test.get("time_mean")
+        if isinstance(mse, int | float) and isinstance(mean, int | float) and mse >= mean:
+            out.append(step)
+    return out
+
+
+def verdict(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str, str]:
+    """`judge`'s (holds, numbers shown) and the verdict as the reports write it: yes, **no**
+    or — (a number missing), followed by the runs that did not beat the time mean."""
+    holds, shown = judge(text, results)
+    said = "—" if holds is None else ("yes" if holds else "**no**")
+    unlearned = not_learned(text, results)
+    if unlearned:
+        said += f" ({', '.join(unlearned)}: not below the time mean)"
+    return holds, shown, said
+
+
 def judge(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str]:
     """Whether a claim holds on `results` (step id → its results), and the numbers shown.
 
