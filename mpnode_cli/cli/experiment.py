@@ -55,8 +55,9 @@ def run_command(
                                "file of one.", autocompletion=_complete_name,
                                show_default=False),
     scale: str = typer.Option(
-        "small", help="small (about 30 minutes on 2 cores), paper (the paper's sizes and "
-        "epochs) or tiny (a smoke test: a few trajectories, two epochs)."),
+        "small", help="small (13-46 minutes each on one core: experiment list), paper "
+        "(the paper's sizes and epochs) or tiny (a smoke test: a few trajectories, two "
+        "epochs)."),
     recipe: str = typer.Option(
         "mpnode", help="Training recipe: mpnode (default; alias ours) or paper."),
     out: Path = typer.Option(Path("reports"), help="Where reports go (<out>/<name>/report.md)."),

@@ -11,7 +11,7 @@ of them at the small scale:
     verb = "train"
     data = "lorenz3"
     epochs = 4000          # the paper's
-    small.epochs = 300     # about 30 minutes for the whole experiment on 2 cores
+    small.epochs = 300     # what --scale small trains
 
 `tiny` is a third scale, derived from `small` by `shrink`: a smoke test of every step.
 
