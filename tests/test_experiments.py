@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.data.presets import PRESETS
+from mpnode_cli.experiments import runner as experiment_runner
 from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment, step_lock
@@ -107,6 +108,7 @@ def test_claims_are_judged_on_results():
     (["nope"], "unknown experiment 'nope'"),
     (["messages-pendulum", "--scale", "huge"], "unknown scale 'huge'"),
     (["messages-pendulum", "--recipe", "theirs"], "unknown recipe 'theirs'"),
+    (["messages-pendulum", "--jobs", "0"], "jobs: Input should be greater than or equal to 1"),
 ])
 def test_cli_refuses_bad_input_in_one_line(args, message, tmp_path):
     result = runner.invoke(app, ["experiment", "run", *args, "--work", str(tmp_path)])
@@ -253,3 +255,50 @@ def test_a_step_held_by_another_process_waits_for_it(tmp_path):
     with step_lock(folder, lambda: waited.append("again")):
         pass
     assert waited == [True]
+
+
+def _timeless(value):
+    """`value` without its wall-clock entries, which differ between any two runs."""
+    if isinstance(value, dict):
+        return {key: _timeless(item) for key, item in value.items()
+                if "second" not in key and "wall" not in key}
+    if isinstance(value, list):
+        return [_timeless(item) for item in value]
+    return value
+
+
+def test_a_worker_process_runs_steps_as_the_run_does(tmp_path):
+    """What `--jobs` adds: a spawned worker takes steps as they become ready. Here the
+    worker runs a whole experiment alone; its results equal a run in one process, the run
+    that started it (the same token) counts its steps as run, any other run as done earlier."""
+    experiment = spec.load("messages-pendulum")
+    alone = run_experiment(experiment, scale="tiny", recipe="mpnode", work=tmp_path / "one")
+    steps = experiment_runner.plan(experiment, "tiny", "mpnode", tmp_path / "two")
+    workers = experiment_runner._start_workers(steps, "this-run", 1)
+    for worker in workers:
+        worker.join(timeout=300)
+    assert [worker.exitcode for worker in workers] == [0]
+
+    events = []
+    collected = experiment_runner._take_steps(steps, "this-run", events.append, wait=True)
+    assert {record.status for record in collected.values()} == {"ran"}
+    assert all(event.get("worker") for event in events if event["event"] == "step")
+    assert ([_timeless(collected[step.id].result) for step in alone.steps]
+            == [_timeless(step.result) for step in alone.steps])
+    later = experiment_runner._take_steps(steps, "another-run", lambda event: None, wait=True)
+    assert {record.status for record in later.values()} == {"skipped"}
+
+
+def test_jobs_run_every_step_once_with_the_same_results(tmp_path):
+    """`run_experiment(jobs=2)`: every step ran in this run (by the run or its worker),
+    each once, and the results are a one-process run's."""
+    experiment = spec.load("messages-pendulum")
+    alone = run_experiment(experiment, scale="tiny", recipe="mpnode", work=tmp_path / "one")
+    events = []
+    both = run_experiment(experiment, scale="tiny", recipe="mpnode", work=tmp_path / "two",
+                          jobs=2, progress=events.append)
+    assert set(_statuses(both).values()) == {"ran"}
+    started = [event["id"] for event in events if event["event"] == "step"]
+    assert sorted(started) == sorted(step.id for step in experiment.steps)
+    assert [_timeless(s.result) for s in both.steps] == [_timeless(s.result) for s in alone.steps]
+    assert both.machine["jobs"] == 2

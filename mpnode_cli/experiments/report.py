@@ -100,6 +100,10 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     return path
 
 
+def _in_processes(jobs: int) -> str:
+    return f" in each of {jobs} processes running steps side by side" if jobs > 1 else ""
+
+
 def _section(run: dict[str, Any]) -> list[str]:
     m = run["machine"]
     sub = f"{run['scale']}-{run['recipe']}"
@@ -108,7 +112,8 @@ def _section(run: dict[str, Any]) -> list[str]:
         f"## `--scale {run['scale']} --recipe {run['recipe']}`", "",
         f"Run `{run['command']}` on {run['started']}: {run['wall_seconds'] / 60:.1f} min wall"
         f"{_reused(len(ran), len(run['steps']))}. Machine: "
-        f"{m['cores']} cores, torch {m['torch']} on {m['threads']} thread(s), Python "
+        f"{m['cores']} cores, torch {m['torch']} on {m['threads']} thread(s)"
+        f"{_in_processes(m.get('jobs', 1))}, Python "
         f"{m['python']}, {m['platform']}, mpnode {m['mpnode']} at git {m['commit']}; load "
         f"average (1/5/15 min) {m['load_before']} before, {m.get('load_after', '?')} after.",
         ""]

@@ -17,9 +17,13 @@ Two runs may share a work folder at once (two experiments that share a step, sta
 by side): each step is taken under an exclusive lock on `WORK/<folder name>.lock` (`flock`,
 released when the process ends, however it ends), so the second run waits for the first to
 finish a shared step and then reuses it, instead of clearing or resuming it under the first.
+A process takes the first step, in the spec's order, whose inputs are done and that no
+other process holds, so `jobs` processes of one run (`run_experiment(jobs=...)`, the run
+and spawned workers) run independent steps side by side. A step run by any process of this
+run carries the run's token in its `step.json`; the run reports it as run, not reused.
 
 `progress`, if given, gets one dict per event: `step` (index, total, id, verb, status:
-run/resume/skip, folder), `generate` (done, total), `train` (the training loop's event,
+run/resume/skip, folder; `worker` when a worker of this run ran it), `generate` (done, total), `train` (the training loop's event,
 under `event_data`), `step-done` (id, seconds, line), `waiting` (id, lock: another process
 holds the step).
 """
@@ -33,8 +37,9 @@ import platform
 import shutil
 import subprocess
 import time
+import uuid
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime
 from functools import partial
@@ -92,14 +97,43 @@ class RunRecord:
         return asdict(self)
 
 
+@dataclass(frozen=True)
+class _Planned:
+    """A step with its resolved options, fingerprint and folder, known before any runs."""
+
+    index: int
+    step: Any
+    options: dict[str, Any]
+    fingerprint: str
+    folder: Path
+
+
+def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path) -> list[_Planned]:
+    """Every step's options, fingerprint and folder, in the spec's order (a fingerprint
+    depends on its inputs' fingerprints, not on their results, so nothing has to run)."""
+    planned: dict[str, _Planned] = {}
+    for index, step in enumerate(experiment.steps, start=1):
+        options = resolve(step, scale, recipe)
+        fingerprint = _fingerprint(step.verb, options, [planned[i].fingerprint
+                                                        for i in step.inputs()])
+        planned[step.id] = _Planned(index, step, options, fingerprint,
+                                    Path(work) / f"{step.id}-{fingerprint[:12]}")
+    return list(planned.values())
+
+
 def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: Path,
-                   command: str = "", progress: Progress | None = None) -> RunRecord:
+                   command: str = "", progress: Progress | None = None,
+                   jobs: int = 1) -> RunRecord:
     """Run (or resume) every step of `experiment` at `scale` with `recipe`.
 
     Args:
         work: the folder of step folders (shared by experiments).
         command: the command line to record (default: the `mpnode experiment run` that
             does the same).
+        jobs: processes that run steps side by side (this one and `jobs - 1` workers, one
+            torch pool each of this process's size). A step runs once its inputs are done;
+            each process takes the first step, in the spec's order, that is ready and that
+            no other process holds.
 
     Raises:
         StepFailed: a step failed (its message names the step).
@@ -112,38 +146,131 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     machine = machine_facts()
+    if jobs > 1:
+        machine["jobs"] = jobs
     start = time.perf_counter()
     started = datetime.now().isoformat(timespec="seconds")
-    records: dict[str, StepRecord] = {}
-    total = len(experiment.steps)
-    for index, step in enumerate(experiment.steps, start=1):
-        options = resolve(step, scale, recipe)
-        fingerprint = _fingerprint(step.verb, options, [records[i].fingerprint
-                                                        for i in step.inputs()])
-        folder = work / f"{step.id}-{fingerprint[:12]}"
-        waiting = {"event": "waiting", "id": step.id, "lock": str(_lock_path(folder))}
-        with step_lock(folder, partial(emit, waiting)):
-            done = _finished(folder, fingerprint)
-            status = "skipped" if done else ("resumed" if _resumable(folder, fingerprint)
-                                             else "ran")
-            emit({"event": "step", "index": index, "total": total, "id": step.id,
-                  "verb": step.verb, "status": status, "folder": str(folder)})
-            if done is not None:
-                # What the step is called and the paper's numbers come from today's spec.
-                record = StepRecord(**{**done, "status": "skipped",
-                                       "label": step.label or step.id,
-                                       "reported": dict(step.reported),
-                                       "reported_in": step.reported_in})
-            else:
-                record = _run_step(step, options, fingerprint, folder, records, status, emit)
-        records[step.id] = record
-        emit({"event": "step-done", "id": step.id, "status": record.status,
-              "seconds": record.seconds, "line": _line(record)})
+    steps = plan(experiment, scale, recipe, work)
+    token = uuid.uuid4().hex  # marks in step.json the steps this run's processes ran
+    workers = _start_workers(steps, token, jobs - 1)
+    try:
+        records = _take_steps(steps, token, emit, wait=True)
+    finally:
+        _stop_workers(workers)
     machine["load_after"] = _load()
     return RunRecord(experiment=experiment.name, title=experiment.title, scale=scale,
                      recipe=recipe, command=command, started=started,
                      wall_seconds=time.perf_counter() - start, machine=machine,
-                     steps=list(records.values()))
+                     steps=[records[entry.step.id] for entry in steps])
+
+
+def _take_steps(steps: list[_Planned], token: str, emit: Progress,
+                wait: bool) -> dict[str, StepRecord]:
+    """Run or collect every step: repeatedly the first step, in order, that is not done,
+    whose inputs are done and whose lock is free. When none is, a run (`wait`) blocks on
+    the first step left, which another process holds; a worker polls instead."""
+    records: dict[str, StepRecord] = {}
+    left = list(steps)
+    total = len(steps)
+    while left:
+        for entry in left:
+            if not all(i in records for i in entry.step.inputs()):
+                continue
+            done = _finished_record(entry, token)
+            if done is None:
+                lock = _try_lock(entry.folder)
+                if lock is None:
+                    continue  # another process runs it
+                with lock:
+                    done = _finished_record(entry, token)  # finished while we looked
+                    if done is None:
+                        status = "resumed" if _resumable(entry.folder, entry.fingerprint) \
+                            else "ran"
+                        emit({"event": "step", "index": entry.index, "total": total,
+                              "id": entry.step.id, "verb": entry.step.verb,
+                              "status": status, "folder": str(entry.folder)})
+                        record = _run_step(entry.step, entry.options, entry.fingerprint,
+                                           entry.folder, records, status, emit, token)
+                        emit({"event": "step-done", "id": entry.step.id,
+                              "status": record.status, "seconds": record.seconds,
+                              "line": _line(record)})
+                        done = record
+                        entry = None  # reported as it ran
+            if entry is not None:
+                elsewhere = done.status != "skipped"  # a worker of this run ran it
+                emit({"event": "step", "index": entry.index, "total": total,
+                      "id": entry.step.id, "verb": entry.step.verb, "status": done.status,
+                      "folder": str(entry.folder), "worker": elsewhere})
+                emit({"event": "step-done", "id": entry.step.id, "status": done.status,
+                      "seconds": done.seconds, "line": _line(done), "worker": elsewhere})
+            records[done.id] = done
+            left = [e for e in left if e.step.id != done.id]
+            break
+        else:
+            if not wait:
+                time.sleep(_POLL_SECONDS)
+                continue
+            first = left[0]  # its inputs come before it, so they are done: someone holds it
+            waiting = {"event": "waiting", "id": first.step.id,
+                       "lock": str(_lock_path(first.folder))}
+            with step_lock(first.folder, partial(emit, waiting)):
+                pass
+    return records
+
+
+def _finished_record(entry: _Planned, token: str) -> StepRecord | None:
+    """`entry`'s record if its step is done: status as run if a process of this run (the
+    same `token`) ran it, else "skipped". Names and the paper's numbers from today's spec."""
+    done = _finished(entry.folder, entry.fingerprint)
+    if done is None:
+        return None
+    ran_now = done.pop("run_token", None) == token
+    return StepRecord(**{**done, "status": done["status"] if ran_now else "skipped",
+                         "label": entry.step.label or entry.step.id,
+                         "reported": dict(entry.step.reported),
+                         "reported_in": entry.step.reported_in})
+
+
+_POLL_SECONDS = 0.5
+
+
+def _start_workers(steps: list[_Planned], token: str, count: int) -> list[Any]:
+    """`count` worker processes (spawned: a fresh interpreter each, no forked torch
+    state), each taking steps as `_take_steps` does, silently."""
+    if count < 1:
+        return []
+    import multiprocessing
+
+    import torch
+
+    context = multiprocessing.get_context("spawn")
+    workers = [context.Process(target=_worker, args=(steps, token, torch.get_num_threads()),
+                               daemon=True) for _ in range(count)]
+    for worker in workers:
+        worker.start()
+    return workers
+
+
+def _worker(steps: list[_Planned], token: str, threads: int) -> None:
+    """A worker process: take steps until every step is done. A step that fails here
+    ends the worker; the run reaches that step itself and reports the failure."""
+    from mpnode_cli.threads import ThreadChoice, apply_threads
+
+    apply_threads(ThreadChoice(threads, "the run's process"))
+    try:
+        _take_steps(steps, token, lambda event: None, wait=False)
+    except (Exception, KeyboardInterrupt):  # the run meets the same error and reports it
+        pass
+
+
+def _stop_workers(workers: list[Any]) -> None:
+    """End the workers: they have finished when the run has; on an error or Ctrl-C they
+    get SIGTERM (a training they run resumes from its last epoch next time)."""
+    for worker in workers:
+        if worker.is_alive():
+            worker.terminate()
+    for worker in workers:
+        worker.join(timeout=30)
 
 
 def _lock_path(folder: Path) -> Path:
@@ -173,6 +300,34 @@ def step_lock(folder: Path, on_wait: Callable[[], None] = lambda: None) -> Itera
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+@contextmanager
+def _held(handle) -> Iterator[None]:
+    import fcntl
+
+    try:
+        yield
+    finally:
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
+
+
+def _try_lock(folder: Path) -> Any:
+    """`folder`'s step lock as a context manager if it is free now, else None (another
+    process holds it). Where `fcntl` is missing (Windows), a no-op lock."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on Linux or macOS
+        return nullcontext()
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    handle = open(_lock_path(folder), "a")  # closed by _held
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        return None
+    return _held(handle)
 
 
 def _fingerprint(verb: str, options: dict[str, Any], inputs: list[str]) -> str:
@@ -209,7 +364,8 @@ def _resumable(folder: Path, fingerprint: str) -> bool:
 
 
 def _run_step(step, options: dict[str, Any], fingerprint: str, folder: Path,
-              records: dict[str, StepRecord], status: str, emit: Progress) -> StepRecord:
+              records: dict[str, StepRecord], status: str, emit: Progress,
+              token: str = "") -> StepRecord:
     from mpnode_cli.data.generate import GenerateError
     from mpnode_cli.training.run import write_json
 
@@ -229,7 +385,7 @@ def _run_step(step, options: dict[str, Any], fingerprint: str, folder: Path,
         folder=str(folder), fingerprint=fingerprint, options=options,
         seconds=time.perf_counter() - start, commands=cmds, result=result, figures=figures,
         reported=dict(step.reported), reported_in=step.reported_in)
-    write_json(folder / STEP_JSON, {**asdict(record), "outputs": outputs})
+    write_json(folder / STEP_JSON, {**asdict(record), "outputs": outputs, "run_token": token})
     (folder / PENDING_JSON).unlink(missing_ok=True)
     return record
 
