@@ -105,21 +105,24 @@ def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: st
          jobs: int = 1) -> None:
     from mpnode_cli.experiments.report import write_report
     from mpnode_cli.experiments.runner import StepFailed, run_experiment
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.loop import TrainingInterrupted
 
     display = _Steps(console(stderr=True))
     try:
-        record = run_experiment(experiment, scale=scale, recipe=recipe, work=work,
-                                command=command, progress=display.on_event, jobs=jobs)
+        with interrupt_on_signals():
+            record = run_experiment(experiment, scale=scale, recipe=recipe, work=work,
+                                    command=command, progress=display.on_event, jobs=jobs)
     except StepFailed as exc:
         display.close()
         fail(str(exc), code=1)
-    except (TrainingInterrupted, KeyboardInterrupt):
+    except (TrainingInterrupted, KeyboardInterrupt) as exc:
         display.close()
-        typer.echo(f"Interrupted: finished steps are kept in {work}, and an interrupted "
-                   f"training continues from its last epoch; run the same command again to "
-                   f"resume", err=True)
-        raise typer.Exit(code=130) from None
+        cause = exc.cause if isinstance(exc, TrainingInterrupted) else exc
+        typer.echo(f"Interrupted ({signal_name(cause)}): finished steps are kept in {work}, "
+                   f"and an interrupted training continues from its last epoch; run the "
+                   f"same command again to resume", err=True)
+        raise typer.Exit(code=exit_code(cause)) from None
     path = write_report(record, experiment, out)
     ran = sum(step.status != "skipped" for step in record.steps)
     typer.echo(f"{experiment.name}: {ran} of {len(record.steps)} steps ran, "

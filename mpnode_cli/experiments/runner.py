@@ -23,9 +23,9 @@ and spawned workers) run independent steps side by side. A step run by any proce
 run carries the run's token in its `step.json`; the run reports it as run, not reused.
 
 `progress`, if given, gets one dict per event: `step` (index, total, id, verb, status:
-run/resume/skip, folder; `worker` when a worker of this run ran it), `generate` (done, total), `train` (the training loop's event,
-under `event_data`), `step-done` (id, seconds, line), `waiting` (id, lock: another process
-holds the step).
+run/resume/skip, folder; `worker` when a worker of this run ran it), `generate` (done,
+total), `train` (the training loop's event, under `event_data`), `step-done` (id, seconds,
+line), `waiting` (id, lock: another process holds the step).
 """
 
 from __future__ import annotations
@@ -164,11 +164,12 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
                      steps=[records[entry.step.id] for entry in steps])
 
 
-def _take_steps(steps: list[_Planned], token: str, emit: Progress,
-                wait: bool) -> dict[str, StepRecord]:
+def _take_steps(steps: list[_Planned], token: str, emit: Progress, wait: bool,
+                alive: Callable[[], bool] = lambda: True) -> dict[str, StepRecord]:
     """Run or collect every step: repeatedly the first step, in order, that is not done,
     whose inputs are done and whose lock is free. When none is, a run (`wait`) blocks on
-    the first step left, which another process holds; a worker polls instead."""
+    the first step left, which another process holds; a worker polls instead, and stops
+    when `alive()` says its run has gone."""
     records: dict[str, StepRecord] = {}
     left = list(steps)
     total = len(steps)
@@ -208,6 +209,8 @@ def _take_steps(steps: list[_Planned], token: str, emit: Progress,
             break
         else:
             if not wait:
+                if not alive():
+                    break
                 time.sleep(_POLL_SECONDS)
                 continue
             first = left[0]  # its inputs come before it, so they are done: someone holds it
@@ -254,11 +257,17 @@ def _start_workers(steps: list[_Planned], token: str, count: int) -> list[Any]:
 def _worker(steps: list[_Planned], token: str, threads: int) -> None:
     """A worker process: take steps until every step is done. A step that fails here
     ends the worker; the run reaches that step itself and reports the failure."""
+    from mpnode_cli.signals import interrupt_on_signals
     from mpnode_cli.threads import ThreadChoice, apply_threads
 
     apply_threads(ThreadChoice(threads, "the run's process"))
+    parent = os.getppid()
     try:
-        _take_steps(steps, token, lambda event: None, wait=False)
+        # SIGTERM (the run ending early) interrupts a training as Ctrl-C does: it keeps
+        # its last epoch to resume from.
+        with interrupt_on_signals():
+            _take_steps(steps, token, lambda event: None, wait=False,
+                        alive=lambda: os.getppid() == parent)
     except (Exception, KeyboardInterrupt):  # the run meets the same error and reports it
         pass
 
