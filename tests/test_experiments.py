@@ -11,6 +11,7 @@ import json
 import subprocess
 import sys
 import threading
+import time
 import tomllib
 from pathlib import Path
 
@@ -22,7 +23,7 @@ from mpnode_cli.data.presets import PRESETS
 from mpnode_cli.experiments import runner as experiment_runner
 from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.report import write_report
-from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment, step_lock
+from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
 
 runner = CliRunner()
 # The issue's experiments (the paper's §4 and App. B), each one command.
@@ -218,43 +219,50 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
 
 
 HOLD_LOCK = """
-import sys
-from pathlib import Path
-from mpnode_cli.experiments.runner import step_lock
-with step_lock(Path(sys.argv[1])):
+import fcntl, sys
+with open(sys.argv[1], "a") as handle:
+    fcntl.flock(handle, fcntl.LOCK_EX)
     print("held", flush=True)
     sys.stdin.readline()
 """
 
 
-def test_a_step_held_by_another_process_waits_for_it(tmp_path):
-    """Two runs sharing a work folder: the second waits for the step the first holds, and
-    goes on once the first lets go (the first process simply exits, as a finished run does)."""
-    folder = tmp_path / "train-lorenz3-0123456789ab"
-    other = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, str(folder)], text=True,
-                             stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+def test_a_step_another_process_holds_is_left_to_it_and_the_rest_goes_on(tmp_path):
+    """Two runs sharing a work folder: a step the other process holds (its `flock` on
+    WORK/<step folder>.lock) is left to it; the run goes on with the steps that do not read
+    it, says it waits, and takes the step itself once the other process lets go of it
+    unfinished (it simply exits)."""
+    experiment = spec.load("messages-pendulum")
+    work = tmp_path / "work"
+    work.mkdir()
+    held = next(entry for entry in experiment_runner.plan(experiment, "tiny", "mpnode", work)
+                if entry.step.id == "messages")
+    other = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, f"{held.folder}.lock"],
+                             text=True, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    events, records, finished = [], [], threading.Event()
+
+    def run():
+        records.append(run_experiment(experiment, scale="tiny", recipe="mpnode", work=work,
+                                      progress=events.append))
+        finished.set()
+
     try:
         assert other.stdout.readline().strip() == "held"
-        waited, entered = [], threading.Event()
-
-        def second_run():
-            with step_lock(folder, lambda: waited.append(True)):
-                entered.set()
-
-        thread = threading.Thread(target=second_run, daemon=True)
-        thread.start()
-        assert not entered.wait(1.0), "entered a step another process holds"
-        assert waited == [True]
+        threading.Thread(target=run, daemon=True).start()
+        deadline = time.monotonic() + 120
+        while not any(e["event"] == "waiting" for e in events) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert [e["id"] for e in events if e["event"] == "waiting"] == ["messages"]
+        started = [e["id"] for e in events if e["event"] == "step"]
+        assert started == ["pendulum", "no-messages", "no-messages-test"]
+        assert not finished.is_set()
         other.stdin.write("\n")
         other.stdin.flush()
         other.wait(timeout=30)
-        assert entered.wait(10.0), "still waiting after the other process let go"
+        assert finished.wait(120), "still waiting after the other process let go"
     finally:
         other.kill()
-    # Free now: no waiting.
-    with step_lock(folder, lambda: waited.append("again")):
-        pass
-    assert waited == [True]
+    assert set(_statuses(records[0]).values()) == {"ran"}
 
 
 def _timeless(value):
@@ -280,12 +288,12 @@ def test_a_worker_process_runs_steps_as_the_run_does(tmp_path):
     assert [worker.exitcode for worker in workers] == [0]
 
     events = []
-    collected = experiment_runner._take_steps(steps, "this-run", events.append, wait=True)
+    collected = experiment_runner._take_steps(steps, "this-run", events.append)
     assert {record.status for record in collected.values()} == {"ran"}
     assert all(event.get("worker") for event in events if event["event"] == "step")
     assert ([_timeless(collected[step.id].result) for step in alone.steps]
             == [_timeless(step.result) for step in alone.steps])
-    later = experiment_runner._take_steps(steps, "another-run", lambda event: None, wait=True)
+    later = experiment_runner._take_steps(steps, "another-run", lambda event: None)
     assert {record.status for record in later.values()} == {"skipped"}
 
 

@@ -15,12 +15,13 @@ fingerprint and those of every step that reads it, so exactly those run again.
 
 Two runs may share a work folder at once (two experiments that share a step, started side
 by side): each step is taken under an exclusive lock on `WORK/<folder name>.lock` (`flock`,
-released when the process ends, however it ends), so the second run waits for the first to
-finish a shared step and then reuses it, instead of clearing or resuming it under the first.
+released when the process ends, however it ends), so the second run leaves a shared step
+to the first and reuses it once done, instead of clearing or resuming it under the first.
 A process takes the first step, in the spec's order, whose inputs are done and that no
-other process holds, so `jobs` processes of one run (`run_experiment(jobs=...)`, the run
-and spawned workers) run independent steps side by side. A step run by any process of this
-run carries the run's token in its `step.json`; the run reports it as run, not reused.
+other process holds (and waits, polling, when every ready step is held), so `jobs`
+processes of one run (`run_experiment(jobs=...)`: the run and spawned workers) run
+independent steps side by side. A step run by any process of this run carries the run's
+token in its `step.json`; the run reports it as run, not reused.
 
 `progress`, if given, gets one dict per event: `step` (index, total, id, verb, status:
 run/resume/skip, folder; `worker` when a worker of this run ran it), `generate` (done,
@@ -42,7 +43,6 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from datetime import datetime
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -154,7 +154,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     token = uuid.uuid4().hex  # marks in step.json the steps this run's processes ran
     workers = _start_workers(steps, token, jobs - 1)
     try:
-        records = _take_steps(steps, token, emit, wait=True)
+        records = _take_steps(steps, token, emit)
     finally:
         _stop_workers(workers)
     machine["load_after"] = _load()
@@ -164,15 +164,16 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
                      steps=[records[entry.step.id] for entry in steps])
 
 
-def _take_steps(steps: list[_Planned], token: str, emit: Progress, wait: bool,
+def _take_steps(steps: list[_Planned], token: str, emit: Progress,
                 alive: Callable[[], bool] = lambda: True) -> dict[str, StepRecord]:
     """Run or collect every step: repeatedly the first step, in order, that is not done,
-    whose inputs are done and whose lock is free. When none is, a run (`wait`) blocks on
-    the first step left, which another process holds; a worker polls instead, and stops
-    when `alive()` says its run has gone."""
+    whose inputs are done and whose lock is free. When none is, other processes hold the
+    steps that are ready: say so once (a `waiting` event for the first of them) and look
+    again shortly. A worker stops early when `alive()` says its run has gone."""
     records: dict[str, StepRecord] = {}
     left = list(steps)
     total = len(steps)
+    announced: set[str] = set()
     while left:
         for entry in left:
             if not all(i in records for i in entry.step.inputs()):
@@ -208,16 +209,14 @@ def _take_steps(steps: list[_Planned], token: str, emit: Progress, wait: bool,
             left = [e for e in left if e.step.id != done.id]
             break
         else:
-            if not wait:
-                if not alive():
-                    break
-                time.sleep(_POLL_SECONDS)
-                continue
             first = left[0]  # its inputs come before it, so they are done: someone holds it
-            waiting = {"event": "waiting", "id": first.step.id,
-                       "lock": str(_lock_path(first.folder))}
-            with step_lock(first.folder, partial(emit, waiting)):
-                pass
+            if first.step.id not in announced:
+                announced.add(first.step.id)
+                emit({"event": "waiting", "id": first.step.id,
+                      "lock": str(_lock_path(first.folder))})
+            if not alive():
+                break
+            time.sleep(_POLL_SECONDS)
     return records
 
 
@@ -266,7 +265,7 @@ def _worker(steps: list[_Planned], token: str, threads: int) -> None:
         # SIGTERM (the run ending early) interrupts a training as Ctrl-C does: it keeps
         # its last epoch to resume from.
         with interrupt_on_signals():
-            _take_steps(steps, token, lambda event: None, wait=False,
+            _take_steps(steps, token, lambda event: None,
                         alive=lambda: os.getppid() == parent)
     except (Exception, KeyboardInterrupt):  # the run meets the same error and reports it
         pass
@@ -284,31 +283,6 @@ def _stop_workers(workers: list[Any]) -> None:
 
 def _lock_path(folder: Path) -> Path:
     return folder.with_name(folder.name + ".lock")
-
-
-@contextmanager
-def step_lock(folder: Path, on_wait: Callable[[], None] = lambda: None) -> Iterator[None]:
-    """Hold an exclusive lock on `folder`'s step while the block runs; if another process
-    holds it, call `on_wait` once and block until it is free (Ctrl-C still stops the wait).
-
-    Where `fcntl` is missing (Windows) the step runs unlocked.
-    """
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not on Linux or macOS
-        yield
-        return
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    with open(_lock_path(folder), "a") as handle:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            on_wait()
-            fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 @contextmanager
