@@ -45,8 +45,24 @@ def _in_main_thread() -> bool:
     return threading.current_thread() is threading.main_thread()
 
 
+_received: int | None = None  # the signal `interrupt_on_signals` raised for, if any
+
+
 def _raise(signum: int, frame) -> None:
+    global _received
+    _received = _received or signum
     raise Interrupted(signum)
+
+
+def raise_if_interrupted() -> None:
+    """Raise `Interrupted` again if a signal has been raised for in this block.
+
+    The handler raises wherever Python code happens to run, and a library that catches
+    every exception (a compiler tracing a function, for one) can swallow it and go on; a
+    loop that calls this at safe points (after each batch) stops all the same.
+    """
+    if _received is not None:
+        raise Interrupted(_received)
 
 
 @contextmanager
@@ -55,15 +71,18 @@ def interrupt_on_signals() -> Iterator[None]:
 
     Outside the main thread (where Python cannot set handlers) the block runs unchanged.
     """
+    global _received
     if not _in_main_thread():
         yield
         return
     old = {signum: signal.signal(signum, _raise) for signum in _SIGNALS}
+    outer, _received = _received, None
     try:
         yield
     finally:
         for signum, handler in old.items():
             signal.signal(signum, handler)
+        _received = outer
 
 
 class Deferred:

@@ -310,3 +310,94 @@ def test_jobs_run_every_step_once_with_the_same_results(tmp_path):
     assert sorted(started) == sorted(step.id for step in experiment.steps)
     assert [_timeless(s.result) for s in both.steps] == [_timeless(s.result) for s in alone.steps]
     assert both.machine["jobs"] == 2
+
+
+SLOW_PAIR = """
+title = "two long trainings side by side"
+paper = "none"
+
+[[steps]]
+id = "data"
+verb = "generate"
+system = "lorenz"
+nodes = 3
+trajectories = 16
+t_end = 0.2
+dt = 0.05
+
+[[steps]]
+id = "first"
+verb = "train"
+data = "data"
+epochs = 100000
+
+[[steps]]
+id = "second"
+verb = "train"
+data = "data"
+epochs = 100000
+seed = 1
+"""
+
+
+def _children(pid: int) -> list[int]:
+    tasks = Path(f"/proc/{pid}/task")
+    return [int(child) for task in tasks.iterdir()
+            for child in (task / "children").read_text().split()]
+
+
+def _cmdline(pid: int) -> str:
+    """A live process's command line ('' once it has gone, or is a zombie)."""
+    try:
+        if "zombie" in Path(f"/proc/{pid}/status").read_text():
+            return ""
+        return Path(f"/proc/{pid}/cmdline").read_text().replace("\0", " ").strip()
+    except FileNotFoundError:
+        return ""
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads /proc (Linux)")
+@pytest.mark.parametrize("signum", [15, 9], ids=["SIGTERM", "SIGKILL"])
+def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, signum):
+    """`experiment run --jobs 2` stopped while the run and its worker each train. SIGTERM:
+    exit 143 with one line. SIGKILL (the run cannot stop its workers): the worker notices
+    and stops itself. Either way no worker is left behind, and each training keeps a last
+    epoch that the next run resumes from (its step is planned as 'resumed')."""
+    import os
+
+    (tmp_path / "pair.toml").write_text(SLOW_PAIR)
+    work = tmp_path / "work"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [
+        str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")])),
+        "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "mpnode_cli", "experiment", "run", str(tmp_path / "pair.toml"),
+         "--jobs", "2", "--threads", "1", "--work", str(work), "--out", str(tmp_path / "out")],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    steps = experiment_runner.plan(spec.load(tmp_path / "pair.toml"), "small", "mpnode", work)
+    trainings = [entry for entry in steps if entry.step.verb == "train"]
+    deadline = time.monotonic() + 180
+    try:
+        while not all((e.folder / "run" / "checkpoints" / "last.pt").is_file()
+                      for e in trainings):
+            assert proc.poll() is None, proc.communicate()[1]
+            assert time.monotonic() < deadline, "the two trainings did not both start"
+            time.sleep(0.2)
+        workers = _children(proc.pid)
+        assert workers, "no worker process"
+        proc.send_signal(signum)
+        _, err = proc.communicate(timeout=90)
+    finally:
+        proc.kill()
+    if signum == 15:
+        assert proc.returncode == 128 + signum, err
+        assert "Interrupted (SIGTERM)" in err and "Traceback" not in err
+    deadline = time.monotonic() + 60
+    while any(_cmdline(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    left = {pid: _cmdline(pid) for pid in workers if _cmdline(pid)}
+    assert not left, left
+    for entry in trainings:
+        assert experiment_runner._resumable(entry.folder, entry.fingerprint), entry.step.id
+        assert not (entry.folder / STEP_JSON).exists()
+    assert list(tmp_path.glob("out/*")) == []  # no report from a run that did not finish

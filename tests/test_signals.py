@@ -160,3 +160,22 @@ def test_import_and_simulate_stopped_while_writing_leave_nothing(tmp_path, monke
     assert result.exit_code == 128 + signal.SIGTERM, result.output
     assert "Interrupted (SIGTERM): nothing written" in result.output
     assert not out.exists() and _stray(out.parent) == []
+
+
+def test_a_swallowed_interrupt_is_raised_again_at_the_next_check():
+    """A library that catches every exception can swallow the `Interrupted` the handler
+    raised inside it; the training loop's check after each batch raises it again, and
+    nothing is left pending once the block ends."""
+    from mpnode_cli.signals import Interrupted, interrupt_on_signals, raise_if_interrupted
+
+    with interrupt_on_signals():
+        raise_if_interrupted()  # nothing received yet
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # the handler raises here
+        except BaseException:  # what a careless library does
+            pass
+        with pytest.raises(Interrupted) as caught:
+            raise_if_interrupted()
+        assert caught.value.signum == signal.SIGTERM
+    raise_if_interrupted()  # outside the block: nothing pending

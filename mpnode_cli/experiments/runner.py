@@ -261,6 +261,7 @@ def _worker(steps: list[_Planned], token: str, threads: int) -> None:
 
     apply_threads(ThreadChoice(threads, "the run's process"))
     parent = os.getppid()
+    _stop_when_orphaned(parent)
     try:
         # SIGTERM (the run ending early) interrupts a training as Ctrl-C does: it keeps
         # its last epoch to resume from.
@@ -271,14 +272,35 @@ def _worker(steps: list[_Planned], token: str, threads: int) -> None:
         pass
 
 
-def _stop_workers(workers: list[Any]) -> None:
+def _stop_when_orphaned(parent: int) -> None:
+    """SIGTERM this worker once its run's process has gone (killed outright, with no
+    chance to stop its workers): a training in it then stops as on Ctrl-C, keeping its
+    last epoch, instead of running on with nobody to report to."""
+    import signal
+    import threading
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="orphan-watch", daemon=True).start()
+
+
+def _stop_workers(workers: list[Any], grace: float = 30.0) -> None:
     """End the workers: they have finished when the run has; on an error or Ctrl-C they
-    get SIGTERM (a training they run resumes from its last epoch next time)."""
+    get SIGTERM (a training they run resumes from its last epoch next time), and one still
+    running `grace` seconds later is killed (its last epoch on disk is whole: every file
+    is written to a temporary name and renamed)."""
     for worker in workers:
         if worker.is_alive():
             worker.terminate()
+    deadline = time.monotonic() + grace
     for worker in workers:
-        worker.join(timeout=30)
+        worker.join(timeout=max(0.0, deadline - time.monotonic()))
+        if worker.is_alive():
+            worker.kill()
+            worker.join(timeout=10)
 
 
 def _lock_path(folder: Path) -> Path:

@@ -475,6 +475,14 @@ def _compiled_step():
     every later size reuses it, instead of one compile per size up to the cache limit."""
     global _STEP_COMPILED
     if _STEP_COMPILED is None:
+        import warnings
+
+        # Compiling traces the step's backward under autograd's anomaly mode, which prints
+        # the forward's stack as a UserWarning when anything stops that trace: a Ctrl-C or
+        # SIGTERM during the first epochs (the interrupt itself is reported as usual), or a
+        # compiler failure (which `_compile_failed` reports in one line).
+        warnings.filterwarnings("ignore", message="Error detected in ",
+                                category=UserWarning, module="torch.autograd.graph")
         _STEP_COMPILED = torch.compile(_step, dynamic=None)
     return _STEP_COMPILED
 

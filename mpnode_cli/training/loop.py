@@ -47,7 +47,7 @@ from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
 from mpnode_cli.data.stream import StreamedTrajectories, prefetched
 from mpnode_cli.models.registry import OPTIONS, build_model, resolve_options
 from mpnode_cli.paths import check_writable_dir
-from mpnode_cli.signals import deferred_signals, signal_name
+from mpnode_cli.signals import deferred_signals, raise_if_interrupted, signal_name
 from mpnode_cli.solver import Status
 from mpnode_cli.training import distributed
 from mpnode_cli.training import run as runs
@@ -353,6 +353,7 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData | StreamedTrajector
             loss, grad_norm, evals, reason = _step(model, optimizer, x, ts,
                                                    batch.graph(device), u, loss_fn,
                                                    config, world, len(batch) / len(idx))
+            raise_if_interrupted()  # a signal a library swallowed inside the step
             evals_per_batch.append(evals)
             if reason is None:
                 loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
