@@ -483,6 +483,14 @@ def _compiled_step():
         # compiler failure (which `_compile_failed` reports in one line).
         warnings.filterwarnings("ignore", message="Error detected in ",
                                 category=UserWarning, module="torch.autograd.graph")
+        # One process may train several models (an experiment's steps, run one after
+        # another): each new node count, batch layout or grad mode adds a variant of the
+        # step, and past dynamo's default of 8 every further one would run eagerly, with a
+        # warning, for the rest of the process (seen: a gene 4×4 training, then its 8×8
+        # finetune). Each variant compiles once, so a higher cap costs only those compiles.
+        import torch._dynamo.config as dynamo_config
+
+        dynamo_config.recompile_limit = max(dynamo_config.recompile_limit, 64)
         _STEP_COMPILED = torch.compile(_step, dynamic=None)
     return _STEP_COMPILED
 
