@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import child_env
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -35,7 +36,6 @@ from mpnode_cli.training.run import read_metrics
 pytestmark = pytest.mark.skipif(not torch.distributed.is_available(),
                                 reason="this torch build has no torch.distributed")
 
-ROOT = Path(__file__).resolve().parents[1]
 RUN_FILES = {"config.json", "metrics.jsonl", "summary.json", "checkpoints",
              "checkpoints/best.pt", "checkpoints/last.pt"}
 
@@ -47,12 +47,6 @@ def gene(tmp_path_factory):
     generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
                             dt=0.1, out=out))
     return out
-
-
-def env(**extra) -> dict[str, str]:
-    """This interpreter's environment for a child: our package first, one thread each."""
-    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
-    return {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1", **extra}
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 7, 8, 33])
@@ -210,7 +204,7 @@ def torchrun_run(gene, tmp_path_factory):
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node",
          "2", "-m", "mpnode_cli", "train", str(gene), "--epochs", "2", "--batch-size", "7",
          "--no-plots"],
-        cwd=cwd, env=env(), capture_output=True, text=True, timeout=300)
+        cwd=cwd, env=child_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
     return cwd, out
 

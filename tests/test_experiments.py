@@ -16,6 +16,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from conftest import child_env
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -363,17 +364,12 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
     exit 143 with one line. SIGKILL (the run cannot stop its workers): the worker notices
     and stops itself. Either way no worker is left behind, and each training keeps a last
     epoch that the next run resumes from (its step is planned as 'resumed')."""
-    import os
-
     (tmp_path / "pair.toml").write_text(SLOW_PAIR)
     work = tmp_path / "work"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [
-        str(Path(__file__).resolve().parents[1]), os.environ.get("PYTHONPATH")])),
-        "OMP_NUM_THREADS": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "mpnode_cli", "experiment", "run", str(tmp_path / "pair.toml"),
          "--jobs", "2", "--threads", "1", "--work", str(work), "--out", str(tmp_path / "out")],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     steps = experiment_runner.plan(spec.load(tmp_path / "pair.toml"), "small", "mpnode", work)
     trainings = [entry for entry in steps if entry.step.verb == "train"]
     deadline = time.monotonic() + 180

@@ -2,22 +2,19 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from conftest import child_env
 
 
 def test_python_dash_m_mpnode_cli_is_the_cli():
-    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
     out = subprocess.run([sys.executable, "-m", "mpnode_cli", "--help"],
-                         env={**os.environ, "PYTHONPATH": path}, capture_output=True,
+                         env=child_env(), capture_output=True,
                          text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "Usage: mpnode" in out.stdout and "finetune" in out.stdout
     version = subprocess.run([sys.executable, "-m", "mpnode_cli", "--version"],
-                             env={**os.environ, "PYTHONPATH": path}, capture_output=True,
+                             env=child_env(), capture_output=True,
                              text=True, timeout=60)
     assert version.returncode == 0 and version.stdout.startswith("mpnode ")

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import child_env
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -21,7 +22,6 @@ from mpnode_cli.data.generate import generate
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.run import read_metrics
 
-ROOT = Path(__file__).resolve().parents[1]
 SIGNALS = [signal.SIGINT, signal.SIGTERM]
 pytestmark = pytest.mark.skipif(not Path("/proc/self/status").exists(),
                                 reason="waits on /proc/<pid>/status (Linux)")
@@ -34,8 +34,7 @@ def dataset(tmp_path_factory):
 
 
 def _start(*args) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        filter(None, [str(ROOT), os.environ.get("PYTHONPATH")])), "OMP_NUM_THREADS": "1"}
+    env = child_env()
     return subprocess.Popen([sys.executable, "-m", "mpnode_cli.cli.app", *map(str, args)],
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 

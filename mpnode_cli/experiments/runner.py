@@ -164,12 +164,11 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
                      steps=[records[entry.step.id] for entry in steps])
 
 
-def _take_steps(steps: list[_Planned], token: str, emit: Progress,
-                alive: Callable[[], bool] = lambda: True) -> dict[str, StepRecord]:
+def _take_steps(steps: list[_Planned], token: str, emit: Progress) -> dict[str, StepRecord]:
     """Run or collect every step: repeatedly the first step, in order, that is not done,
     whose inputs are done and whose lock is free. When none is, other processes hold the
     steps that are ready: say so once (a `waiting` event for the first of them) and look
-    again shortly. A worker stops early when `alive()` says its run has gone."""
+    again shortly."""
     records: dict[str, StepRecord] = {}
     left = list(steps)
     total = len(steps)
@@ -214,8 +213,6 @@ def _take_steps(steps: list[_Planned], token: str, emit: Progress,
                 announced.add(first.step.id)
                 emit({"event": "waiting", "id": first.step.id,
                       "lock": str(_lock_path(first.folder))})
-            if not alive():
-                break
             time.sleep(_POLL_SECONDS)
     return records
 
@@ -260,14 +257,12 @@ def _worker(steps: list[_Planned], token: str, threads: int) -> None:
     from mpnode_cli.threads import ThreadChoice, apply_threads
 
     apply_threads(ThreadChoice(threads, "the run's process"))
-    parent = os.getppid()
-    _stop_when_orphaned(parent)
+    _stop_when_orphaned(os.getppid())
     try:
-        # SIGTERM (the run ending early) interrupts a training as Ctrl-C does: it keeps
-        # its last epoch to resume from.
+        # SIGTERM (the run ending early, or gone) interrupts a training as Ctrl-C does: it
+        # keeps its last epoch to resume from; a worker waiting for a step stops waiting.
         with interrupt_on_signals():
-            _take_steps(steps, token, lambda event: None,
-                        alive=lambda: os.getppid() == parent)
+            _take_steps(steps, token, lambda event: None)
     except (Exception, KeyboardInterrupt):  # the run meets the same error and reports it
         pass
 
