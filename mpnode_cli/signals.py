@@ -100,21 +100,31 @@ class Deferred:
             raise Interrupted(self.received)
 
 
+_deferring: Deferred | None = None  # the outermost `deferred_signals` block's, if any
+
+
 @contextmanager
 def deferred_signals() -> Iterator[Deferred]:
     """Within the block, SIGINT and SIGTERM are recorded instead of raised.
 
     The block may call `check()` at points where stopping is safe; a signal that arrived
     and was not raised there is raised when the block ends without another exception.
+    A block inside another defers to the outer one: its `check()` never raises, and the
+    signal is raised when the outermost block ends.
     """
+    global _deferring
     pending = Deferred()
-    if not _in_main_thread():
+    if not _in_main_thread() or _deferring is not None:
+        # Nested: the outer block records the signal and raises it when *it* ends, so
+        # that a group of writes (a checkpoint and its metrics row) is all done or none.
         yield pending
         return
     old = {signum: signal.signal(signum, pending.record) for signum in _SIGNALS}
+    _deferring = pending
     try:
         yield pending
     finally:
+        _deferring = None
         for signum, handler in old.items():
             signal.signal(signum, handler)
     pending.check()

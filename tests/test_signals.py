@@ -178,3 +178,50 @@ def test_a_swallowed_interrupt_is_raised_again_at_the_next_check():
             raise_if_interrupted()
         assert caught.value.signum == signal.SIGTERM
     raise_if_interrupted()  # outside the block: nothing pending
+
+
+@pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: signal.Signals(s).name)
+def test_a_signal_while_an_epoch_is_saved_leaves_its_files_in_step(dataset, tmp_path,
+                                                                    monkeypatch, signum):
+    """The signal arrives as epoch 2's metrics row is about to be written. The row,
+    `last.pt` and (if it improved) `best.pt` are all written before the interrupt is
+    raised, so the checkpoint the run resumes from is the metrics' last epoch (a signal
+    between the writes once left `last.pt` at epoch 2 and the metrics at epoch 1)."""
+    from mpnode_cli.training import run as runs
+
+    real = runs.append_metrics
+
+    def signal_then_append(run_dir, row):
+        if row["epoch"] == 2:
+            os.kill(os.getpid(), signum)  # the handler would raise here, before the write
+        real(run_dir, row)
+
+    monkeypatch.setattr(runs, "append_metrics", signal_then_append)
+    run = tmp_path / "run"
+    result = CliRunner().invoke(app, [str(a) for a in (
+        "train", dataset, "--epochs", 50, "--batch-size", 8, "--no-plots", "--run-dir", run)])
+    assert result.exit_code == 128 + signum, result.output
+    last = load_checkpoint(run / "checkpoints" / "last.pt")
+    best = load_checkpoint(run / "checkpoints" / "best.pt")
+    epochs = [row["epoch"] for row in read_metrics(run)]
+    assert last.epoch == 2 and epochs == [0, 1, 2]
+    improved = [row["epoch"] for row in read_metrics(run) if row["improved"]]
+    assert best.epoch == improved[-1]
+    assert json.loads((run / "summary.json").read_text())["epochs"] == 2
+    assert _stray(run) == []
+
+
+def test_a_nested_deferred_block_leaves_the_signal_to_the_outer_one():
+    """Writes grouped in one block are all done before the interrupt, even where each
+    write holds signals on its own."""
+    from mpnode_cli.signals import Interrupted, deferred_signals
+
+    done = []
+    with pytest.raises(Interrupted) as caught:
+        with deferred_signals():
+            with deferred_signals() as inner:
+                os.kill(os.getpid(), signal.SIGTERM)
+                inner.check()  # the outer block decides: no raise here
+                done.append("first")
+            done.append("second")  # the inner block's end did not raise either
+    assert caught.value.signum == signal.SIGTERM and done == ["first", "second"]

@@ -265,11 +265,9 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
             runs.truncate_metrics(run_dir, -1)
             val = validate()
             row = _record(state, 0, val, config, None, optimizer, val.seconds)
-            snapshot = _snapshot(checkpoint())
-            if world.main:
-                runs.append_metrics(run_dir, row)
-                save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
-                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+            with deferred_signals():  # the epoch's files all or none (see _save_epoch)
+                snapshot = _snapshot(checkpoint())
+                _save_epoch(world, run_dir, row, snapshot, checkpoint, best=True)
             emit({"event": "epoch", **row})
         for epoch in range(state.epoch + 1, config.epochs + 1):
             start = time.perf_counter()
@@ -279,12 +277,9 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
             state.epoch = epoch
             row = _record(state, epoch, val, config, steps, optimizer,
                           time.perf_counter() - start)
-            snapshot = _snapshot(checkpoint())
-            if world.main:
-                if row["improved"]:
-                    save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
-                runs.append_metrics(run_dir, row)
-                save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
+            with deferred_signals():
+                snapshot = _snapshot(checkpoint())
+                _save_epoch(world, run_dir, row, snapshot, checkpoint, best=row["improved"])
             emit({"event": "epoch", **row})
     except KeyboardInterrupt as exc:
         if world.main:
@@ -321,6 +316,24 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     )  # fmt: skip
     runs.write_json(run_dir / runs.SUMMARY, asdict(summary))
     return summary
+
+
+def _save_epoch(world, run_dir: Path, row: dict[str, Any], snapshot: Checkpoint, checkpoint,
+                *, best: bool) -> None:
+    """An epoch's files: its metrics row, `last.pt` (`snapshot`), and `best.pt` if it
+    improved (rank 0 only).
+
+    The caller holds signals (`deferred_signals`) around this and the assignment of
+    `snapshot`, so an interrupt comes after all three writes or before any; the interrupt
+    handler then saves the snapshot it has, and `last.pt`'s epoch is always the last row
+    of metrics.jsonl.
+    """
+    if not world.main:
+        return
+    if best:
+        save_checkpoint(runs.checkpoint_path(run_dir, "best"), checkpoint(row))
+    runs.append_metrics(run_dir, row)
+    save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
 
 
 def _train_epoch(model, optimizer, train_set: TrajectoryData | StreamedTrajectories,
