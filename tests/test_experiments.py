@@ -8,6 +8,7 @@ changed one, and reruns a step whose folder an interruption left unfinished.
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import threading
@@ -358,7 +359,7 @@ def _cmdline(pid: int) -> str:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="reads /proc (Linux)")
-@pytest.mark.parametrize("signum", [15, 9], ids=["SIGTERM", "SIGKILL"])
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGKILL], ids=["SIGTERM", "SIGKILL"])
 def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, signum):
     """`experiment run --jobs 2` stopped while the run and its worker each train. SIGTERM:
     exit 143 with one line. SIGKILL (the run cannot stop its workers): the worker notices
@@ -385,7 +386,7 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
         _, err = proc.communicate(timeout=90)
     finally:
         proc.kill()
-    if signum == 15:
+    if signum == signal.SIGTERM:
         assert proc.returncode == 128 + signum, err
         assert "Interrupted (SIGTERM)" in err and "Traceback" not in err
     deadline = time.monotonic() + 60
