@@ -26,7 +26,13 @@ from typing import ClassVar
 
 import torch
 
-from mpnode_cli.models.aggregate import DegreeAwareAggregation, Graph, as_graph, channels
+from mpnode_cli.models.aggregate import (
+    DegreeAwareAggregation,
+    Graph,
+    aggregator,
+    as_graph,
+    channels,
+)
 from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
@@ -56,8 +62,17 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         o = self.options
         self.message_dim, self.graph, self.messages = o.message_dim, o.graph, o.messages
         self.aggregate, self.backend = o.aggregate, o.backend
-        self.net = mlp(node_dim + control_dim + channels(o.aggregate, o.message_dim), o.hidden,
-                       o.layers, node_dim + o.message_dim, o.activation)
+        self.update, self.message_init = o.update, o.message_init
+        c = channels(o.aggregate, o.message_dim)
+        d, m = node_dim, o.message_dim
+        if o.update == "affine":
+            # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M).
+            self.net = mlp(d + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
+                           o.activation)
+        else:
+            self.net = mlp(d + control_dim + c, o.hidden, o.layers, d + m, o.activation)
+        if o.message_init == "learned":
+            self.init_net = mlp(d + control_dim, o.hidden, 1, m, o.activation)
         self._register_degree_statistic()
 
     def vector_field(self, adjacency: Graph, u=None):
@@ -68,15 +83,40 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             u: `u(t [B]) → [B, N, U]` (zero-order hold), or None when U = 0.
         """
         aggregate = self.aggregator(adjacency, self.backend)
+        # The affine update drives the messages by their neighbours' *mean*: a sum there
+        # would make the messages' own feedback gain grow with the in-degree, and a node
+        # with more neighbours than any in training would see an unstable message ODE.
+        average = aggregate if self.aggregate == "mean" else aggregator(
+            self._graph(adjacency), "mean", self.backend)
         d = self.node_dim
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
-            m_bar = aggregate(m if self.messages else torch.zeros_like(m))
+            if not self.messages:
+                m = torch.zeros_like(m)
             parts = [x, u(t).to(z.dtype)] if u is not None else [x]
-            return self.net(torch.cat([*parts, m_bar], dim=-1))
+            if self.update == "mlp":
+                return self.net(torch.cat([*parts, aggregate(m)], dim=-1))
+            out = self.net(torch.cat(parts, dim=-1) if u is not None else x)
+            return self._affine(out, aggregate(m), average(m))
 
         return f
+
+    def _affine(self, out: torch.Tensor, m_sum: torch.Tensor, m_mean: torch.Tensor):
+        """`[ẋ; ṁ] = F + [G_x · m̄; G_m · mean m]` from the MLP's `out [B, N, D+M+D·C+M²]`,
+        `m_sum [B, N, C]` (the chosen aggregation) and `m_mean [B, N, M]`."""
+        d, m, c = self.node_dim, self.message_dim, m_sum.shape[-1]
+        drift, g_x, g_m = out.split([d + m, d * c, m * m], dim=-1)
+        dx = (g_x.unflatten(-1, (d, c)) @ m_sum.unsqueeze(-1)).squeeze(-1)  # (B, N, D)
+        dm = (g_m.unflatten(-1, (m, m)) @ m_mean.unsqueeze(-1)).squeeze(-1)  # (B, N, M)
+        return drift + torch.cat([dx, dm], dim=-1)
+
+    def initial_messages(self, x0: torch.Tensor, u0: torch.Tensor | None) -> torch.Tensor:
+        """m(t₀) `[B, N, M]`: zero (the paper's), or the learned function of `[x0, u0]`."""
+        if self.message_init == "zero":
+            return x0.new_zeros(*x0.shape[:-1], self.message_dim)
+        inputs = torch.cat([x0, u0.to(x0.dtype)], dim=-1) if u0 is not None else x0
+        return self.init_net(inputs)
 
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
                 controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
@@ -96,12 +136,13 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             raise ValueError(f"states have {x0.shape[-1]} features per node but the model "
                              f"expects {self.node_dim}")
         ts = ts.to(device=x0.device, dtype=torch.float64)
-        z0 = torch.cat([x0, x0.new_zeros(*x0.shape[:-1], self.message_dim)], dim=-1)
         u = None
         if self.control_dim:
             if controls is None or controls.shape[-1] != self.control_dim:
                 raise ValueError(f"the model expects {self.control_dim} controls per node")
             u = zoh_controls(controls, ts)
+        u0 = controls[:, 0] if u is not None else None
+        z0 = torch.cat([x0, self.initial_messages(x0, u0)], dim=-1)
         # Steps must not straddle a control switch: stop at every sample time.
         tstops = ts[1:-1] if u is not None else None
         options = solver.solve_kwargs() if solver is not None else {}

@@ -22,6 +22,8 @@ Activation = Literal["tanh", "relu", "elu", "silu", "softplus"]
 Aggregate = Literal["mean", "sum", "pna"]
 Backend = Literal["auto", "dense", "scatter"]
 GraphMode = Literal["sys", "full"]
+Update = Literal["mlp", "affine"]
+MessageInit = Literal["zero", "learned"]
 
 # Upper bounds on sizes: far beyond what the paper's systems need (widths of 32 to 128),
 # and small enough that a typo (`--hidden 10000000`) is refused rather than exhausting memory.
@@ -73,6 +75,13 @@ class MPNODEOptions(ModelOptions):
         "Pass messages between nodes; off clamps incoming messages to zero (the paper's "
         "§4.1 ablation)."))
     aggregate: Aggregate = Field("mean", description=_AGGREGATE)
+    update: Update = Field("mlp", description=(
+        "Node update: mlp is the paper's MLP of x, u and the aggregated messages; affine is "
+        "F(x, u) + G(x, u)·(aggregated messages), linear in the neighbours' messages, so "
+        "a sum over more neighbours than in training stays in range."))
+    message_init: MessageInit = Field("zero", description=(
+        "Message states at t₀: zero (the paper's) or learned, a function of the node's "
+        "x(t₀), u(t₀), for coupling that acts from the start."))
     backend: Backend = Field(
         "auto", description="How aggregation is computed (auto picks by graph size).")
 
