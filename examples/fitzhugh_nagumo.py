@@ -15,9 +15,10 @@ oscillate. docs/custom-systems.md walks through this file:
     mpnode generate --system-file examples/fitzhugh_nagumo.py --topology ba --nodes 20
 
 The coupling is an unnormalised sum, so a node's pull grows with its degree: on
-Barabási–Albert graphs (m = 2; the largest in-degree grows with N, about 7, 12 and 16 at
-10, 20 and 40 nodes) the hubs are tied far more tightly to their neighbours than the
-leaves, which a node model trained on small graphs has to carry over to larger hubs.
+Barabási–Albert graphs (m = 2; the largest in-degree grows with N: 7, 12 and 15 at 10, 20
+and 40 nodes for graph seed 0) the hubs are tied far more tightly to their neighbours than
+the leaves, which a node model trained on small graphs has to carry over to larger hubs
+(docs/own-systems.md).
 """
 
 from __future__ import annotations
