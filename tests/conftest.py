@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -16,6 +17,30 @@ def child_env(**extra: str) -> dict[str, str]:
     this checkout's package first on the path, one OpenMP thread, then `extra`."""
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
     return {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1", **extra}
+
+def fhn(t, y, a_graph, p):
+    """examples/fitzhugh_nagumo.py's equations, written again from FitzHugh (1961):
+    y = [v (N), w (N)], `a_graph` `[N, N]`, `p` its parameters by name."""
+    n = a_graph.shape[0]
+    v, w = y[:n], y[n:]
+    pull = a_graph @ v - a_graph.sum(axis=1) * v
+    return np.concatenate([v - v**3 / 3 - w + p["I"] + p["c"] * pull,
+                           p["eps"] * (v + p["a"] - p["b"] * w)])
+
+
+def fhn_reference(ds, k: int) -> np.ndarray:
+    """Trajectory k of an FHN dataset solved again by scipy from its stored initial state,
+    on its stored graph: `[T, N, 2]`."""
+    from scipy.integrate import solve_ivp
+
+    x0 = ds.states[k, 0].astype(np.float64)  # (N, 2)
+    n = x0.shape[0]
+    a = ds.adjacency[ds.graph_index[k]].astype(np.float64)
+    sol = solve_ivp(fhn, (ds.time[0], ds.time[-1]), np.concatenate([x0[:, 0], x0[:, 1]]),
+                    t_eval=ds.time, args=(a, ds.scalar_params), rtol=1e-10, atol=1e-12,
+                    method="DOP853")
+    return np.stack([sol.y[:n].T, sol.y[n:].T], axis=-1)  # (T, N, 2)
+
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # `make test` runs two worker processes on a 2-core machine: at torch's default of one
