@@ -29,9 +29,10 @@ def affine_model(**options):
 
 @pytest.mark.parametrize("aggregate", ["sum", "mean"])
 def test_the_field_is_affine_in_the_neighbour_messages_at_any_degree(aggregate):
-    # Node 0 of a star with d identical leaves: the sum grows as d, so ẋ₀(d) − ẋ₀(0) must be
-    # exactly d · (ẋ₀(1) − ẋ₀(0)) for sum, and constant in d ≥ 1 for the mean, however far d
-    # goes beyond any degree seen.
+    # Node 0 of a star with d identical leaves: the sum of what they send grows as d, so
+    # ẋ₀(d) − ẋ₀(0) must be
+    # exactly d · (ẋ₀(1) − ẋ₀(0)) for sum, and constant in d ≥ 1 for the mean, however far
+    # d goes beyond any degree seen.
     torch.manual_seed(0)
     model = affine_model(aggregate=aggregate)
     x_hub, leaf = torch.tensor([0.3]), torch.tensor([-0.2, 0.7, 0.5])  # leaf: [x, m₁, m₂]
@@ -46,28 +47,31 @@ def test_the_field_is_affine_in_the_neighbour_messages_at_any_degree(aggregate):
         torch.testing.assert_close(hub_rate(d), expected, rtol=1e-12, atol=1e-12)
 
 
-def set_constant_net(model, drift: torch.Tensor) -> None:
-    """Make the affine MLP output the constant `drift` (last layer: zero weights, bias)."""
-    last = model.net[-1]
+def set_constant(net, value: torch.Tensor) -> None:
+    """Make an MLP output the constant `value` (last layer: zero weights, bias)."""
     with torch.no_grad():
-        last.weight.zero_()
-        last.bias.copy_(drift)
+        net[-1].weight.zero_()
+        net[-1].bias.copy_(value)
 
 
 def test_a_hand_set_additive_system_is_exact_on_a_graph_of_any_degree():
-    # ṁ = c (so m(t) = c·t from zero), ẋ_i = g · Σ_j m_j = g·c·d_i·t, hence the closed form
-    # x_i(t) = x_i(0) + g·c·d_i·t²/2 on every node, whatever its in-degree d_i.
-    model = affine_model(message_dim=1)  # out: [F_x, F_m, G_x, G_m]
-    g, c = 0.5, 2.0
-    set_constant_net(model, torch.tensor([0.0, c, g, 0.0]))
+    # Every node sends ψ = s and ẋ_i = g · Σ_j ψ_j = g·s·d_i, hence the closed form
+    # x_i(t) = x_i(0) + g·s·d_i·t on every node, whatever its in-degree d_i; the message
+    # state follows ṁ = c + G_m · mean ψ = c, so m(t) = c·t.
+    model = affine_model(message_dim=1)  # net's out: [F_x, F_m, G_x, G_m]
+    g, s, c = 0.5, 2.0, -0.3
+    set_constant(model.net, torch.tensor([0.0, c, g, 0.0]))
+    set_constant(model.emit, torch.tensor([s]))
     adjacency = star(60)
     adjacency[0, 1:4, 4:7] = torch.eye(3)  # leaves 1–3 also hear leaves 4–6
     x0 = torch.randn(1, 61, 1)
     ts = torch.linspace(0.0, 1.5, 7)
-    out = model.rollout(x0, ts, adjacency, solver=SolverOptions(rtol=1e-10, atol=1e-10))
+    out = model.rollout(x0, ts, adjacency, solver=SolverOptions(rtol=1e-10, atol=1e-10),
+                        return_messages=True)
     degree = adjacency.sum(dim=2)[0]  # (N,)
-    expected = x0[0, :, 0] + g * c * degree * ts[:, None] ** 2 / 2  # (T, N)
+    expected = x0[0, :, 0] + g * s * degree * ts[:, None]  # (T, N)
     torch.testing.assert_close(out.states[0, :, :, 0], expected, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(out.messages[0, :, :, 0], c * ts[:, None].expand(7, 61))
 
 
 def test_learned_initial_messages_are_a_function_of_the_first_state():

@@ -66,9 +66,11 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         c = channels(o.aggregate, o.message_dim)
         d, m = node_dim, o.message_dim
         if o.update == "affine":
-            # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M).
+            # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M);
+            # a second one, ψ, is what a node sends: a function of its own [x, u, m].
             self.net = mlp(d + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
                            o.activation)
+            self.emit = mlp(d + control_dim + m, o.hidden, 1, m, o.activation)
         else:
             self.net = mlp(d + control_dim + c, o.hidden, o.layers, d + m, o.activation)
         if o.message_init == "learned":
@@ -97,8 +99,11 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             parts = [x, u(t).to(z.dtype)] if u is not None else [x]
             if self.update == "mlp":
                 return self.net(torch.cat([*parts, aggregate(m)], dim=-1))
-            out = self.net(torch.cat(parts, dim=-1) if u is not None else x)
-            return self._affine(out, aggregate(m), average(m))
+            own = torch.cat(parts, dim=-1) if u is not None else x
+            sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
+            if not self.messages:
+                sent = torch.zeros_like(sent)
+            return self._affine(self.net(own), aggregate(sent), average(sent))
 
         return f
 
