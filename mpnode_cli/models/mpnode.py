@@ -27,7 +27,7 @@ from typing import ClassVar
 import torch
 
 from mpnode_cli.models.aggregate import DegreeAwareAggregation, Graph, as_graph, channels
-from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
+from mpnode_cli.models.base import NeuralModel, Rollout, control_stops, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
@@ -102,8 +102,8 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             if controls is None or controls.shape[-1] != self.control_dim:
                 raise ValueError(f"the model expects {self.control_dim} controls per node")
             u = zoh_controls(controls, ts)
-        # Steps must not straddle a control switch: stop at every sample time.
-        tstops = ts[1:-1] if u is not None else None
+        # Steps must not straddle a control switch: stop where the held control changes.
+        tstops = control_stops(controls, ts) if u is not None else None
         options = solver.solve_kwargs() if solver is not None else {}
         sol = solve(self.vector_field(as_graph(adjacency, x0), u), z0, ts, **options,
                     tstops=tstops)
