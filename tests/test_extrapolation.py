@@ -138,6 +138,12 @@ def test_an_old_checkpoint_without_the_record_is_quiet(trained, tmp_path):
     assert "extrapolating" not in result.output
     result = invoke("zeroshot", old, trained["complete"], "--json")
     assert json.loads(result.stdout)["datasets"][0]["extrapolation"] is None
+    # A record that cannot be read is a problem for `check`, and no warning elsewhere.
+    ckpt.dataset["train_range"] = {"in_degree": [1]}
+    bad = save_checkpoint(tmp_path / "bad.pt", ckpt)
+    result = invoke("check", bad)
+    assert result.exit_code != 0 and "train_range must hold" in result.output
+    assert extrapolation(load_checkpoint(bad), data.graphs, data.graph_index.numpy()) is None
 
 
 def test_the_note_names_what_lies_outside():
