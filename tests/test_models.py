@@ -7,8 +7,9 @@ import torch
 import torch.nn.functional as F
 
 from mpnode_cli.data.dataset import Normalizer
-from mpnode_cli.models.base import zoh_controls
+from mpnode_cli.models.base import control_stops, zoh_controls
 from mpnode_cli.models.registry import build_model
+from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.losses import huber_loss, mse_loss
 
@@ -118,6 +119,86 @@ def test_controlled_model_integrates_a_held_input():
                       solver=SolverOptions(rtol=1e-10, atol=1e-12))
     want = torch.tensor([0.0, 0.1, -0.1])
     torch.testing.assert_close(out.states[0, :, 0, 0], want, rtol=1e-5, atol=1e-6)
+
+
+def test_control_stops_are_the_samples_where_some_control_changes():
+    ts = torch.arange(6, dtype=torch.float64) * 0.5
+    controls = torch.ones(3, 6, 2, 2)  # [B, T, N, U]
+    assert control_stops(controls, ts) is None  # constant: no stop at all
+    assert control_stops(None, ts) is None
+    controls[1, 3:, 1, 0] = 2.0  # one trajectory, node and component switches at ts[3]
+    controls[2, 5] = -1.0  # the last sample's control is never held: no stop
+    torch.testing.assert_close(control_stops(controls, ts), ts[3:4])
+    controls[0, 1:] = 0.0
+    torch.testing.assert_close(control_stops(controls, ts), ts[[1, 3]])
+
+
+def held_input_net():
+    """An MP-NODE whose vector field is exactly ẋ = 1e3·tanh(1e-3·u), ṁ = 0 (u ≠ 0 held)."""
+    net = model(node_dim=1, control_dim=1, message_dim=1, hidden=2, layers=1)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.zero_()
+        net.net[0].weight[0, 1] = 1e-3
+        net.net[2].weight[0, 0] = 1e3
+    return net
+
+
+def test_constant_controls_integrate_like_a_solve_without_stops():
+    """A constant control needs no stops: the rollout is the very solve without tstops
+    (same steps, same states), and cheaper than stopping at every sample."""
+    net = model(node_dim=3, control_dim=2)
+    adj = random_graph(2, 5, 0.5, seed=9)
+    x0 = torch.randn(2, 5, 3)
+    ts = torch.linspace(0.0, 2.0, 21, dtype=torch.float64)
+    controls = torch.randn(2, 1, 5, 2).expand(2, 21, 5, 2)  # [B, T, N, U], held throughout
+    solver = SolverOptions(rtol=1e-6, atol=1e-6)
+    out = net.rollout(x0, ts, adj, controls, solver=solver)
+    f = net.vector_field(adj, zoh_controls(controls, ts))
+    z0 = torch.cat([x0, x0.new_zeros(2, 5, net.message_dim)], dim=-1)
+    plain = solve(f, z0, ts, **solver.solve_kwargs())
+    assert out.n_f_evals == int(plain.stats["n_f_evals"].max())
+    torch.testing.assert_close(out.states, plain.ys[..., :3], rtol=0, atol=0)
+    every_sample = solve(f, z0, ts, **solver.solve_kwargs(), tstops=ts[1:-1])
+    assert out.n_f_evals < int(every_sample.stats["n_f_evals"].max())
+
+
+def test_a_switching_control_gets_a_stop_there_and_the_piecewise_solution():
+    net = held_input_net()
+    ts = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    u = torch.tensor([0.7, 0.7, 0.7, -1.3, -1.3, -1.3])  # switches at ts[3]
+    controls = u.reshape(1, 6, 1, 1)
+    assert control_stops(controls, ts).tolist() == [ts[3].item()]
+    out = net.rollout(torch.zeros(1, 1, 1), ts, torch.zeros(1, 1, 1), controls,
+                      solver=SolverOptions(rtol=1e-4, atol=1e-4))
+    rate = 1e3 * torch.tanh(1e-3 * u[:-1])  # ẋ on each [ts[k], ts[k+1])
+    want = torch.cat([torch.zeros(1), torch.cumsum(rate * 0.2, 0)])
+    # RK is exact on a piecewise-constant field whose pieces meet at step ends.
+    torch.testing.assert_close(out.states[0, :, 0, 0], want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["mpnode", "gnode", "node"])
+def test_every_ode_model_stops_only_where_controls_change(kind, monkeypatch):
+    import importlib
+
+    module = importlib.import_module(f"mpnode_cli.models.{kind}")
+    seen = []
+
+    def spy(*args, tstops=None, **kw):
+        seen.append(tstops)
+        return solve(*args, tstops=tstops, **kw)
+
+    monkeypatch.setattr(module, "solve", spy)
+    torch.manual_seed(0)
+    net = build_model(kind, {"node_dim": 2, "control_dim": 1, "num_nodes": 4})
+    ts = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    controls = torch.ones(2, 6, 4, 1)
+    adj = random_graph(2, 4, 0.6, seed=2)
+    net.rollout(torch.randn(2, 4, 2), ts, adj, controls)
+    controls[0, 2:] = 3.0
+    net.rollout(torch.randn(2, 4, 2), ts, adj, controls)
+    assert seen[0] is None
+    assert seen[1].tolist() == [ts[2].item()]
 
 
 def test_gradients_reach_every_parameter():

@@ -57,6 +57,20 @@ def fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code=code)
 
 
+def warn(message: str) -> None:
+    """Print `Warning: message` to stderr: something the user should know, not an error."""
+    if speaks():
+        typer.echo(f"Warning: {message}", err=True)
+
+
+def extrapolation_note(row: dict[str, Any], name: str | None = None) -> None:
+    """`warn` of a result's `extrapolation` note (evaluate, zeroshot, simulate), if it has
+    one; `name` (the target's) leads the line where several targets are reported."""
+    note = (row.get("extrapolation") or {}).get("note")
+    if note:
+        warn(f"{name}: {note}" if name else note)
+
+
 def speaks() -> bool:
     """False in the processes other than rank 0 that torchrun starts (its RANK variable):
     they exit as rank 0 does, but only rank 0 prints."""

@@ -17,7 +17,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail
+from mpnode_cli.cli.common import THREADS, console, error_message, extrapolation_note, fail
 
 _SPLITS = "train, validation, test or all"
 _CHECKPOINT = typer.Argument(..., help="A checkpoint (.pt), or a run folder (its best.pt).")
@@ -73,6 +73,7 @@ def evaluate_command(
     console().print(baselines_note(row["baselines_note"]))
     if row["data_note"]:
         console().print(f"note: {row['data_note']}", highlight=False)
+    extrapolation_note(row)
     for path in [*row["plots"], *([row["predictions"]] if row["predictions"] else [])]:
         typer.echo(f"wrote {path}")
 
@@ -105,6 +106,8 @@ def zeroshot_command(
         [{**row, "dataset": Path(row["dataset"]).name} for row in rows], title))
     for note in dict.fromkeys(row["baselines_note"] for row in rows):  # unique, in order
         console().print(baselines_note(note))
+    for row in rows:
+        extrapolation_note(row, Path(row["dataset"]).name)
 
 
 def compare_command(

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail
+from mpnode_cli.cli.common import THREADS, console, error_message, extrapolation_note, fail
 
 
 def simulate_command(
@@ -81,3 +81,4 @@ def simulate_command(
         f"{summary.samples} samples × {summary.nodes} nodes on {summary.graphs} "
         f"graph{'s' * (summary.graphs > 1)} ({summary.seconds:.2f} s, "
         f"{summary.n_f_evals:,} RHS evaluations)", highlight=False)
+    extrapolation_note(asdict(summary))

@@ -223,3 +223,28 @@ def zoh_controls(controls: torch.Tensor, ts: torch.Tensor):
         return controls[rows, k]
 
     return u
+
+
+def control_stops(controls: torch.Tensor | None, ts: torch.Tensor) -> torch.Tensor | None:
+    """The solver's `tstops` for zero-order-hold controls: the sample times where they change.
+
+    A step must not straddle a change of u(t) (the RK stages would mix two inputs), but
+    where the held control stays the same a stop would only cost steps: a constant input
+    (a per-node power injection) then integrates like an autonomous system. One stop list
+    serves the whole batch, so a time is a stop when any trajectory's control changes there.
+
+    Args:
+        controls: `[B, T, N, U]` (as `zoh_controls` holds them), or None.
+        ts: `[T]` sample times, on the controls' device.
+
+    Returns:
+        `[S]` the times `ts[k]`, 0 < k < T − 1, where `controls[:, k] != controls[:, k-1]`
+        for some trajectory, node or component (the last sample's control is never held);
+        None when there are none.
+    """
+    if controls is None or ts.numel() < 3:
+        return None
+    held = controls[:, : ts.numel() - 1]  # (B, T-1, N, U): the controls that act
+    changed = (held[:, 1:] != held[:, :-1]).flatten(2).any(dim=2).any(dim=0)  # (T-2,)
+    stops = ts[1:-1][changed]
+    return stops if stops.numel() else None

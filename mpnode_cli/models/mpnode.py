@@ -33,7 +33,7 @@ from mpnode_cli.models.aggregate import (
     as_graph,
     channels,
 )
-from mpnode_cli.models.base import NeuralModel, Rollout, mlp, zoh_controls
+from mpnode_cli.models.base import NeuralModel, Rollout, control_stops, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
@@ -148,8 +148,8 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             u = zoh_controls(controls, ts)
         u0 = controls[:, 0] if u is not None else None
         z0 = torch.cat([x0, self.initial_messages(x0, u0)], dim=-1)
-        # Steps must not straddle a control switch: stop at every sample time.
-        tstops = ts[1:-1] if u is not None else None
+        # Steps must not straddle a control switch: stop where the held control changes.
+        tstops = control_stops(controls, ts) if u is not None else None
         options = solver.solve_kwargs() if solver is not None else {}
         sol = solve(self.vector_field(as_graph(adjacency, x0), u), z0, ts, **options,
                     tstops=tstops)

@@ -14,7 +14,7 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.base import ACTIVATIONS, NeuralModel, Rollout, zoh_controls
+from mpnode_cli.models.base import ACTIVATIONS, NeuralModel, Rollout, control_stops, zoh_controls
 from mpnode_cli.models.options import NODEOptions
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
@@ -65,6 +65,6 @@ class NODE(NeuralModel):
         u = zoh_controls(controls, ts) if self.control_dim else None
         options = solver.solve_kwargs() if solver is not None else {}
         sol = solve(self.vector_field(u), x0, ts, **options,
-                    tstops=ts[1:-1] if u is not None else None)
+                    tstops=control_stops(controls, ts) if u is not None else None)
         return Rollout(states=sol.ys, messages=None, status=sol.status,
                        n_f_evals=int(sol.stats["n_f_evals"].max()))

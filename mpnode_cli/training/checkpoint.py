@@ -14,7 +14,10 @@ Fields of the dict:
     normalizer: `Normalizer.to_dict()` of the training normalization.
     train_config: the resolved `TrainConfig` (JSON form).
     dataset: fingerprint, path, system, num_nodes, node_dim, control_dim, state_names,
-        control_names, topology of the training dataset.
+        control_names, topology of the training dataset, and train_range, what its train
+        split spans (`mpnode_cli.training.extrapolation.TrainRange.to_dict`: in-degree,
+        node count, each state's range), which `evaluate`, `zeroshot` and `simulate`
+        compare their graphs and states with.
     epoch: epochs completed.
     optimizer: `optimizer.state_dict()`.
     rng: `torch` (the global CPU RNG state) and `shuffle` (the loop's generator), uint8.
@@ -36,6 +39,8 @@ complaint but evaluate it with its default solver, not the one it was trained wi
 Version 5 added the step-size `controller` to the `solver` table; a version 4 file's table
 gets "pi", the controller every solve used then (`config.pin_stored_solver`). An older
 mpnode would ignore the new key and integrate differently, hence the new version.
+`dataset["train_range"]` came later without a new version: a file without it only goes
+without the extrapolation warning, and an older mpnode that ignores it computes the same.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
 leaves the previous checkpoint intact.

@@ -28,6 +28,7 @@ from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
 from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.training.extrapolation import data_extrapolation
 from mpnode_cli.training.losses import huber_loss
 from mpnode_cli.training.predict import roll_out, rollout_solver, write_predictions
 
@@ -311,8 +312,10 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`),
         baselines (`baseline_mse`, with the train split from `train_reference`),
         baselines_note (where the time mean came from), plots, predictions (the file
-        written, or None), and data_note (when the dataset itself holds a model's
-        predictions rather than ground truth).
+        written, or None), data_note (when the dataset itself holds a model's
+        predictions rather than ground truth), and extrapolation (the split against the
+        checkpoint's training range, `Extrapolation.to_dict`; None for a checkpoint
+        without one).
 
     Raises:
         ValueError: incompatible per-node sizes, or an empty split.
@@ -323,6 +326,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     subset = data.subset(split)
     if len(subset) == 0:
         raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
+    beyond = data_extrapolation(ckpt, subset)
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
     options = {"solver": rollout_solver(ckpt), "device": device}
     result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
@@ -356,7 +360,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     return {"dataset": str(data.path), "system": data.system, "num_nodes": data.num_nodes,
             "topology": data.attrs.get("topology"), "split": split,
             "result": result.to_dict(), "baselines": baselines, "baselines_note": note,
-            "plots": plots, "predictions": written, "data_note": data_note}
+            "plots": plots, "predictions": written, "data_note": data_note,
+            "extrapolation": None if beyond is None else beyond.to_dict()}
 
 
 def _save_predictions(ckpt, data: TrajectoryData, subset: TrajectoryData, split: str,

@@ -58,6 +58,7 @@ from mpnode_cli.training.evaluate import (
     evaluate,
     evaluate_checkpoint,
 )
+from mpnode_cli.training.extrapolation import training_range
 from mpnode_cli.training.losses import LOSSES
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.recipe import resolve_recipe
@@ -230,7 +231,8 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     facts = {"fingerprint": data.fingerprint, "path": str(config.dataset), "system": data.system,
              "num_nodes": data.num_nodes, "node_dim": data.node_dim,
              "control_dim": data.control_dim, "state_names": list(data.state_names),
-             "control_names": list(data.control_names), "topology": data.attrs.get("topology")}
+             "control_names": list(data.control_names), "topology": data.attrs.get("topology"),
+             "train_range": training_range(train_set).to_dict()}
 
     def checkpoint(metrics: dict[str, Any] | None = None) -> Checkpoint:
         return Checkpoint(

@@ -213,6 +213,9 @@ class SimulateSummary:
         path: the prediction file. trajectories, samples, nodes: K, T, N.
         graphs: distinct graphs. n_f_evals: vector-field evaluations, summed over
             trajectories. seconds: wall time of the rollouts.
+        extrapolation: the graphs against the checkpoint's training range
+            (`mpnode_cli.training.extrapolation.Extrapolation.to_dict`), or None for a
+            checkpoint without one.
     """
 
     path: Path
@@ -222,6 +225,7 @@ class SimulateSummary:
     graphs: int
     n_f_evals: int
     seconds: float
+    extrapolation: dict[str, Any] | None = None
 
 
 def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
@@ -244,6 +248,7 @@ def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
     from mpnode_cli.data.importers import load_controls, load_graph, load_initial_states
     from mpnode_cli.paths import check_output_file
     from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.extrapolation import extrapolation
 
     out = simulate_output(config)
     check_output_file(out, overwrite=overwrite)
@@ -268,9 +273,11 @@ def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
                       controls=controls, config={"verb": "simulate", **resolved,
                                                  "topology": _topology(config)},
                       source=sources, dtype=config.dtype, overwrite=overwrite)
+    beyond = extrapolation(ckpt, graphs, graph_index)
     return SimulateSummary(path=out, trajectories=k, samples=len(ts), nodes=n,
                            graphs=len(graphs), n_f_evals=int(pred.n_f_evals.sum()),
-                           seconds=seconds)
+                           seconds=seconds,
+                           extrapolation=None if beyond is None else beyond.to_dict())
 
 
 def simulate_output(config) -> Path:

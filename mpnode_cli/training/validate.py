@@ -4,7 +4,8 @@ The file must be an mpnode checkpoint of a version this mpnode reads (see
 `mpnode_cli.training.checkpoint`), its model must build from its kind and config, its
 weights must fit that model and be finite, its normalization must match the model's state
 and control sizes with finite means and positive standard deviations, its train config must
-validate, and it must say which dataset it was trained on.
+validate, and it must say which dataset it was trained on (and, if it records its train
+split's range, `dataset["train_range"]`, a readable one).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ def check_checkpoint(path: str | Path) -> Report:
     from mpnode_cli.config import TrainConfig, error_line, upgrade_train_fields
     from mpnode_cli.models.registry import OPTIONS, build_model
     from mpnode_cli.training.checkpoint import FORMAT, FORMAT_VERSION, load_checkpoint
+    from mpnode_cli.training.extrapolation import TrainRange
 
     report = Report(Path(path), "checkpoint")
     problems, summary = report.problems, report.summary
@@ -61,6 +63,11 @@ def check_checkpoint(path: str | Path) -> Report:
                if not isinstance(ckpt.dataset, dict) or key not in ckpt.dataset]
     if missing:
         problems.append(f"the training dataset's facts lack {', '.join(missing)}")
+    if isinstance(ckpt.dataset, dict) and ckpt.dataset.get("train_range") is not None:
+        try:  # absent in checkpoints older than the record, which is fine
+            TrainRange.from_dict(ckpt.dataset["train_range"])
+        except ValueError as exc:
+            problems.append(str(exc))
     try:
         TrainConfig(**upgrade_train_fields(dict(ckpt.train_config)))
     except ValidationError as exc:
