@@ -58,8 +58,8 @@ class FitzHughNagumo(System):
         "fhn-chain8": {"nodes": 8, "topology": "chain", "trajectories": 200,
                        "t_end": 20.0, "dt": 0.5}}
 
-    # How to learn it: the coupling sums over neighbours (docs/training-recipe.md).
-    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
+    # How to learn it: the coupling sums over neighbours, which the recipe's default update
+    # fits, so it recommends nothing of its own (docs/training-recipe.md).
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """G(n, p = 0.5) for `er`; Barabási–Albert with m = 2 edges per new node for `ba`

@@ -37,7 +37,7 @@ def test_paper_recipe_is_the_authors_configuration():
 
 def test_options_beat_the_recipe_and_the_system_recommendation():
     ours = resolved()
-    assert (ours.loss, ours.model_options["aggregate"], ours.batch_size) == ("mse", "pna", 32)
+    assert (ours.loss, ours.model_options["aggregate"], ours.batch_size) == ("mse", "sum", 32)
     mine = resolved(loss="huber", aggregate="pna", batch_size=7)
     assert (mine.loss, mine.model_options["aggregate"], mine.batch_size) == ("huber", "pna", 7)
     assert resolved(recipe="paper", batch_size=64).val_batch_size == 64
@@ -45,6 +45,19 @@ def test_options_beat_the_recipe_and_the_system_recommendation():
 
 def test_a_recommended_model_option_applies_only_to_models_that_have_it():
     assert "aggregate" not in resolved(accepts=()).model_options
+
+
+MODEL_OPTIONS = ("aggregate", "update", "message_init")
+
+
+def test_the_default_update_is_the_affine_sum_except_where_a_system_declares_otherwise():
+    affine = {"aggregate": "sum", "update": "affine", "message_init": "learned"}
+    for system in ("gene", "kuramoto", "my-own-system"):  # the last: no declaration at all
+        assert resolved(system=system, accepts=MODEL_OPTIONS).model_options == affine
+    for system in ("lorenz", "quadrotor"):  # the paper's MLP update over the mean
+        assert resolved(system=system, accepts=MODEL_OPTIONS).model_options == {
+            "aggregate": "mean"}
+    assert resolved(recipe="paper", accepts=MODEL_OPTIONS).model_options == {"aggregate": "mean"}
 
 
 def test_curriculum_by_default_only_for_long_trajectories():
@@ -59,7 +72,8 @@ def test_curriculum_by_default_only_for_long_trajectories():
 def test_a_stored_recipe_wins_over_the_system_declaration():
     stored = {"mpnode": {"batch_size": 5}, "paper": {"loss": "huber"}}
     assert resolved(recipe_stored=stored).batch_size == 5
-    assert "aggregate" not in resolved(recipe_stored=stored).model_options
+    # Lorenz declares the mean; a stored recipe without model options leaves the recipe's own.
+    assert resolved(recipe_stored=stored, system="lorenz").model_options["aggregate"] == "sum"
     assert resolved(recipe_stored=stored, recipe="paper").loss == "huber"
 
 
@@ -77,7 +91,9 @@ def test_generate_stores_the_system_recipe_and_train_applies_it(gene, tmp_path):
     assert data.attrs["recipe"] == SYSTEMS["gene"].recipe()
     train(TrainConfig(dataset=gene, run_dir=tmp_path / "r", epochs=1, plots=False))
     written = read_config(tmp_path / "r")
-    assert written.model_options["aggregate"] == "pna" and written.loss == "mse"
+    chosen = {k: written.model_options[k] for k in MODEL_OPTIONS}
+    assert chosen == {"aggregate": "sum", "update": "affine", "message_init": "learned"}
+    assert written.loss == "mse"
     assert "recipe" in written.model_fields_set  # every field explicit: resume re-applies none
 
 

@@ -46,9 +46,8 @@ class Gene(System):
     init: str
     # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
     sparse: ClassVar[bool] = True
-    # Regulation sums over in-neighbours, so a node must sense its in-degree; PNA does, and
-    # transfers to unseen topologies far better than a plain sum (docs/training-recipe.md).
-    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
+    # Regulation sums over in-neighbours: the recipe's affine sum update fits it and carries
+    # to larger graphs with higher in-degrees (docs/training-recipe.md).
     # The paper's 200 trajectories over 5 graphs, dt 0.1, 5 s, for every topology and size
     # (the paper states it for BA; the other graphs are treated the same way).
     data_defaults: ClassVar[dict[str, float]] = {"trajectories": 200, "t_end": 5.0,

@@ -39,8 +39,8 @@ class Kuramoto(System):
     paper_loss: ClassVar[str] = "huber"  # the paper's App. A.4
     # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
     sparse: ClassVar[bool] = True
-    # The coupling sums over neighbours: as for gene, PNA lets a node sense its in-degree.
-    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "pna"}}
+    # The coupling sums over neighbours: the recipe's affine sum update fits it (Σ_j
+    # sin(θ_j − θ_i) is affine in Σ_j sin θ_j and Σ_j cos θ_j; docs/training-recipe.md).
     # The paper gives 500 trajectories at dt 0.05 but no horizon; the authors' 50 steps.
     data_defaults: ClassVar[dict[str, float]] = {"trajectories": 500, "t_end": 2.5,
                                                  "dt": 0.05}

@@ -38,6 +38,11 @@ _MPNODE: dict[str, Any] = {
     "schedule": "plateau",
     "patience": 50,
     "val_batch_size": 1024,
+    # A node update affine in the sum of what the neighbours send, and message states that
+    # start from the node's state: the choice that carries a node model to larger graphs
+    # with higher degrees (bench/results/transfer.md). A system whose coupling is not a
+    # neighbour sum says so in its own recommendation (Lorenz, the quadrotor swarm).
+    "model_options": {"aggregate": "sum", "update": "affine", "message_init": "learned"},
 }
 
 _PAPER: dict[str, Any] = {
