@@ -10,6 +10,20 @@ The paper aggregates with the mean (§3.2); `aggregate="sum"` or `"pna"` (see
 `mpnode_cli.models.aggregate`) let a node sense its in-degree, which systems whose coupling
 is a sum over neighbours need (`docs/training-recipe.md`).
 
+`update="affine"` (mpnode's default recipe; a departure from the paper) replaces the MLP of
+`[x_i, u_i, m̄_i]` by a node update that is affine in what the neighbours send, the form of
+every additively coupled system (dx_i/dt = f(x_i, u_i) + G(x_i)·Σ_j h(x_j)):
+
+    ẋ_i = F_x(x_i, u_i) + G_x(x_i, u_i) · Σ_j ψ(x_j, u_j, m_j)
+    ṁ_i = F_m(x_i, u_i) + G_m(x_i, u_i) · mean_j ψ(x_j, u_j, m_j)
+
+with ψ a learned function of the sender's own state and messages. Because the update is
+linear in the neighbour sum, what it learns from nodes of degree 1–8 holds at degree 30
+(an MLP fed a sum, or PNA's log-degree scalers, leave their training range there); the
+messages' own dynamics see the mean, so their feedback gain does not grow with the degree.
+`message_init="learned"` starts the message states from a learned function of
+`[x_i(t₀), u_i(t₀)]` instead of zero, for coupling that acts from the first instant.
+
 Settled where the paper is vague (MPNODE.jl, exps/models.jl:92-95 and src/empde.jl): input
 order `[x, u, m̄]` and the authors' widths (hidden 32, two tanh layers, M = 3); the whole
 horizon is integrated from x(t₀) in one adaptive solve (rtol = atol = 1e-4), with dense
@@ -49,7 +63,8 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         options: `MPNODEOptions` — message_dim M; hidden, layers, activation of the shared
             MLP; graph ("sys" or "full"); messages (False clamps incoming messages to zero,
             the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
-            backend ("auto", "dense" or "scatter").
+            update ("mlp", the paper's, or "affine"); message_init ("zero", the paper's,
+            or "learned"); backend ("auto", "dense" or "scatter").
     """
 
     kind: ClassVar[str] = "mpnode"
