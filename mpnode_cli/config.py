@@ -308,14 +308,18 @@ class SimulateConfig(BaseModel):
 
 
 class TrainConfig(BaseModel):
-    """What `mpnode train` (and `mpnode finetune`) does: one model, one dataset, one run folder.
+    """What `mpnode train` (and `mpnode finetune`) does: one model, its datasets, one run folder.
 
     Fields not given are filled from the run's recipe (`mpnode_cli.training.recipe`); the
     defaults below equal mpnode's recipe without a system's recommendation.
 
     Attributes:
         dataset: the training dataset (an mpnode `.h5` file); its train split is fitted,
-            its validation split selects the best epoch, its test split is reported.
+            its validation split selects the best epoch, its test split is reported. Or a
+            list of datasets of one system and per-node sizes (N, graphs and the number of
+            samples may differ), trained on at once: their splits are pooled
+            (`mpnode_cli.data.pooled`). A list of one is stored as that one path, so a
+            one-file config reads as it always has; `datasets` gives the list either way.
         model: registry name of the model (`mpnode`, `l2s`, `gnode`, `node`).
         model_options: options of that model, by name (a `[model_options]` table in a TOML
             file); each model declares its own, with their defaults, in
@@ -356,7 +360,8 @@ class TrainConfig(BaseModel):
         plots: draw the test-split plots into `run_dir/plots` at the end.
         init_checkpoint: finetune: start from this checkpoint's weights and architecture
             (`model` and `model_options` are then ignored), with a fresh optimizer.
-        trajectories: use only the first K trajectories of the train split.
+        trajectories: use only the first K trajectories of the train split (of each
+            dataset's).
         renormalize: finetune: fit the normalization on the new train split instead of
             reusing the checkpoint's.
         allow_other_system: finetune: accept a dataset whose `system` differs from the
@@ -369,7 +374,7 @@ class TrainConfig(BaseModel):
     # No inf or NaN in any number (`--t-end inf` would never end).
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    dataset: Path
+    dataset: Path | list[Path]
     model: str = "mpnode"
     model_options: dict[str, Any] = Field(default_factory=dict)
     recipe: Literal["mpnode", "paper"] = "mpnode"
@@ -403,6 +408,18 @@ class TrainConfig(BaseModel):
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
         return _over(train_solver, value)
+
+    @field_validator("dataset")
+    @classmethod
+    def _one_or_several(cls, value: Path | list[Path]) -> Path | list[Path]:
+        if isinstance(value, list) and not value:
+            raise ValueError("give at least one dataset")
+        return value[0] if isinstance(value, list) and len(value) == 1 else value
+
+    @property
+    def datasets(self) -> list[Path]:
+        """The training datasets, in the order given (one or several)."""
+        return list(self.dataset) if isinstance(self.dataset, list) else [self.dataset]
 
 
 # TrainConfig fields that held model options before each model declared its own (written

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
 import torch
+
+if TYPE_CHECKING:
+    from mpnode_cli.data.dataset import TrajectoryData
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -55,3 +59,22 @@ def float64_default():
     torch.set_default_dtype(torch.float64)
     yield
     torch.set_default_dtype(old)
+
+
+def synthetic(k: int, t: int, seed: int, dt: float = 0.1, nodes: int = 3) -> TrajectoryData:
+    """K random trajectories of `nodes` nodes × 2 features on a complete graph, all "train",
+    in memory (system "toy", file name `toy<seed>.h5`, fingerprint `str(seed)`)."""
+    import numpy as np
+
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.graphs import Graphs
+
+    rng = np.random.default_rng(seed)
+    states = rng.normal(size=(k, t, nodes, 2)).cumsum(axis=1) * [1.0, 5.0] + [0.0, 2.0]
+    return TrajectoryData(
+        states=torch.tensor(states, dtype=torch.float32), controls=None,
+        graphs=Graphs.from_adjacency(np.ones((1, nodes, nodes), np.uint8)),
+        graph_index=torch.zeros(k, dtype=torch.long),
+        time=torch.arange(t, dtype=torch.float64) * dt,
+        split=torch.zeros(k, dtype=torch.uint8), system="toy", state_names=("a", "b"),
+        control_names=(), path=Path(f"toy{seed}.h5"), fingerprint=str(seed))

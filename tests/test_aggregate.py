@@ -77,6 +77,17 @@ def test_degree_statistics():
     assert mean_log_degree(adj) == pytest.approx((math.log(4) + math.log(2)) / 4)
 
 
+def test_degree_statistic_of_several_datasets_pools_their_nodes():
+    """Graphs of 4 and 2 nodes (two datasets): δ is the mean over all 4 + 2·2 nodes, not the
+    mean of the two datasets' means."""
+    four = torch.zeros(1, 4, 4)
+    four[0, 0, 1:] = 1.0  # degrees 3, 0, 0, 0
+    two = torch.ones(2, 2, 2) - torch.eye(2)  # degrees 1, 1 in both graphs
+    expected = (math.log(4) + 4 * math.log(2)) / 8
+    assert mean_log_degree([four, two]) == pytest.approx(expected)
+    assert mean_log_degree([four]) == mean_log_degree(four)
+
+
 def test_pna_needs_a_fitted_degree_statistic():
     adj = random_graph(1, 4, 0.5, seed=0)
     with pytest.raises(ValueError, match="δ"):

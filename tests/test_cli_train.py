@@ -141,6 +141,38 @@ def test_resume_and_its_refusals(data, tmp_path):
         invoke("evaluate", run / "config.json", data["l3"]))
 
 
+def test_train_on_two_datasets_then_finetune_and_resume(trained, data, tmp_path):
+    run = tmp_path / "two"
+    result = invoke("train", data["l3"], data["l5"], "--epochs", "2", "--run-dir", run, *FAST)
+    assert result.exit_code == 0, result.output
+    assert "l3 (N=3), l5 (N=5)" in result.output  # the summary table names both
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["epochs"] == 2 and list(summary["by_dataset"]) == ["l3", "l5"]
+    assert all(d["test"]["mse"] > 0 for d in summary["by_dataset"].values())
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [list(r["val_mse_by_dataset"]) for r in rows] == [["l3", "l5"]] * 3
+    result = invoke("train", "--resume", run, "--epochs", "3")
+    assert result.exit_code == 0, result.output
+    line = one_line_error(invoke("train", data["l3"], "--resume", run, "--epochs", "4"))
+    assert "trained on 2 datasets but 1 was given" in line
+    ft = tmp_path / "ft"
+    result = invoke("finetune", trained, data["l5"], data["l7"], "--epochs", "1",
+                    "--run-dir", ft, *FAST)
+    assert result.exit_code == 0, result.output
+    child = load_checkpoint(ft / "checkpoints" / "last.pt")
+    assert [r["num_nodes"] for r in child.dataset["datasets"]] == [5, 7]
+
+
+def test_datasets_that_do_not_go_together_are_refused(data, tmp_path):
+    line = one_line_error(invoke("train", data["l3"], data["gene"], "--run-dir", tmp_path / "r"))
+    assert "has system gene but l3.h5 has lorenz" in line
+    line = one_line_error(invoke("train", data["l3"], data["l5"], "--stream"))
+    assert "--stream reads one dataset" in line
+    line = one_line_error(invoke("train", data["l3"], data["l3"]))
+    assert "holds the same data as l3.h5" in line
+    assert not (tmp_path / "r").exists()
+
+
 def test_ctrl_c_exits_130_after_saving_last(data, tmp_path, monkeypatch):
     epoch = loop._train_epoch
 

@@ -194,6 +194,23 @@ def test_skips_and_rollbacks_are_agreed_by_every_rank(gene, tmp_path, monkeypatc
     assert val_losses(tmp_path / "two") == pytest.approx(val_losses(tmp_path / "one"), rel=1e-4)
 
 
+def train_two_datasets(rank, datasets, run_dir):
+    loop.train(small(datasets, run_dir, lr=1e-2))
+
+
+def test_two_datasets_on_two_ranks_train_as_in_one_process(gene, tmp_path):
+    """Each global batch is one dataset's, split over the ranks; each dataset's validation
+    split is shared by the ranks too."""
+    gene9 = generate(GenerateConfig(system="gene", grid=3, topology="er", trajectories=20,
+                                    t_end=1.0, dt=0.1, out=tmp_path / "gene9.h5")).path
+    spawn_two(train_two_datasets, [gene, gene9], tmp_path / "two")
+    loop.train(small([gene, gene9], tmp_path / "one", lr=1e-2))
+    two, one = read_metrics(tmp_path / "two"), read_metrics(tmp_path / "one")
+    assert val_losses(tmp_path / "two") == pytest.approx(val_losses(tmp_path / "one"), rel=1e-4)
+    for a, b in zip(two, one, strict=True):
+        assert a["val_mse_by_dataset"] == pytest.approx(b["val_mse_by_dataset"], rel=1e-4)
+
+
 # ---------------------------------------------------------------- torchrun, end to end
 @pytest.fixture(scope="module")
 def torchrun_run(gene, tmp_path_factory):

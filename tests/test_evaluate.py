@@ -5,33 +5,28 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
+from conftest import synthetic
 
 from mpnode_cli.config import GenerateConfig, TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.generate import generate
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.models.registry import build_model
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.checkpoint import load_checkpoint
-from mpnode_cli.training.evaluate import baseline_mse, evaluate_checkpoint, train_reference
+from mpnode_cli.training.evaluate import (
+    baseline_mse,
+    evaluate,
+    evaluate_checkpoint,
+    pooled,
+    train_reference,
+)
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.run import checkpoint_path
-
-
-def synthetic(k: int, t: int, seed: int, dt: float = 0.1) -> TrajectoryData:
-    """K random trajectories of 3 nodes × 2 features on a complete graph, all "train"."""
-    rng = np.random.default_rng(seed)
-    states = rng.normal(size=(k, t, 3, 2)).cumsum(axis=1) * [1.0, 5.0] + [0.0, 2.0]
-    return TrajectoryData(
-        states=torch.tensor(states, dtype=torch.float32), controls=None,
-        graphs=Graphs.from_adjacency(np.ones((1, 3, 3), np.uint8)),
-        graph_index=torch.zeros(k, dtype=torch.long),
-        time=torch.arange(t, dtype=torch.float64) * dt,
-        split=torch.zeros(k, dtype=torch.uint8), system="toy", state_names=("a", "b"),
-        control_names=(), path=Path(f"toy{seed}.h5"), fingerprint=str(seed))
 
 
 def by_hand(train_states: np.ndarray, x: np.ndarray, mean: np.ndarray, std: np.ndarray,
@@ -84,6 +79,56 @@ def test_empty_data_gives_nan():
     assert all(math.isnan(v) for v in baseline_mse(train_set, empty, norm).values())
     got = baseline_mse(empty, train_set, norm)
     assert math.isfinite(got["hold_x0"]) and math.isnan(got["time_mean"])
+
+
+def test_pooled_time_mean_of_several_train_splits():
+    """Train splits of 3 and 4 nodes and 5 and 7 samples: at each time, the mean over the
+    trajectories and nodes of those that have that sample."""
+    a, b = synthetic(6, 5, seed=1), synthetic(4, 7, seed=5, nodes=4)
+    norm = Normalizer.fit([a.states, b.states])
+    scored = synthetic(3, 7, seed=6)
+    z = [norm.norm_x(d.states.double()).numpy() for d in (a, b)]
+    mean = np.stack([  # (T, D) by hand
+        (sum(part[:, t].sum(axis=(0, 1)) for part in z if part.shape[1] > t)
+         / sum(part.shape[0] * part.shape[2] for part in z if part.shape[1] > t))
+        for t in range(7)])
+    x = norm.norm_x(scored.states.double()).numpy()
+    want = ((x[:, 1:] - mean[None, 1:, None, :]) ** 2).mean()
+    assert baseline_mse([a, b], scored, norm)["time_mean"] == pytest.approx(want, rel=1e-9)
+    # Splits of one size pool as their concatenation does.
+    c = synthetic(2, 5, seed=7)
+    both = a.take(torch.arange(6))
+    both = replace(both, states=torch.cat([a.states, c.states]))
+    assert baseline_mse([a, c], scored, norm) == pytest.approx(
+        baseline_mse(both, scored, norm), rel=1e-12)
+
+
+def test_pooled_errors_are_those_of_the_datasets_taken_as_one():
+    """`pooled` of two parts of a split equals `evaluate` of the whole split (independent:
+    the whole is evaluated in one pass); parts of other N weigh by their values."""
+    data = synthetic(7, 6, seed=2)
+    norm = Normalizer.fit(data.states)
+    torch.manual_seed(0)
+    model = build_model("mpnode", {"node_dim": 2, "hidden": 8})
+    solver = SolverOptions(fixed_dt=0.05)
+    parts = [data.take(torch.arange(4)), data.take(torch.arange(4, 7))]
+    each = [evaluate(model, part, norm, solver=solver) for part in parts]
+    whole = evaluate(model, data, norm, solver=solver).to_dict()
+    got = pooled(each, [3, 3]).to_dict()
+    for key in ("trajectories", "failed"):
+        assert got[key] == whole[key], key
+    assert got["n_f_evals"] == sum(r.n_f_evals for r in each)  # two passes, each counted
+    for key in ("mse", "rmse", "mse_vs_time"):  # float64 sums
+        assert got[key] == pytest.approx(whole[key], rel=1e-9), key
+    assert got["huber"] == pytest.approx(whole["huber"], rel=1e-6)  # a float32 loss per batch
+    bigger = evaluate(model, synthetic(2, 9, seed=3, nodes=5), norm, solver=solver)
+    mixed = pooled([each[0], bigger], [3, 5])
+    weights = [4 * 5 * 3, 2 * 8 * 5]  # K · (T − 1) · N (the same D)
+    assert mixed.mse == pytest.approx(
+        (each[0].mse * weights[0] + bigger.mse * weights[1]) / sum(weights), rel=1e-12)
+    assert len(mixed.mse_vs_time) == 9
+    assert mixed.mse_vs_time[8] == pytest.approx(bigger.mse_vs_time[8], rel=1e-12)
+    assert pooled([bigger], [5]) is bigger
 
 
 @pytest.fixture(scope="module")

@@ -246,6 +246,33 @@ def test_normalizer_standardises_and_round_trips():
     torch.testing.assert_close(back.denorm_x(z), states, rtol=1e-5, atol=1e-5)
 
 
+def test_normalizer_of_several_datasets_pools_their_values():
+    """Datasets of 3 and 5 nodes: the z-score of every value of both, as if one array."""
+    gen = torch.Generator().manual_seed(7)
+    a = torch.randn(4, 6, 3, 2, generator=gen) * 2 + 1
+    b = torch.randn(2, 9, 5, 2, generator=gen) - 3
+    norm = Normalizer.fit([a, b])
+    values = torch.cat([a.reshape(-1, 2), b.reshape(-1, 2)]).double()
+    torch.testing.assert_close(norm.x_mean, values.mean(0).float())
+    torch.testing.assert_close(norm.x_std, values.std(0, correction=0).float())
+    one, listed = Normalizer.fit(a), Normalizer.fit([a])  # a list of one: bit for bit
+    assert all(torch.equal(getattr(one, f), getattr(listed, f))
+               for f in ("x_mean", "x_std", "u_mean", "u_std"))
+
+
+def test_step_statistics_of_several_datasets_pool_their_steps():
+    """L2S's Δ moments over datasets of 3 and 5 nodes: those of all their steps at once."""
+    gen = torch.Generator().manual_seed(8)
+    a, b = torch.randn(3, 5, 3, 2, generator=gen), torch.randn(2, 4, 5, 2, generator=gen)
+    net = build_model("l2s", {"node_dim": 2})
+    net.fit_statistics([a, b], 0.1)
+    steps = torch.cat([(a[:, 1:] - a[:, :-1]).reshape(-1, 2),
+                       (b[:, 1:] - b[:, :-1]).reshape(-1, 2)])
+    close = {"rtol": 1e-6, "atol": 1e-7}  # the buffers hold float32-rounded moments
+    torch.testing.assert_close(net.delta_mean, steps.mean(0), **close)
+    torch.testing.assert_close(net.delta_std, steps.std(0, correction=0), **close)
+
+
 @pytest.mark.parametrize(("kind", "aggregate"), [
     ("mpnode", "mean"), ("mpnode", "sum"), ("mpnode", "pna"),
     ("gnode", "sum"), ("gnode", "pna"), ("l2s", None)])

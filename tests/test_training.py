@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from mpnode_cli.config import GenerateConfig, TrainConfig, upgrade_train_fields
-from mpnode_cli.data.dataset import TrajectoryData
+from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.mpnode import MPNODE
 from mpnode_cli.models.options import L2SOptions
@@ -295,3 +295,92 @@ def test_flat_fields_of_mpnode_map_onto_its_options():
     assert fields["model_options"] == {"hidden": 16, "message_dim": 2, "backend": "dense"}
     assert TrainConfig(**fields).model == "mpnode"
     assert upgrade_train_fields(fields) == fields
+
+
+# Several datasets at once (`mpnode_cli.data.pooled`).
+
+@pytest.fixture(scope="module")
+def gene9(tmp_path_factory):
+    """Gene dynamics on a 3×3 grid: N = 9 beside `gene`'s 4, and 11 samples, not 21."""
+    out = tmp_path_factory.mktemp("data9") / "gene9.h5"
+    generate(GenerateConfig(system="gene", grid=3, topology="er", trajectories=20, t_end=1.0,
+                            dt=0.1, out=out))
+    return out
+
+
+def test_one_dataset_as_a_list_trains_as_one_dataset(gene, tmp_path):
+    """The several-datasets path given one file is the one-dataset run, bit for bit, with
+    the files and keys of a one-dataset run."""
+    train(config(gene, tmp_path / "one", epochs=2))
+    train(config([gene], tmp_path / "listed", epochs=2))
+    assert rows(tmp_path / "one") == rows(tmp_path / "listed")
+    a = load_checkpoint(checkpoint_path(tmp_path / "one", "last"))
+    b = load_checkpoint(checkpoint_path(tmp_path / "listed", "last"))
+    assert all(torch.equal(v, b.state_dict[k]) for k, v in a.state_dict.items())
+    assert a.dataset == b.dataset and "datasets" not in b.dataset
+    written = json.loads((tmp_path / "listed" / "config.json").read_text())
+    assert written["dataset"] == str(gene.resolve())  # a path, as one-dataset runs write it
+    assert not any(k.endswith("_by_dataset") for r in rows(tmp_path / "listed") for k in r)
+    summary = json.loads((tmp_path / "listed" / "summary.json").read_text())
+    assert summary["by_dataset"] is None
+
+
+def element_weights(paths, split):
+    """K · (T − 1) · N · D of each dataset's split: the weights of pooled MSEs."""
+    parts = [TrajectoryData.load(p).subset(split) for p in paths]
+    return [len(d) * (d.time.numel() - 1) * d.num_nodes * d.node_dim for d in parts]
+
+
+def test_two_datasets_of_other_sizes_train_together(gene, gene9, tmp_path):
+    events = []
+    summary = train(config([gene, gene9], tmp_path / "two", epochs=2), progress=events.append)
+    names, run = ["gene", "gene9"], tmp_path / "two"
+    # Each epoch takes the batches of both (each of one dataset), ⌈K_i / 16⌉ per dataset.
+    trains = [len(TrajectoryData.load(p).subset("train")) for p in (gene, gene9)]
+    per_epoch = sum(math.ceil(k / 16) for k in trains)
+    assert events[0]["batches"] == per_epoch
+    assert sum(e["event"] == "batch" and e["epoch"] == 1 for e in events) == per_epoch
+    # Validation: per dataset, and pooled as the element-weighted mean of the two.
+    val_weights = element_weights((gene, gene9), "validation")
+    metrics = read_metrics(run)
+    for row in metrics:
+        each = row["val_mse_by_dataset"]
+        assert list(each) == names and list(row["val_loss_by_dataset"]) == names
+        weighted = sum(each[n] * w for n, w in zip(names, val_weights, strict=True))
+        assert row["val_mse"] == pytest.approx(weighted / sum(val_weights), rel=1e-12)
+        assert row["val_loss"] == row["val_mse"]  # the loss is the MSE here
+    assert summary.best_epoch == min(metrics, key=lambda r: r["val_loss"])["epoch"]
+    # Test: per dataset and pooled, with baselines of both kinds.
+    test_weights = element_weights((gene, gene9), "test")
+    by = summary.by_dataset
+    assert list(by) == names and all(by[n]["test"] and by[n]["baselines"] for n in names)
+    for what, pick in (("test", "mse"), ("baselines", "hold_x0"), ("baselines", "time_mean")):
+        weighted = sum(by[n][what][pick] * w for n, w in zip(names, test_weights, strict=True))
+        pooled_value = (summary.test if what == "test" else summary.baselines)[pick]
+        assert pooled_value == pytest.approx(weighted / sum(test_weights), rel=1e-12)
+    assert [by[n]["num_nodes"] for n in names] == [4, 9]
+    # The records: both datasets in config.json and in the checkpoint, normalization pooled.
+    written = json.loads((run / "config.json").read_text())
+    assert written["dataset"] == [str(gene.resolve()), str(gene9.resolve())]
+    ckpt = load_checkpoint(checkpoint_path(run, "best"))
+    loaded = [TrajectoryData.load(p) for p in (gene, gene9)]
+    assert [r["fingerprint"] for r in ckpt.dataset["datasets"]] == [d.fingerprint for d in loaded]
+    assert ckpt.dataset["fingerprint"] == loaded[0].fingerprint  # the first, at the top
+    pooled_norm = Normalizer.fit([d.subset("train").states for d in loaded])
+    assert ckpt.normalizer == pooled_norm.to_dict()
+    assert ckpt.state_dict["degree_delta"] > 0  # gene's recipe: PNA, δ of both train sets
+
+
+def test_two_datasets_resume_exactly(gene, gene9, tmp_path):
+    train(config([gene, gene9], tmp_path / "whole", epochs=2))
+    train(config([gene, gene9], tmp_path / "resumed", epochs=1))
+    train(config([gene, gene9], tmp_path / "resumed", epochs=2), resume=True)
+    assert rows(tmp_path / "whole") == rows(tmp_path / "resumed")
+    with pytest.raises(ValueError, match="are not the 2 datasets this run trained on"):
+        train(config([gene9, gene], tmp_path / "resumed", epochs=3), resume=True)
+
+
+def test_a_model_of_one_size_refuses_datasets_of_several(gene, gene9, tmp_path):
+    with pytest.raises(ValueError, match="N = 4, 9: train it on datasets of one N"):
+        train(config([gene, gene9], tmp_path / "node", epochs=1, model="node"))
+    assert not (tmp_path / "node").exists()

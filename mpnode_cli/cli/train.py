@@ -1,4 +1,5 @@
-"""`mpnode train DATASET` and `mpnode finetune CHECKPOINT DATASET`: one training loop, two doors.
+"""`mpnode train DATASET...` and `mpnode finetune CHECKPOINT DATASET...`: one training loop, two
+doors.
 
 The commands only parse: options left out stay out, so `TrainConfig` and the models'
 declared options hold the only defaults; a `--config` TOML file sits beneath the options.
@@ -6,8 +7,9 @@ The model options (`--hidden`, `--message-dim`, ...) are built from the registry
 declarations (`mpnode_cli.models.options`), one per option any model declares; the chosen
 model refuses the ones it does not declare. `--resume RUN_DIR` rebuilds the
 run's own config (only `--epochs`, `--device`, `--plots` and `--stream` may change), from
-any folder: the run knows its dataset's absolute path, and a dataset given beside
-`--resume` is accepted when its fingerprint is the run's. Exit codes: 2 for usage errors,
+any folder: the run knows its datasets' absolute paths, and datasets given beside
+`--resume` are accepted when their fingerprints are the run's. Several datasets are
+trained on at once (`mpnode_cli.data.pooled`). Exit codes: 2 for usage errors,
 1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt`
 and a `summary.json` that says the run was interrupted).
 """
@@ -70,8 +72,10 @@ _STREAM = typer.Option(
 
 
 def train_command(
-    dataset: Path | None = typer.Argument(
-        None, help="An mpnode dataset (.h5); optional with --resume.", show_default=False),
+    datasets: list[Path] | None = typer.Argument(
+        None, help="One or more mpnode datasets (.h5); several (one system and per-node "
+        "sizes, any N and graphs, one dt) are trained on at once, each batch from one of "
+        "them. Optional with --resume.", show_default=False, metavar="DATASET"),
     resume: Path | None = typer.Option(None, help="Continue the run in this folder."),
     model: str | None = typer.Option(
         None, help=f"The model: {', '.join(OPTIONS)} (default mpnode)."),
@@ -91,17 +95,19 @@ def train_command(
     threads: str | None = THREADS, json_out: bool = _JSON,
     **model_options: Any,
 ) -> None:
-    """Train a model on a dataset's train split; results go to runs/<name>/."""
-    options = _given(locals(), exclude=("dataset", "resume", "config_file", "model_options",
+    """Train a model on a dataset's train split, or on several datasets' at once (fitted on
+    their train splits pooled; validation and test reported per dataset and pooled, the
+    best epoch chosen by the pooled validation loss); results go to runs/<name>/."""
+    options = _given(locals(), exclude=("datasets", "resume", "config_file", "model_options",
                                         "threads", "json_out"))
     chosen = _given(model_options, exclude=())  # model options given
     try:
         if resume is not None:
-            config = _resume_config(resume, dataset, options | chosen)
+            config = _resume_config(resume, datasets or None, options | chosen)
         else:
-            if dataset is None:
+            if not datasets:
                 raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")
-            config = _config(config_file, {**options, "dataset": dataset}, chosen)
+            config = _config(config_file, {**options, "dataset": datasets}, chosen)
     except ValueError as exc:
         fail(error_message(exc))
     _run(config, resume=resume is not None, json_out=json_out)
@@ -163,7 +169,9 @@ train_command = _with_model_options(train_command)
 
 def finetune_command(
     checkpoint: Path = typer.Argument(..., help="The checkpoint to start from (.pt)."),
-    dataset: Path = typer.Argument(..., help="The dataset to finetune on (.h5)."),
+    datasets: list[Path] = typer.Argument(
+        ..., help="The dataset to finetune on (.h5), or several at once (as train takes "
+        "them).", metavar="DATASET"),
     renormalize: bool = typer.Option(
         False, "--renormalize", help="Fit the normalization on the new data."),
     allow_other_system: bool = typer.Option(
@@ -185,16 +193,17 @@ def finetune_command(
     trajectories: int | None = _TRAJECTORIES, stream: bool | None = _STREAM,
     threads: str | None = THREADS, json_out: bool = _JSON,
 ) -> None:
-    """Train from a checkpoint's weights and architecture on another dataset (a new run).
+    """Train from a checkpoint's weights and architecture on another dataset, or on several
+    at once (a new run).
 
     CHECKPOINT may be a run folder (its checkpoints/best.pt).
     """
-    options = _given(locals(), exclude=("checkpoint", "dataset", "config_file", "threads",
+    options = _given(locals(), exclude=("checkpoint", "datasets", "config_file", "threads",
                                         "json_out"))
     from mpnode_cli.training.checkpoint import resolve_path
 
     try:
-        config = _config(config_file, {**options, "dataset": dataset,
+        config = _config(config_file, {**options, "dataset": datasets,
                                        "init_checkpoint": resolve_path(checkpoint)})
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
@@ -230,7 +239,7 @@ def _config(config_file: Path | None, options: dict[str, Any],
 _RESUMABLE = {"epochs", "device", "plots", "stream"}
 
 
-def _resume_config(run_dir: Path, dataset: Path | None, options: dict[str, Any]):
+def _resume_config(run_dir: Path, datasets: list[Path] | None, options: dict[str, Any]):
     from mpnode_cli.training.run import read_config
 
     config = read_config(run_dir)
@@ -239,12 +248,25 @@ def _resume_config(run_dir: Path, dataset: Path | None, options: dict[str, Any])
         shown = ", ".join("--" + name.replace("_", "-") for name in changed)
         raise ValueError(f"--resume continues {run_dir} as configured; only --epochs, "
                          f"--device, --plots and --stream may change (got {shown})")
-    if dataset is None and not Path(config.dataset).is_file():
-        raise ValueError(f"{run_dir} trained on {config.dataset}, which is not there any more: "
-                         f"give its new path, mpnode train DATASET --resume {run_dir}")
-    # A dataset given is taken if it is the same data: training compares fingerprints.
-    where = {"dataset": dataset.resolve()} if dataset is not None else {}
+    trained = config.datasets
+    if datasets is not None and len(datasets) != len(trained):
+        raise ValueError(f"{run_dir} trained on {_count(len(trained), 'dataset')} but "
+                         f"{_count(len(datasets), 'was', 'were')} given: give all of them, in "
+                         "the run's order, or none")
+    gone = [str(p) for p in trained if not Path(p).is_file()]
+    if datasets is None and gone:
+        how = ("its new path, mpnode train DATASET" if len(trained) == 1 else
+               "the paths of all its datasets, in order, mpnode train DATASET...")
+        raise ValueError(f"{run_dir} trained on {', '.join(gone)}, which is not there any "
+                         f"more: give {how} --resume {run_dir}")
+    # Datasets given are taken if they are the same data: training compares fingerprints.
+    where = {"dataset": [d.resolve() for d in datasets]} if datasets is not None else {}
     return type(config)(**{**config.model_dump(), **options, **where, "run_dir": run_dir})
+
+
+def _count(n: int, one: str, several: str | None = None) -> str:
+    """`1 dataset`, `2 datasets`; `1 was`, `2 were`."""
+    return f"{n} {one if n == 1 else several or one + 's'}"
 
 
 def _run(config: Any, resume: bool, json_out: bool = False) -> None:
@@ -361,7 +383,9 @@ class _Display:
         self.bar.update(self.epochs, completed=epoch, info=info)
         self.bar.update(self.batches, completed=0)
         if epoch % self.every == 0 or epoch == self.last_epoch:
+            each = "".join(f" {name} {fmt(mse)}"  # several datasets: each one's MSE
+                           for name, mse in row.get("val_mse_by_dataset", {}).items())
             self.console.print(f"epoch {epoch:>4}  train {fmt(row['train_loss']):>7}  "
-                               f"val {fmt(val):>7} (MSE {fmt(row['val_mse']):>7})  "
+                               f"val {fmt(val):>7} (MSE {fmt(row['val_mse']):>7}{each})  "
                                f"lr {row['lr']:.2g}  {row['seconds']:.2f}s  "
                                f"{row['rhs_evals']} evals")

@@ -14,6 +14,7 @@ authors fitted on all data, validation included).
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -43,10 +44,12 @@ class Normalizer:
     u_std: torch.Tensor
 
     @staticmethod
-    def fit(states: torch.Tensor, controls: torch.Tensor | None = None) -> Normalizer:
-        """Fit on `states [K, T, N, D]` (and `controls [K, T, N, U]`)."""
+    def fit(states: torch.Tensor | Sequence[torch.Tensor],
+            controls: torch.Tensor | Sequence[torch.Tensor] | None = None) -> Normalizer:
+        """Fit on `states [K, T, N, D]` (and `controls [K, T, N, U]`), or on lists of them,
+        one per dataset (N and T may differ): pooled, every value counts once."""
         x_mean, x_std = _moments(states)
-        if controls is None or controls.shape[-1] == 0:
+        if controls is None or _features(controls) == 0:
             u_mean = u_std = torch.zeros(0)
         else:
             u_mean, u_std = _moments(controls)
@@ -82,8 +85,15 @@ def _recipe(raw: Any) -> dict[str, Any] | None:
     return recipe if isinstance(recipe, dict) else None
 
 
-def _moments(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    flat = v.reshape(-1, v.shape[-1]).double()  # (K·T·N, F)
+def _features(v: torch.Tensor | Sequence[torch.Tensor]) -> int:
+    return (v if isinstance(v, torch.Tensor) else v[0]).shape[-1]
+
+
+def _moments(v: torch.Tensor | Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    if isinstance(v, torch.Tensor):
+        flat = v.reshape(-1, v.shape[-1]).double()  # (K·T·N, F)
+    else:  # several datasets: (Σ K·T·N, F)
+        flat = torch.cat([part.reshape(-1, part.shape[-1]).double() for part in v])
     mean, std = flat.mean(dim=0), flat.std(dim=0, correction=0)
     std = torch.where(std > _STD_FLOOR, std, torch.ones_like(std))
     return mean.float(), std.float()

@@ -35,7 +35,7 @@ enough to hold one.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import get_args
 
@@ -65,9 +65,12 @@ def in_degree(adjacency: Graph) -> torch.Tensor:
     return adjacency.ne(0).sum(dim=2).to(torch.float64)
 
 
-def mean_log_degree(adjacency: Graph) -> float:
-    """PNA's δ: the mean of log(d + 1) over every node of every graph in the batch."""
-    return float(torch.log1p(in_degree(adjacency)).mean())
+def mean_log_degree(adjacency: Graph | Sequence[Graph]) -> float:
+    """PNA's δ: the mean of log(d + 1) over every node of every graph in the batch, or in
+    a list of batches (several datasets, whose N differ)."""
+    if isinstance(adjacency, torch.Tensor | EdgeBatch):
+        return float(torch.log1p(in_degree(adjacency)).mean())
+    return float(torch.cat([torch.log1p(in_degree(a)).flatten() for a in adjacency]).mean())
 
 
 def as_graph(adjacency: Graph, x: torch.Tensor) -> Graph:
@@ -241,11 +244,14 @@ class DegreeAwareAggregation:
         """The graph messages pass over: the data's, or complete with self-loops."""
         return full_graph(adjacency) if self.graph == "full" else adjacency
 
-    def fit_statistics(self, states: torch.Tensor | None, dt: float, adjacency: Graph) -> None:
-        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` or an `EdgeBatch`
-        (states, dt unused)."""
+    def fit_statistics(self, states: torch.Tensor | None, dt: float,
+                       adjacency: Graph | Sequence[Graph]) -> None:
+        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` or an `EdgeBatch`, or
+        a list of them (several datasets: pooled over their nodes); states, dt unused."""
         if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
-            self.degree_delta.fill_(mean_log_degree(self._graph(adjacency)))
+            graphs = (self._graph(adjacency) if isinstance(adjacency, torch.Tensor | EdgeBatch)
+                      else [self._graph(a) for a in adjacency])
+            self.degree_delta.fill_(mean_log_degree(graphs))
 
     def aggregator(self, adjacency: Graph, backend: str = "auto"):
         """The aggregation over in-neighbours: `m [B, N, F] → [B, N, channels(F)]`.

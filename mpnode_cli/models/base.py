@@ -136,9 +136,12 @@ class NeuralModel(nn.Module):
 
         Args:
             states: `[K, T, N, D]` normalized train-split states; None in a streamed run
-                when `statistics_need_states` is False.
-            dt: sample spacing.
-            adjacency: `[K, N, N]` the train split's graphs.
+                when `statistics_need_states` is False. Training on several datasets, a
+                list of them, one per dataset (their N and T differ; a statistic is then
+                fitted on all of them pooled).
+            dt: sample spacing (one for all datasets).
+            adjacency: `[K, N, N]` the train split's graphs (or an `EdgeBatch`); a list of
+                them, one per dataset, when `states` is a list.
         """
 
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,

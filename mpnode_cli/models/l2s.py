@@ -17,7 +17,7 @@ semi-implicit Euler.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 import torch
@@ -104,10 +104,15 @@ class L2S(NeuralModel):
         return self.decoder(h)
 
     @torch.no_grad()
-    def fit_statistics(self, states: torch.Tensor, dt: float,
+    def fit_statistics(self, states: torch.Tensor | Sequence[torch.Tensor], dt: float,
                        adjacency: torch.Tensor | None = None) -> None:
-        """Fit the Δ normalization on normalized training states `[K, T, N, D]`."""
-        diff = (states[:, 1:] - states[:, :-1]).reshape(-1, self.node_dim).double()
+        """Fit the Δ normalization on normalized training states `[K, T, N, D]`, or on a
+        list of them (several datasets of one dt: pooled over their steps)."""
+        if isinstance(states, torch.Tensor):
+            diff = (states[:, 1:] - states[:, :-1]).reshape(-1, self.node_dim).double()
+        else:  # (Σ K·(T−1)·N, D)
+            diff = torch.cat([(s[:, 1:] - s[:, :-1]).reshape(-1, self.node_dim).double()
+                              for s in states])
         std = diff.std(dim=0, correction=0)
         self.delta_mean.copy_(diff.mean(dim=0).float())
         self.delta_std.copy_(torch.where(std > 1e-8, std, torch.ones_like(std)).float())

@@ -36,6 +36,13 @@ def versus(baseline: Any, mse: Any) -> str:
     return f"{fmt(baseline)} (×{fmt(baseline / mse, 3)})"
 
 
+def _dataset_test_row(name: str, record: dict[str, Any]) -> tuple[str, str]:
+    """One dataset's test MSE beside its time-mean baseline (a run on several datasets)."""
+    mse = (record.get("test") or {}).get("mse")
+    time_mean = (record.get("baselines") or {}).get("time_mean")
+    return f"  {name}: test MSE, time-mean MSE", f"{fmt(mse)}, {versus(time_mean, mse)}"
+
+
 def baselines_note(source: str) -> str:
     """The line under a table that says what the baselines are; `source` names the train
     split whose time mean is used."""
@@ -118,9 +125,14 @@ def train_table(summary: dict[str, Any]) -> Table:
     table.add_column(style="bold")
     table.add_column(justify="right")
     test, base = summary.get("test") or {}, summary.get("baselines") or {}
+    several = summary.get("by_dataset") or {}
+    data = f"{summary['dataset']} ({summary['system']}, N={summary['num_nodes']})"
+    if several:  # the pooled numbers below, then each dataset's test MSE
+        sizes = ", ".join(f"{name} (N={d['num_nodes']})" for name, d in several.items())
+        data = f"{sizes} ({summary['system']}; the MSEs are pooled)"
     rows = [
         ("model", f"{summary['model']} ({fmt(summary['parameters'])} parameters)"),
-        ("data", f"{summary['dataset']} ({summary['system']}, N={summary['num_nodes']})"),
+        ("data", data),
         ("epochs", fmt(summary["epochs"])),
         ("best epoch", fmt(summary["best_epoch"])),
         (f"min validation loss ({summary['loss']})", fmt(summary["min_val_loss"])),
@@ -130,6 +142,7 @@ def train_table(summary: dict[str, Any]) -> Table:
         ("test hold-x(0) MSE (× model)", versus(base.get("hold_x0"), test.get("mse"))),
         ("test time-mean MSE (× model)", versus(base.get("time_mean"), test.get("mse"))),
         ("test Huber", fmt(test.get("huber"))),
+        *[_dataset_test_row(name, d) for name, d in several.items()],
         ("seconds per epoch", fmt(summary["seconds_per_epoch"], 3)),
         ("wall seconds", fmt(summary["wall_seconds"], 3)),
         ("skipped batches / restores", f"{summary['skipped_batches']} / {summary['restores']}"),

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -152,6 +152,66 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     )  # fmt: skip
 
 
+def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:
+    """Several datasets' results as one: the numbers `evaluate` would give if their
+    trajectories were one split (each mean is over every value of every dataset).
+
+    The MSE is element-weighted: each dataset's counts by its predicted values,
+    ok · (T − 1) · N · D (ok: its trajectories whose rollout succeeded); the RMSE per state
+    likewise by ok · (T − 1) · N; the Huber loss (a mean over trajectories × nodes) by
+    ok · N; `mse_vs_time[k]` by ok · N over the datasets that have a k-th sample (their
+    sample times share one grid, `mpnode_cli.data.pooled.check_poolable`). Counts and RHS
+    evaluations are summed.
+
+    Args:
+        results: one per dataset. nodes: N of each dataset.
+
+    Returns:
+        The pooled result; the result itself when there is one.
+    """
+    if len(results) == 1:
+        return results[0]
+    ok = [r.trajectories - r.failed for r in results]
+    samples = [len(r.mse_vs_time) for r in results]
+    values = [o * (t - 1) * n for o, t, n in zip(ok, samples, nodes, strict=True)]
+    node_rows = [o * n for o, n in zip(ok, nodes, strict=True)]
+    rmse = [math.sqrt(_weighted([r.rmse[j] ** 2 for r in results], values))
+            for j in range(len(results[0].rmse))]
+    per_time = [_weighted([r.mse_vs_time[k] if k < t else 0.0
+                           for r, t in zip(results, samples, strict=True)],
+                          [w if k < t else 0 for w, t in zip(node_rows, samples, strict=True)])
+                for k in range(max(samples))]
+    return EvalResult(
+        trajectories=sum(r.trajectories for r in results),
+        failed=sum(r.failed for r in results),
+        mse=_weighted([r.mse for r in results], values),
+        huber=_weighted([r.huber for r in results], node_rows),
+        rmse=rmse, mse_vs_time=per_time, n_f_evals=sum(r.n_f_evals for r in results),
+        seconds=sum(r.seconds for r in results),
+    )  # fmt: skip
+
+
+def pooled_baselines(baselines: Sequence[dict[str, float | None]],
+                     weights: Sequence[int]) -> dict[str, float | None]:
+    """Several datasets' `baseline_mse` as one, each weighted by its predicted values
+    K · (T − 1) · N · D (`mpnode_cli.data.pooled.element_weights`), as `pooled` weights
+    the model's MSE; None where any dataset's is undefined."""
+    out: dict[str, float | None] = {}
+    for key in baselines[0]:
+        values = [b.get(key) for b in baselines]
+        out[key] = None if any(v is None or not math.isfinite(v) for v in values) else (
+            _weighted(values, weights))
+    return out
+
+
+def _weighted(values: Sequence[float], weights: Sequence[float]) -> float:
+    """Σ w·v / Σ w over the values of nonzero weight (NaN when none has one)."""
+    total = sum(weights)
+    if not total:
+        return math.nan
+    return sum(v * w for v, w in zip(values, weights, strict=True) if w) / total
+
+
 def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
             index: torch.Tensor, *, solver: SolverOptions | None = None,
             device: str | torch.device = "cpu") -> Prediction:
@@ -166,7 +226,7 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
                       messages=messages, status=out.status.cpu())
 
 
-def baseline_mse(train: TrajectoryData | StreamedTrajectories,
+def baseline_mse(train: TrajectoryData | StreamedTrajectories | Sequence[TrajectoryData],
                  data: TrajectoryData | StreamedTrajectories,
                  normalizer: Normalizer) -> dict[str, float]:
     """The MSE of two naive predictors on `data`, in `evaluate`'s units.
@@ -183,8 +243,10 @@ def baseline_mse(train: TrajectoryData | StreamedTrajectories,
 
     Args:
         train: trajectories whose per-time mean is the time_mean predictor (the split the
-            model was trained on). data: the trajectories to score; physical units both,
-            in memory or streamed (then read a block of trajectories at a time).
+            model was trained on), or a list of several datasets' (pooled: at each sample
+            time, the mean over the trajectories and nodes of those that have it).
+            data: the trajectories to score; physical units both, in memory or streamed
+            (then read a block of trajectories at a time).
         normalizer: the training normalization.
 
     Returns:
@@ -194,10 +256,13 @@ def baseline_mse(train: TrajectoryData | StreamedTrajectories,
     if len(data) == 0 or data.time.numel() < 2:
         return {"hold_x0": math.nan, "time_mean": math.nan}
     pred = None
-    if len(train):
+    if not isinstance(train, TrajectoryData | StreamedTrajectories):
+        train, mean_t = _pooled_time_mean(train, normalizer)
+    elif len(train):
         total = sum(normalizer.norm_x(block.states.double()).sum(dim=(0, 2))
                     for block in in_blocks(train))
         mean_t = total / (len(train) * train.num_nodes)  # (T', D)
+    if len(train):
         # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
         ts, train_ts = data.time.double(), train.time.double()
         slack = 1e-9 * max(1.0, float(ts.abs().max()))
@@ -215,39 +280,65 @@ def baseline_mse(train: TrajectoryData | StreamedTrajectories,
             "time_mean": time_mean / count if pred is not None else math.nan}
 
 
-def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData, str]:
+def _pooled_time_mean(train: Sequence[TrajectoryData], normalizer: Normalizer
+                      ) -> tuple[TrajectoryData, torch.Tensor]:
+    """The longest of several train splits (its grid holds every other's sample times,
+    `mpnode_cli.data.pooled.check_poolable`) and the pooled normalized time mean on it,
+    `[T', D]`: at t_k, over the trajectories and nodes of the splits that have t_k."""
+    longest = max(train, key=lambda d: d.time.numel())
+    t, d = longest.time.numel(), longest.node_dim
+    total = torch.zeros(t, d, dtype=torch.float64)
+    count = torch.zeros(t, 1, dtype=torch.float64)
+    for part in train:
+        k = part.time.numel()
+        total[:k] += normalizer.norm_x(part.states.double()).sum(dim=(0, 2))  # (T_j, D)
+        count[:k] += len(part) * part.num_nodes
+    return longest, total / count.clamp(min=1)
+
+
+def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData | list[TrajectoryData],
+                                                          str]:
     """The train split a checkpoint was fitted on, for `baseline_mse`'s time mean.
 
     It is the checkpoint's own training dataset (the same file by fingerprint, or the file at
     its recorded path if that still has the recorded fingerprint), limited to the first
     `trajectories` as in training. When that file is gone or changed, the train split of
-    `data` stands in, and the returned note says so.
+    `data` stands in, and the returned note says so. A checkpoint trained on several
+    datasets: `data`'s own train split if it is one of them, else all of theirs (pooled).
 
     Returns:
-        (train trajectories, where they came from: "the train split of NAME", and why when
-        it is not the training dataset).
+        (train trajectories (a list for several datasets), where they came from: "the train
+        split of NAME", and why when it is not the training dataset).
     """
-    want = ckpt.dataset.get("fingerprint")
-    source, note = None, ""
-    if data.fingerprint == want:
-        source = data
+    records = ckpt.dataset.get("datasets") or [ckpt.dataset]
+    wanted = [r.get("fingerprint") for r in records]
+    sources: list[TrajectoryData] = []
+    if data.fingerprint in wanted:
+        sources = [data]
     else:
-        path = Path(ckpt.dataset.get("path") or "")
-        try:
-            candidate = TrajectoryData.load(path) if path.is_file() else None
-        except (OSError, ValueError):
-            candidate = None
-        if candidate is not None and candidate.fingerprint == want:
-            source = candidate
+        for record, want in zip(records, wanted, strict=True):
+            path = Path(record.get("path") or "")
+            try:
+                candidate = TrajectoryData.load(path) if path.is_file() else None
+            except (OSError, ValueError):
+                candidate = None
+            if candidate is None or candidate.fingerprint != want:
+                sources = []
+                break
+            sources.append(candidate)
     limit = ckpt.train_config.get("trajectories")
-    if source is None:
-        note = (f" (the training dataset {ckpt.dataset.get('path')} is missing or changed, "
-                f"so {data.path.name} stands in)")
-        source, limit = data, None
-    train = source.subset("train")
+    note = ""
+    if not sources:
+        which = "the training dataset" if len(records) == 1 else "a training dataset of"
+        gone = ", ".join(str(r.get("path")) for r in records)
+        note = f" ({which} {gone} is missing or changed, so {data.path.name} stands in)"
+        sources, limit = [data], None
+    train = [source.subset("train") for source in sources]
     if limit is not None:
-        train = train.select(torch.arange(min(int(limit), len(train))))
-    return train, f"the train split of {source.path.name}{note}"
+        train = [t.select(torch.arange(min(int(limit), len(t)))) for t in train]
+    names = ", ".join(source.path.name for source in sources)
+    splits = "split" if len(sources) == 1 else "splits"
+    return (train[0] if len(train) == 1 else train), f"the train {splits} of {names}{note}"
 
 
 def check_compatible(model_kind: str, model_config: dict[str, Any], trained_nodes: int,
@@ -364,6 +455,48 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
             "extrapolation": None if beyond is None else beyond.to_dict()}
 
 
+def evaluate_datasets(ckpt, datasets: Sequence[TrajectoryData], names: Sequence[str], *,
+                      split: str, **options: Any) -> dict[str, Any]:
+    """A checkpoint's errors on one split of each of several datasets, and pooled.
+
+    Each dataset with trajectories in `split` is evaluated as `evaluate_checkpoint` does
+    (its baselines' time mean from its own train split when it is one of the checkpoint's
+    training datasets); the pooled result and baselines weight each dataset's by its
+    predicted values (`pooled`, `pooled_baselines`): the MSE is that of all values of all
+    the datasets' splits. With one dataset this is `evaluate_checkpoint`'s report.
+
+    Args:
+        ckpt: a `Checkpoint`. datasets: the datasets; names: the name each goes under.
+        split: "train", "validation", "test" or "all".
+        **options: `evaluate_checkpoint`'s (verb, batch_size, device, plot_dir, ...).
+
+    Returns:
+        `evaluate_checkpoint`'s report of the pooled numbers ("result", "baselines"), plus
+        "by_dataset" (each dataset's report by name) when there are several.
+    """
+    if len(datasets) == 1:
+        return evaluate_checkpoint(ckpt, datasets[0], split=split, **options)
+    from mpnode_cli.data.pooled import element_weights
+
+    reports, subsets = {}, []
+    for data, name in zip(datasets, names, strict=True):
+        subset = data.subset(split)
+        if len(subset):
+            reports[name] = evaluate_checkpoint(ckpt, data, split=split, **options)
+            subsets.append(subset)
+    if not reports:
+        raise ValueError(f"none of the datasets has trajectories in its {split} split")
+    results = [EvalResult(**_nan(r["result"])) for r in reports.values()]
+    result = pooled(results, [d.num_nodes for d in subsets])
+    baselines = pooled_baselines([r["baselines"] for r in reports.values()],
+                                 element_weights(subsets))
+    first = next(iter(reports.values()))
+    return {"dataset": [r["dataset"] for r in reports.values()], "system": first["system"],
+            "num_nodes": [r["num_nodes"] for r in reports.values()], "split": split,
+            "result": result.to_dict(), "baselines": baselines,
+            "plots": [p for r in reports.values() for p in r["plots"]], "by_dataset": reports}
+
+
 def _save_predictions(ckpt, data: TrajectoryData, subset: TrajectoryData, split: str,
                       batch_size: int, device, path: Path, overwrite: bool) -> Path:
     """Roll out a split from its first states and write the predictions beside the facts
@@ -402,6 +535,17 @@ def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):
     x = normalizer.norm_x(batch.states.to(device))
     u = None if batch.controls is None else normalizer.norm_u(batch.controls.to(device))
     return x, u
+
+
+def _nan(value: Any) -> Any:
+    """`_finite` undone: None back to NaN (in dicts and lists too)."""
+    if value is None:
+        return math.nan
+    if isinstance(value, dict):
+        return {k: _nan(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nan(v) for v in value]
+    return value
 
 
 def _finite(value: Any) -> Any:

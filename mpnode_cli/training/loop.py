@@ -14,6 +14,13 @@ supplies the weights and the architecture (and, unless `renormalize`, the normal
 the optimizer is fresh. Resuming (`resume=True`) restores a run's `last.pt` — weights,
 optimizer, RNG states and the loop's counters — so 2 + 2 epochs equal 4.
 
+Several datasets (`config.dataset` a list: one system, any N) are trained on at once
+(`mpnode_cli.data.pooled`): each batch is one dataset's, the batches of all of them are
+interleaved in a seeded order, the normalization and the model's statistics are fitted on
+the train splits pooled, and validation and test are each dataset's and pooled (an
+element-weighted mean, `mpnode_cli.training.evaluate.pooled`), the pooled validation loss
+choosing the best epoch. One dataset runs exactly as it did before several were possible.
+
 With `config.stream` the data stay in the file (`mpnode_cli.data.stream`): the batches are
 the same, read by a background thread as the epoch goes, and the normalization is fitted
 in a pass over the file, so the losses are those of the in-memory run.
@@ -44,8 +51,15 @@ import torch
 
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
-from mpnode_cli.data.stream import StreamedTrajectories, prefetched
-from mpnode_cli.models.registry import OPTIONS, build_model, resolve_options
+from mpnode_cli.data.pooled import (
+    dataset_names,
+    epoch_batches,
+    load_datasets,
+    taken,
+    train_and_validation,
+)
+from mpnode_cli.data.stream import StreamedTrajectories
+from mpnode_cli.models.registry import OPTIONS, build_model, model_class, resolve_options
 from mpnode_cli.paths import check_writable_dir
 from mpnode_cli.signals import deferred_signals, raise_if_interrupted, signal_name
 from mpnode_cli.solver import Status
@@ -56,7 +70,8 @@ from mpnode_cli.training.evaluate import (
     EvalResult,
     check_compatible,
     evaluate,
-    evaluate_checkpoint,
+    evaluate_datasets,
+    pooled,
 )
 from mpnode_cli.training.extrapolation import training_range
 from mpnode_cli.training.losses import LOSSES
@@ -133,25 +148,22 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     if not resume and world.main:  # the run folder's place must be writable before any work
         check_writable_dir(config.run_dir or runs.default_root())
 
-    # 1. Data: the train split (optionally its first K trajectories) and the validation split,
-    # in memory or (`stream`) read from the file batch by batch.
-    data = (StreamedTrajectories.open(config.dataset) if config.stream
-            else TrajectoryData.load(config.dataset))
+    # 1. Data: each dataset's train split (optionally its first K trajectories) and validation
+    # split, in memory or (`stream`, one dataset) read from the file batch by batch. The
+    # first dataset's system and recipe resolve the config (`mpnode_cli.data.pooled`).
+    datas = load_datasets(config.datasets, config.stream)
+    data = datas[0]
     # Absolute paths, so that a run can be resumed and evaluated from any folder.
-    config = config.model_copy(update={"dataset": Path(config.dataset).resolve()} | (
+    paths = [Path(p).resolve() for p in config.datasets]
+    config = config.model_copy(update={"dataset": paths[0] if len(paths) == 1 else paths} | (
         {"init_checkpoint": Path(config.init_checkpoint).resolve()}
         if config.init_checkpoint is not None else {}))
     if not resume:  # a resumed run's config.json is already resolved
         config = resolve_config(config, data)
     device = _device(config.device)
     loss_fn = LOSSES[config.loss]
-    train_set, val_set = data.subset("train"), data.subset("validation")
-    if config.trajectories is not None:
-        train_set = train_set.select(torch.arange(min(config.trajectories, len(train_set))))
-    config = resolve_compile(config, len(train_set))
-    if len(train_set) == 0 or len(val_set) == 0:
-        raise ValueError(f"{data.path.name} needs trajectories in both its train and "
-                         "validation splits (regenerate with --split)")
+    train_sets, val_sets = train_and_validation(datas, config.trajectories)
+    config = resolve_compile(config, sum(len(t) for t in train_sets))
 
     # 2. The starting point: fresh weights, a parent checkpoint (finetune), or last.pt (resume).
     if resume and config.run_dir is None:
@@ -160,21 +172,22 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
         config.init_checkpoint)
     last = load_checkpoint(runs.checkpoint_path(config.run_dir, "last")) if resume else None
     source = last or parent
-    if last is not None and last.dataset["fingerprint"] != data.fingerprint:
-        raise ValueError(f"{data.path} is not the dataset this run trained on (its "
-                         "fingerprint differs from the run's): resume needs the same data")
+    if last is not None:
+        _check_same_data(last, datas)
     if last is not None and config.epochs <= last.epoch and not finished_ok:
         raise ValueError(f"{config.run_dir} has trained {last.epoch} epochs already; --epochs "
                          f"is the total, so give more than {last.epoch} to continue it")
     if source is not None:
         kind, model_config = source.model_kind, source.model_config
-        check_compatible(kind, model_config, source.dataset["num_nodes"], data,
-                         "finetune" if parent else "resume", source.dataset.get("system"),
-                         allow_other_system=config.allow_other_system)
+        for each in datas:
+            check_compatible(kind, model_config, source.dataset["num_nodes"], each,
+                             "finetune" if parent else "resume", source.dataset.get("system"),
+                             allow_other_system=config.allow_other_system)
     else:  # sizes from the data, options as resolved
         kind, model_config = config.model, {
             "node_dim": data.node_dim, "control_dim": data.control_dim,
             "num_nodes": data.num_nodes, **config.model_options}
+        _check_one_size(kind, datas)
     torch.manual_seed(config.seed)
     try:
         model = build_model(kind, model_config)
@@ -187,14 +200,14 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
                                        "model_options": model.options.model_dump()})
     # The default name holds the time and whatever suffix makes it new: rank 0 chooses it.
     run_dir = world.from_main(
-        lambda: Path(config.run_dir or runs.default_run_dir(config.dataset, kind)))
+        lambda: Path(config.run_dir or runs.default_run_dir(config.datasets, kind)))
     config = config.model_copy(update={"run_dir": run_dir})
     if source is not None and not (parent and config.renormalize):
         normalizer = source.build_normalizer()
     elif config.stream:
-        normalizer = train_set.fit_normalizer()  # one pass over the file, in blocks
-    else:
-        normalizer = Normalizer.fit(train_set.states, train_set.controls)
+        normalizer = train_sets[0].fit_normalizer()  # one pass over the file, in blocks
+    else:  # several datasets: on their train splits pooled
+        normalizer = _fit_normalizer(train_sets)
     parent_sha = last.parent_sha256 if last else (
         file_sha256(config.init_checkpoint) if parent else None)
 
@@ -202,8 +215,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
         model.load_state_dict(source.state_dict)
     if source is None or (parent and config.renormalize):
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
-        model.fit_statistics(_statistics_states(model, train_set, normalizer),
-                             float(train_set.time[1] - train_set.time[0]), train_set.graph())
+        _fit_statistics(model, train_sets, normalizer)
     model.to(device)
     world.broadcast_module(model)
     optimizer = Adam(model.parameters(), lr=config.lr)
@@ -228,11 +240,11 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
 
     world.from_main(open_run)
 
-    facts = {"fingerprint": data.fingerprint, "path": str(config.dataset), "system": data.system,
-             "num_nodes": data.num_nodes, "node_dim": data.node_dim,
-             "control_dim": data.control_dim, "state_names": list(data.state_names),
-             "control_names": list(data.control_names), "topology": data.attrs.get("topology"),
-             "train_range": training_range(train_set).to_dict()}
+    facts = _dataset_facts(data, config.datasets[0])
+    if len(datas) > 1:  # every dataset's; the first's stay at the top, where readers look
+        facts["datasets"] = [_dataset_facts(d, p)
+                             for d, p in zip(datas, config.datasets, strict=True)]
+    facts["train_range"] = training_range(*train_sets).to_dict()  # over every dataset
 
     def checkpoint(metrics: dict[str, Any] | None = None) -> Checkpoint:
         return Checkpoint(
@@ -243,18 +255,21 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
             loop=asdict(state), parent_sha256=parent_sha, metrics=metrics or {},
         )  # fmt: skip
 
-    # Each rank validates its part of the split; the error sums are added over ranks.
-    val_part = val_set.select(torch.arange(len(val_set))[world.shard(len(val_set))])
+    # Each rank validates its part of each split; the error sums are added over ranks.
+    val_parts = [v.select(torch.arange(len(v))[world.shard(len(v))]) for v in val_sets]
+    names = dataset_names(config.datasets)
 
-    def validate() -> EvalResult:
-        return evaluate(model, val_part, normalizer, batch_size=config.val_batch_size,
-                        solver=config.solver, device=device,
-                        combine=world.sum if world.size > 1 else None)
+    def validate() -> tuple[EvalResult, list[EvalResult]]:
+        """The pooled result (the loss that selects the best epoch) and each dataset's."""
+        each = [evaluate(model, part, normalizer, batch_size=config.val_batch_size,
+                         solver=config.solver, device=device,
+                         combine=world.sum if world.size > 1 else None) for part in val_parts]
+        return pooled(each, [d.num_nodes for d in datas]), each
 
     # 3. Epochs. The snapshot is the last completed epoch: what last.pt holds, what a run of
     # bad steps rolls back to, and what Ctrl-C leaves behind.
     snapshot = _snapshot(checkpoint())
-    batches = math.ceil(len(train_set) / config.batch_size)
+    batches = sum(math.ceil(len(t) / config.batch_size) for t in train_sets)
     if config.schedule == "cosine" and last is None:
         _set_lr(optimizer, _cosine_lr(config, 1))
     emit({"event": "start", "run_dir": str(run_dir), "first_epoch": state.epoch + 1,
@@ -265,20 +280,21 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
         if state.epoch == 0 and not runs.checkpoint_path(run_dir, "best").exists():
             # Epoch 0: how good the starting weights are (again, if interrupted before).
             runs.truncate_metrics(run_dir, -1)
-            val = validate()
-            row = _record(state, 0, val, config, None, optimizer, val.seconds)
+            val, each = validate()
+            row = _record(state, 0, val, config, None, optimizer, val.seconds) | _by_dataset(
+                names, each, config)
             with deferred_signals():  # the epoch's files all or none (see _save_epoch)
                 snapshot = _snapshot(checkpoint())
                 _save_epoch(world, run_dir, row, snapshot, checkpoint, best=True)
             emit({"event": "epoch", **row})
         for epoch in range(state.epoch + 1, config.epochs + 1):
             start = time.perf_counter()
-            steps = _train_epoch(model, optimizer, train_set, normalizer, loss_fn, config,
+            steps = _train_epoch(model, optimizer, train_sets, normalizer, loss_fn, config,
                                  state, snapshot, shuffle, epoch, device, emit, world)
-            val = validate()
+            val, each = validate()
             state.epoch = epoch
             row = _record(state, epoch, val, config, steps, optimizer,
-                          time.perf_counter() - start)
+                          time.perf_counter() - start) | _by_dataset(names, each, config)
             with deferred_signals():
                 snapshot = _snapshot(checkpoint())
                 _save_epoch(world, run_dir, row, snapshot, checkpoint, best=row["improved"])
@@ -295,17 +311,19 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     if not world.main:
         return None
 
-    # 4. The best weights on the test split (if the dataset has one), plots, summary.json.
+    # 4. The best weights on the test split (of each dataset that has one; pooled), plots,
+    # summary.json.
     best = load_checkpoint(runs.checkpoint_path(run_dir, "best"))
     emit({"event": "test"})
     test = None
-    if bool((data.split == SPLITS["test"]).any()):
-        test = evaluate_checkpoint(best, data, split="test", verb="test",
-                                   batch_size=config.val_batch_size, device=device,
-                                   plot_dir=run_dir / "plots" if config.plots else None)
+    if any(bool((d.split == SPLITS["test"]).any()) for d in datas):
+        test = evaluate_datasets(best, datas, names, split="test", verb="test",
+                                 batch_size=config.val_batch_size, device=device,
+                                 plot_dir=run_dir / "plots" if config.plots else None)
     summary = runs.TrainSummary(
         run_dir=str(run_dir), model=kind, model_config=model_config, parameters=_count(model),
-        dataset=str(config.dataset), dataset_fingerprint=data.fingerprint, system=data.system,
+        dataset=str(config.datasets[0]), dataset_fingerprint=data.fingerprint,
+        system=data.system,
         num_nodes=data.num_nodes, loss=config.loss, epochs=state.epoch,
         best_epoch=state.best_epoch, min_val_loss=state.best_val,
         min_val_mse=best.metrics.get("val_mse"), table2=state.best_epoch * state.best_val,
@@ -315,6 +333,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
         restores=state.restores,
         init_checkpoint=None if config.init_checkpoint is None else str(config.init_checkpoint),
         parent_sha256=parent_sha, world_size=world.size,
+        by_dataset=_summary_by_dataset(names, facts, best, test),
     )  # fmt: skip
     runs.write_json(run_dir / runs.SUMMARY, asdict(summary))
     return summary
@@ -338,25 +357,26 @@ def _save_epoch(world, run_dir: Path, row: dict[str, Any], snapshot: Checkpoint,
     save_checkpoint(runs.checkpoint_path(run_dir, "last"), snapshot)
 
 
-def _train_epoch(model, optimizer, train_set: TrajectoryData | StreamedTrajectories,
+def _train_epoch(model, optimizer, train_sets: list[TrajectoryData | StreamedTrajectories],
                  normalizer: Normalizer,
                  loss_fn, config: TrainConfig, state: LoopState, snapshot: Checkpoint,
                  shuffle: torch.Generator, epoch: int, device, emit: Progress,
                  world: distributed.World) -> dict:
-    """One pass over the shuffled train split; returns the epoch's step statistics."""
+    """One pass over the shuffled train split (of each dataset: every batch is one
+    dataset's, `mpnode_cli.data.pooled.epoch_batches`); returns the epoch's step
+    statistics (`horizon`: the longest dataset's)."""
     start = time.perf_counter()
-    horizon = _horizon(config, epoch, train_set.time.numel())
-    ts = train_set.time[:horizon].to(device)
-    order = torch.randperm(len(train_set), generator=shuffle)
+    horizons = [_horizon(config, epoch, t.time.numel()) for t in train_sets]
+    times = [t.time[:h].to(device) for t, h in zip(train_sets, horizons, strict=True)]
     loss_sum, count, grad_norms, evals_per_batch, skipped = 0.0, 0, [], [], []
-    if config.even_batches:  # ⌈K/B⌉ batches whose sizes differ by at most one
-        batches = order.tensor_split(math.ceil(len(order) / config.batch_size))
-    else:  # full batches and a partial last one, as the authors' DataLoader
-        batches = order.split(config.batch_size)
+    batches = epoch_batches([len(t) for t in train_sets], config.batch_size,
+                            config.even_batches, shuffle)
     # This rank's slice of each global batch (all of it), read ahead when streamed.
-    parts = [idx[world.shard(len(idx))] for idx in batches]
-    with prefetched(train_set, parts) as taken:
-        for b, (idx, batch) in enumerate(zip(batches, taken, strict=True), start=1):
+    parts = [(i, idx[world.shard(len(idx))]) for i, idx in batches]
+    with taken(train_sets, parts) as batches_taken:
+        for b, ((i, idx), batch) in enumerate(zip(batches, batches_taken, strict=True),
+                                              start=1):
+            horizon, ts = horizons[i], times[i]
             part = world.shard(len(idx))
             x = normalizer.norm_x(batch.states[:, :horizon])  # (B_r, H, N, D)
             # Noise is drawn on the CPU from the loop's generator for the whole global batch,
@@ -395,10 +415,91 @@ def _train_epoch(model, optimizer, train_set: TrajectoryData | StreamedTrajector
                 emit({"event": "restore", "epoch": epoch, "lr": lr})
     # A batch's RHS evaluations are its slowest trajectory's, wherever that was solved.
     n_f_evals = int(world.max(torch.tensor(evals_per_batch, dtype=torch.long)).sum())
-    return {"train_loss": loss_sum / count if count else math.nan, "horizon": horizon,
+    return {"train_loss": loss_sum / count if count else math.nan, "horizon": max(horizons),
             "grad_norm": sum(grad_norms) / len(grad_norms) if grad_norms else math.nan,
             "rhs_evals": n_f_evals, "skipped": len(skipped), "skip_reasons": skipped,
             "train_seconds": time.perf_counter() - start}
+
+
+def _check_same_data(last: Checkpoint, datas: list) -> None:
+    """Refuse to resume a run on other data than it trained on (by fingerprint, in order)."""
+    records = last.dataset.get("datasets") or [last.dataset]
+    if [r["fingerprint"] for r in records] == [d.fingerprint for d in datas]:
+        return
+    if len(records) == 1 and len(datas) == 1:
+        raise ValueError(f"{datas[0].path} is not the dataset this run trained on (its "
+                         "fingerprint differs from the run's): resume needs the same data")
+    given = ", ".join(str(d.path) for d in datas)
+    raise ValueError(f"{given} are not the {len(records)} datasets this run trained on, in "
+                     "its order (their fingerprints differ from the run's): resume needs the "
+                     "same data")
+
+
+def _check_one_size(kind: str, datas: list) -> None:
+    """Refuse datasets of several N for a model built for one node count."""
+    sizes = sorted({d.num_nodes for d in datas})
+    if len(sizes) > 1 and kind in OPTIONS and not model_class(kind).transferable:
+        raise ValueError(f"model '{kind}' runs only on graphs of the size it was built for, "
+                         f"but the datasets have N = {', '.join(map(str, sizes))}: train it "
+                         "on datasets of one N, or choose a model of node dynamics (mpnode)")
+
+
+def _fit_normalizer(train_sets: list[TrajectoryData]) -> Normalizer:
+    """The z-score of the train split, or of several datasets' train splits pooled."""
+    if len(train_sets) == 1:
+        return Normalizer.fit(train_sets[0].states, train_sets[0].controls)
+    controls = [t.controls for t in train_sets]
+    return Normalizer.fit([t.states for t in train_sets],
+                          None if controls[0] is None else controls)
+
+
+def _fit_statistics(model, train_sets: list, normalizer: Normalizer) -> None:
+    """`model.fit_statistics` on the train split, or on several datasets' (as lists: their
+    N differ; all in memory, as streaming takes one dataset)."""
+    dt = float(train_sets[0].time[1] - train_sets[0].time[0])  # one dt for all datasets
+    if len(train_sets) == 1:
+        model.fit_statistics(_statistics_states(model, train_sets[0], normalizer), dt,
+                             train_sets[0].graph())
+        return
+    model.fit_statistics([normalizer.norm_x(t.states) for t in train_sets], dt,
+                         [t.graph() for t in train_sets])
+
+
+def _dataset_facts(data, path: Path) -> dict[str, Any]:
+    """What a checkpoint records of a training dataset."""
+    return {"fingerprint": data.fingerprint, "path": str(path), "system": data.system,
+            "num_nodes": data.num_nodes, "node_dim": data.node_dim,
+            "control_dim": data.control_dim, "state_names": list(data.state_names),
+            "control_names": list(data.control_names), "topology": data.attrs.get("topology")}
+
+
+def _by_dataset(names: list[str], each: list[EvalResult], config: TrainConfig
+                ) -> dict[str, Any]:
+    """A metrics row's per-dataset validation values (none for one dataset, whose row keeps
+    the keys it always had)."""
+    if len(each) == 1:
+        return {}
+    pairs = list(zip(names, each, strict=True))
+    return {"val_loss_by_dataset": {n: r.loss(config.loss) for n, r in pairs},
+            "val_mse_by_dataset": {n: r.mse for n, r in pairs},
+            "val_failed_by_dataset": {n: r.failed for n, r in pairs}}
+
+
+def _summary_by_dataset(names: list[str], facts: dict[str, Any], best: Checkpoint,
+                        test: dict[str, Any] | None) -> dict[str, Any] | None:
+    """summary.json's `by_dataset` (None for one dataset): each dataset's path, fingerprint,
+    N, validation MSE at the best epoch, and test metrics and baselines (None without a
+    test split)."""
+    records = facts.get("datasets")
+    if not records:
+        return None
+    val = best.metrics.get("val_mse_by_dataset") or {}
+    tested = (test or {}).get("by_dataset") or {}
+    return {name: {"path": r["path"], "fingerprint": r["fingerprint"],
+                   "num_nodes": r["num_nodes"], "val_mse": val.get(name),
+                   "test": (tested.get(name) or {}).get("result"),
+                   "baselines": (tested.get(name) or {}).get("baselines")}
+            for name, r in zip(names, records, strict=True)}
 
 
 def _statistics_states(model, train_set: TrajectoryData | StreamedTrajectories,

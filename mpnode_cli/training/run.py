@@ -1,7 +1,8 @@
 """The run folder `runs/<name>/`: where a training run leaves everything it made.
 
     config.json         the resolved `TrainConfig` (rebuilds the run: `TrainConfig(**json)`;
-                        the dataset's path is absolute, so the run resumes from anywhere)
+                        the dataset's path (or datasets' paths) absolute, so the run
+                        resumes from anywhere)
     metrics.jsonl       one JSON object per epoch (epoch 0 = the starting weights, validated)
     summary.json        written at the end: best epoch, minimum validation loss, test metrics,
                         the paper's Table-2 figure, wall time, parameter count, processes
@@ -37,6 +38,13 @@ class TrainSummary:
     and `baselines` the naive predictors' MSE on that split, `{hold_x0, time_mean}` (see
     `mpnode_cli.training.evaluate.baseline_mse`). `world_size` is the number of processes
     that trained (torchrun's data parallelism; 1 without it).
+
+    A run on several datasets: `dataset`, `dataset_fingerprint` and `num_nodes` are the
+    first dataset's; `min_val_loss`, `min_val_mse`, `test` and `baselines` are pooled (means
+    over every value of every dataset's split, so each dataset weighs by its number of
+    predicted values, K · (T − 1) · N · D); `by_dataset` holds each dataset's own by name
+    (its file name without `.h5`): path, fingerprint, num_nodes, val_mse (at the best
+    epoch), test and baselines. It is None for one dataset.
     """
 
     run_dir: str
@@ -63,6 +71,7 @@ class TrainSummary:
     baselines: dict[str, Any] | None = None
     finished: bool = True
     world_size: int = 1
+    by_dataset: dict[str, Any] | None = None
 
 
 def default_root() -> Path:
@@ -70,10 +79,13 @@ def default_root() -> Path:
     return Path("runs")
 
 
-def default_run_dir(dataset: Path, model: str, root: Path | None = None) -> Path:
-    """`runs/<dataset stem>-<model>-<YYYYmmdd-HHMMSS>`, with a suffix if that exists."""
+def default_run_dir(dataset: Path | list[Path], model: str, root: Path | None = None) -> Path:
+    """`runs/<dataset stem>-<model>-<YYYYmmdd-HHMMSS>`, with a suffix if that exists;
+    several datasets: `<first stem>+<how many more>`."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    base = (root or default_root()) / f"{Path(dataset).stem}-{model}-{stamp}"
+    paths = dataset if isinstance(dataset, list) else [dataset]
+    stem = Path(paths[0]).stem + (f"+{len(paths) - 1}" if len(paths) > 1 else "")
+    base = (root or default_root()) / f"{stem}-{model}-{stamp}"
     path, n = base, 1
     while path.exists():
         n += 1

@@ -80,7 +80,11 @@ def check_checkpoint(path: str | Path) -> Report:
 def _trained_on(facts: Any) -> dict[str, Any] | None:
     if not isinstance(facts, dict):
         return None
-    return {key: facts.get(key) for key in ("system", "num_nodes", "topology", "path")}
+    trained_on = {key: facts.get(key) for key in ("system", "num_nodes", "topology", "path")}
+    if isinstance(facts.get("datasets"), list):  # several at once: the first's above
+        trained_on["datasets"] = [d.get("path") for d in facts["datasets"]
+                                  if isinstance(d, dict)]
+    return trained_on
 
 
 def _weights(want: dict[str, torch.Tensor], have: Any) -> list[str]:
