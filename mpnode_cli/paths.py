@@ -1,9 +1,23 @@
-"""Output locations, checked before any work starts.
+"""Output locations: the one guard every writer uses, before the work that fills them.
 
-A verb that writes a file or a folder checks first that it can: the folder exists or can
-be made, a file can be created in it, and what sits at the target (if anything) is a
-regular file that `--force` may replace. A symlink, a folder, a device or a pipe is never
-replaced: the user meant something else, and replacing it would be hard to undo.
+A verb that writes a file or a folder checks first that it can (`check_output_file`,
+`check_output_folder`), then takes the path for itself (`reserve_output`, `reserve_folder`):
+
+- **Never an input.** An output that is the same file as one of the verb's inputs (by
+  `os.path.samefile`: through symbolic links and hard links) is refused, even with
+  `--force`: replacing it would destroy the data the output is made from.
+- **Created exclusively.** A new output file is reserved by creating an empty placeholder
+  with `O_CREAT | O_EXCL` before any work; the finished file is written beside it under a
+  temporary name and renamed over it (`mpnode_cli.data.atomic`). Of two runs writing one
+  new path without `--force`, the second is refused at once instead of replacing the first
+  run's file when it finishes. A run that fails removes its placeholder. A folder is
+  reserved by making its first entry with `mkdir`, which is exclusive too.
+- **Length checked.** Each name in the path fits the filesystem's limit (usually 255
+  bytes) and the whole path the system's (usually 4096, with room for the temporary and
+  the files a folder will hold), so a long name is refused up front, as what it is.
+- **Only regular files replaced.** What sits at the target (if anything) must be a
+  regular file that `--force` may replace. A symlink, a folder, a device or a pipe is
+  never replaced: the user meant something else, and replacing it would be hard to undo.
 """
 
 from __future__ import annotations
@@ -12,7 +26,16 @@ import hashlib
 import os
 import stat
 import tempfile
+import uuid
+from collections.abc import Iterable
 from pathlib import Path
+
+# POSIX's limits where the filesystem does not say (`os.pathconf`): one name, one path.
+NAME_MAX, PATH_MAX = 255, 4096
+# Bytes a temporary beside a file may add to its name: `.` + `.<pid>.<8 hex>.tmp`.
+_TEMP_ROOM = 32
+# Room left in a folder's path for what its writer puts inside (a name's worth).
+_FOLDER_ROOM = NAME_MAX + 1
 
 
 def describe(path: Path) -> str | None:
@@ -32,26 +55,202 @@ def describe(path: Path) -> str | None:
     return next((name for test, name in kinds if test(mode)), "not a regular file")
 
 
-def check_output_file(path: str | Path, *, overwrite: bool) -> None:
+def check_output_file(path: str | Path, *, overwrite: bool,
+                      inputs: Iterable[str | Path | None] = ()) -> None:
     """Refuse an output file that could not be written, before the work that makes it.
 
     Args:
         path: the file to be written (atomically: a temporary beside it, then a rename).
         overwrite: whether an existing regular file may be replaced (`--force`).
+        inputs: the files the verb reads (None entries are skipped); the output may be
+            none of them.
 
     Raises:
         FileExistsError: a regular file exists there and `overwrite` is False.
-        ValueError: something other than a regular file sits there, or its folder cannot
-            be made or written in (one line saying which).
+        ValueError: a name or path too long, one of `inputs`, something other than a
+            regular file there, or a folder that cannot be made or written in (one line
+            saying which).
     """
     path = Path(path)
+    check_length(path, room=_TEMP_ROOM)
     other = describe(path)
     if other is not None:
         raise ValueError(f"{path} is {other}: mpnode only replaces regular files, even with "
                          "--force; choose another output path")
+    check_not_input(path, inputs)
     if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} already exists (use --force to overwrite)")
+        raise FileExistsError(_exists(path))
     check_writable_dir(path.parent)
+
+
+class Reservation:
+    """An output file taken for one writer (`reserve_output`); as a context manager, it
+    removes its placeholder when the block ends without having filled it."""
+
+    def __init__(self, path: Path, placeholder: os.stat_result | None,
+                 folders: list[Path] | None = None):
+        self.path = path
+        self._placeholder = placeholder  # the empty file made, None where one existed
+        self._folders = folders or []  # the folders made for it, outermost first
+
+    def release(self) -> None:
+        """Remove the placeholder if it is still there, empty (nothing was written), and
+        the folders made for it if they are empty."""
+        placeholder, self._placeholder = self._placeholder, None
+        try:
+            now = os.lstat(self.path)
+        except OSError:
+            return
+        if placeholder is None or (now.st_dev, now.st_ino, now.st_size) != (
+                placeholder.st_dev, placeholder.st_ino, 0):
+            return
+        self.path.unlink(missing_ok=True)
+        for folder in reversed(self._folders):
+            try:
+                folder.rmdir()
+            except OSError:  # not empty: someone else's now
+                break
+
+    def __enter__(self) -> Reservation:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def reserve_output(path: str | Path, *, overwrite: bool,
+                   inputs: Iterable[str | Path | None] = ()) -> Reservation:
+    """Check an output file (`check_output_file`) and take it for this writer.
+
+    A new file is created empty and exclusively (`O_CREAT | O_EXCL`), so a second writer
+    of the same path is refused until this one is done; an existing file (`overwrite`)
+    stays as it is until the finished file replaces it. Use it as `with
+    reserve_output(...):` around the work and the write; inside, write the file with
+    `overwrite=True`, since the path is now the block's own.
+
+    Raises:
+        FileExistsError, ValueError: as `check_output_file`; FileExistsError too when
+            another writer created the file since the check.
+    """
+    path = Path(path)
+    check_output_file(path, overwrite=overwrite, inputs=inputs)
+    folders = [p for p in reversed(path.parents) if not os.path.lexists(p)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except FileExistsError:
+        if not overwrite:  # another writer took it between the check and now
+            raise FileExistsError(_exists(path)) from None
+        check_output_file(path, overwrite=True)  # still a regular file, and writable
+        return Reservation(path, None)
+    try:
+        placeholder = os.fstat(fd)
+    finally:
+        os.close(fd)
+    return Reservation(path, placeholder, folders)
+
+
+def check_output_folder(path: str | Path) -> None:
+    """Refuse an output folder that could not be made or written in (without making it):
+    names too long, something other than a folder there, no permission.
+
+    Raises:
+        ValueError: one line naming the folder and why.
+    """
+    path = Path(path)
+    check_length(path, room=_FOLDER_ROOM)
+    if os.path.lexists(path) and not path.is_dir():
+        raise ValueError(f"{path} is {describe(path) or 'a file'}, not a folder: choose "
+                         "another path")
+    check_writable_dir(path)
+
+
+def reserve_folder(path: str | Path, first: str) -> bool:
+    """Check an output folder (`check_output_folder`) and take it for this writer: make
+    it (or take it as it is, if it exists empty), then make `first` inside it, exclusively,
+    so that of two writers of the same folder one is refused.
+
+    Args:
+        path: the folder.
+        first: the entry this writer makes first inside it (a folder).
+
+    Returns:
+        Whether `path` itself was made.
+
+    Raises:
+        FileExistsError: the folder holds something already (another writer's `first`,
+            perhaps made since the check).
+        ValueError: as `check_output_folder`.
+    """
+    path = Path(path)
+    check_output_folder(path)
+    try:
+        path.mkdir(parents=True)
+        made = True
+    except FileExistsError:
+        made = False
+        if any(path.iterdir()):
+            raise FileExistsError(f"{path} already exists and is not empty") from None
+    try:
+        (path / first).mkdir()
+    except FileExistsError:
+        raise FileExistsError(f"{path} was just taken by another run") from None
+    return made
+
+
+def check_not_input(path: str | Path, inputs: Iterable[str | Path | None]) -> None:
+    """Refuse an output that is one of `inputs` (the same file, through links or not).
+
+    Raises:
+        ValueError: one line naming the input.
+    """
+    for each in inputs:
+        if each is not None and _same_file(Path(path), Path(each)):
+            alias = "" if str(each) == str(path) else f" ({each})"
+            raise ValueError(f"{path} is one of the inputs{alias}: mpnode never writes over "
+                             "its inputs, even with --force; choose another output path")
+
+
+def check_length(path: str | Path, *, room: int = 0) -> None:
+    """Refuse a path the filesystem cannot hold: a name longer than its limit for one name
+    (usually 255 bytes), or a whole path (absolute, plus `room` bytes for what the writer
+    adds: a temporary's suffix, the files inside a folder) longer than the system's.
+
+    Raises:
+        ValueError: one line saying which name, or how long, and the limit.
+    """
+    path = Path(path)
+    name_max, path_max = _limits(path)
+    for name in path.parts:
+        size = len(os.fsencode(name))
+        if size > name_max and name != path.anchor:
+            where = f" in {_short(str(path))}" if name != str(path) else ""
+            raise ValueError(f"the name '{_short(name)}'{where} is {size} bytes, longer than "
+                             f"the {name_max} bytes a file or folder name may have here; "
+                             "choose a shorter name")
+    size = len(os.fsencode(os.path.abspath(path)))
+    if size + room >= path_max:
+        raise ValueError(f"cannot write {_short(str(path))}: its full path is {size} bytes, "
+                         f"and mpnode needs it under {path_max - room} (the {path_max} bytes "
+                         "a path may have here, less room for the files written there); "
+                         "choose a shorter path")
+
+
+def temp_beside(path: str | Path) -> Path:
+    """A fresh temporary name beside `path` (same folder, hence same filesystem, so that a
+    rename onto `path` is atomic): `.<name>.<pid>.<random>.tmp`, its name shortened to fit
+    the limit on one name."""
+    path = Path(path)
+    tail = f".{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
+    return path.with_name(f".{shorten(path.name, _limits(path)[0] - 1 - len(tail))}{tail}")
+
+
+def shorten(name: str, size: int) -> str:
+    """The longest start of `name`, in whole characters, that is at most `size` bytes on
+    disk (for names mpnode makes from a user's: a temporary's, a run folder's)."""
+    while len(os.fsencode(name)) > size:
+        name = name[:-1]
+    return name
 
 
 def check_writable_dir(path: str | Path) -> None:
@@ -87,3 +286,46 @@ def file_sha256(path: str | Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def _exists(path: Path) -> str:
+    """Why an existing output is refused without `--force`: an empty file is most likely
+    another run's reservation, and saying so beats a bare "exists"."""
+    try:
+        empty = path.stat().st_size == 0
+    except OSError:
+        empty = False
+    if empty:
+        return (f"{path} already exists and is empty: another mpnode run may be writing it "
+                "(or one was killed before it finished); wait for it, or use --force to "
+                "replace it")
+    return f"{path} already exists (use --force to overwrite)"
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether `a` and `b` name one file: the same inode where both exist, else the same
+    path once symbolic links are resolved."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them is missing (or unreadable)
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _limits(path: Path) -> tuple[int, int]:
+    """The filesystem's limits on one name and on a whole path, in bytes, asked of the
+    nearest existing folder above `path` (POSIX's where it does not say)."""
+    probe = Path(os.path.abspath(path)).parent
+    while not os.path.isdir(probe) and probe != probe.parent:  # isdir: False on any error
+        probe = probe.parent
+    limits = []
+    for name, default in (("PC_NAME_MAX", NAME_MAX), ("PC_PATH_MAX", PATH_MAX)):
+        try:
+            limits.append(int(os.pathconf(probe, name)) or default)
+        except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or no answer
+            limits.append(default)
+    return limits[0], limits[1]
+
+
+def _short(text: str, keep: int = 60) -> str:
+    """`text` as it is, or its start and end around an ellipsis when over `keep` chars."""
+    return text if len(text) <= keep else f"{text[:keep * 2 // 3]}…{text[-keep // 3:]}"

@@ -174,7 +174,7 @@ def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> 
     Raises:
         FileExistsError: `path` exists and `overwrite` is False.
         ValueError: inconsistent shapes, or a target that is not a regular file or cannot
-            be written (`mpnode_cli.paths.check_output_file`).
+            be written (`mpnode_cli.paths.reserve_output`).
         KeyboardInterrupt: SIGINT or SIGTERM during the write; nothing is left behind.
     """
     from mpnode_cli.data.atomic import atomic_h5
