@@ -78,3 +78,57 @@ def synthetic(k: int, t: int, seed: int, dt: float = 0.1, nodes: int = 3) -> Tra
         time=torch.arange(t, dtype=torch.float64) * dt,
         split=torch.zeros(k, dtype=torch.uint8), system="toy", state_names=("a", "b"),
         control_names=(), path=Path(f"toy{seed}.h5"), fingerprint=str(seed))
+
+
+def invoke(*args):
+    """`mpnode ARGS` through typer's CliRunner (arguments as strings)."""
+    from typer.testing import CliRunner
+
+    from mpnode_cli.cli.app import app
+
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def one_line_error(result, code: int = 2) -> str:
+    """The one `Error:` line of a refused command, after checking its exit code and that
+    it printed no traceback."""
+    assert result.exit_code == code, result.output
+    assert "Traceback" not in result.output, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
+    assert len(lines) == 1, result.output
+    return lines[0]
+
+
+@pytest.fixture(scope="session")
+def user_files(tmp_path_factory) -> dict[str, Path]:
+    """A user's files and what mpnode makes of them, by name, for tests of what the verbs
+    write: `states` [6, 5, 3, 2], `adjacency` [3, 3] and `x0` [2, 3, 2] (.npy), `edges` (an
+    edge-list text file), `data` (their `mpnode import`), `run` (a model trained on it
+    for one epoch) and `checkpoint` (its best.pt)."""
+    root = tmp_path_factory.mktemp("user")
+    rng = np.random.default_rng(0)
+    files = {name: root / f"{name}.npy" for name in ("states", "adjacency", "x0")}
+    np.save(files["states"], rng.normal(size=(6, 5, 3, 2)))
+    np.save(files["adjacency"], np.ones((3, 3), np.uint8))
+    np.save(files["x0"], rng.normal(size=(2, 3, 2)))
+    files["edges"] = root / "edges.txt"
+    files["edges"].write_text("0 1\n1 2\n2 0\n")
+    files["data"], files["run"] = root / "data.h5", root / "run"
+    for args in (["import", "--states", files["states"], "--adjacency", files["adjacency"],
+                  "--dt", 0.1, "--out", files["data"]],
+                 ["train", files["data"], "--epochs", 1, "--batch-size", 2, "--no-plots",
+                  "--run-dir", files["run"]]):
+        result = invoke(*args)
+        assert result.exit_code == 0, result.output
+    files["checkpoint"] = files["run"] / "checkpoints" / "best.pt"
+    return files
+
+
+@pytest.fixture
+def own_user_files(user_files, tmp_path) -> dict[str, Path]:
+    """`user_files` copied into this test's folder: a test may overwrite or lose them."""
+    import shutil
+
+    root = user_files["data"].parent
+    shutil.copytree(root, tmp_path, dirs_exist_ok=True)
+    return {name: tmp_path / path.relative_to(root) for name, path in user_files.items()}

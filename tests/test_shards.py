@@ -174,7 +174,7 @@ def test_merge_refuses_shards_that_do_not_belong_together(tmp_path, monkeypatch)
     assert "configs differ in 'trajectories'" in merge(paths[0], paths[1], halves[1])
     assert "not a shard" in merge(paths[0], single)
     assert "no such shard file" in merge(paths[0], "nope.h5")
-    assert "is one of the shards" in one_line_error(runner.invoke(
+    assert "is one of the inputs" in one_line_error(runner.invoke(
         app, ["merge", *map(str, paths), "-o", str(paths[0]), "--force"]))
     assert not (tmp_path / "m.h5").exists()
 

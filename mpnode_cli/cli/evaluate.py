@@ -45,7 +45,9 @@ def evaluate_command(
     threads: str | None = THREADS,
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
-    from mpnode_cli.paths import check_output_file, check_writable_dir
+    from contextlib import nullcontext
+
+    from mpnode_cli.paths import check_output_folder, reserve_output
     from mpnode_cli.report.tables import baselines_note, metrics_table
 
     _check_batch_size(batch_size)
@@ -54,16 +56,19 @@ def evaluate_command(
     where = (plot_dir or _default_plot_dir(checkpoint)) if plot else None
     if where is not None:
         try:
-            check_writable_dir(where)
+            check_output_folder(where)
         except ValueError as exc:
             fail(f"--plot-dir: {exc}")
+    reserved = nullcontext()
     if save_predictions is not None:
         try:
-            check_output_file(save_predictions, overwrite=force)
+            reserved = reserve_output(save_predictions, overwrite=force,
+                                      inputs=(checkpoint, dataset))
         except (FileExistsError, ValueError) as exc:
             fail(f"--save-predictions: {exc}")
-    row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
-                    allow_other_system, save_predictions, force)
+    with reserved:  # the predictions replace the reservation: written with overwrite
+        row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
+                        allow_other_system, save_predictions, force=True)
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
         return

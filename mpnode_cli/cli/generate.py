@@ -224,14 +224,21 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
     """Check the job and its output, generate with a progress bar, then print the summary."""
     from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
 
-    from mpnode_cli.data.generate import GenerateError, generate, output_path, resolve_config
+    from mpnode_cli.data.generate import (
+        GenerateError,
+        generate,
+        generate_inputs,
+        output_path,
+        resolve_config,
+    )
     from mpnode_cli.paths import check_output_file
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
     try:
         config = resolve_config(config, dry_run=False)
         _confirm_size(config, yes)
-        check_output_file(output_path(config), overwrite=force)
+        check_output_file(output_path(config), overwrite=force,
+                          inputs=generate_inputs(config))
         config = resolve_config(config)
     except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))

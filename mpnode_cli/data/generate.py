@@ -236,22 +236,33 @@ def generate(
     Raises:
         ValueError: a config that does not resolve (see `resolve_config`).
         FileExistsError: the output exists and `overwrite` is False (checked before solving).
-        ValueError: an output path that is not a regular file or cannot be written (checked
-            before solving, `mpnode_cli.paths.check_output_file`).
+        ValueError: an output path that cannot be written, or is an input (checked and
+            reserved before solving, `mpnode_cli.paths.reserve_output`).
         KeyboardInterrupt: SIGINT (or SIGTERM, under `interrupt_on_signals`); nothing is
             written.
         GenerateError: trajectories that keep failing after `MAX_REDRAW_ROUNDS` redraws.
     """
+    from mpnode_cli.paths import reserve_output
+
+    start = time.perf_counter()
+    config = resolve_config(config)
+    out = output_path(config)
+    with reserve_output(out, overwrite=overwrite, inputs=generate_inputs(config)):
+        return _generate(config, out, progress, start)
+
+
+def generate_inputs(config: GenerateConfig) -> tuple[Path | None, ...]:
+    """The files a generate config reads, which its output may not be."""
+    return config.edge_list, config.system_file
+
+
+def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
+              start: float) -> GenerateSummary:
+    """`generate` once its output is reserved: solve, redraw, write."""
     import torch
 
     from mpnode_cli.data.hdf5 import Dataset, write_dataset
 
-    start = time.perf_counter()
-    from mpnode_cli.paths import check_output_file
-
-    config = resolve_config(config)
-    out = output_path(config)
-    check_output_file(out, overwrite=overwrite)
     system = build_system(config)
     g = config.graphs
 
@@ -383,7 +394,7 @@ def generate(
         extra_attrs={"n_rejected": rejected, "n_failed": failed,
                      "recipe": json.dumps(system.recipe(), sort_keys=True), **sharding},
     )
-    write_dataset(out, dataset, overwrite=overwrite)
+    write_dataset(out, dataset, overwrite=True)  # over the reservation `generate` made
     counts = np.bincount(split, minlength=3)
     return GenerateSummary(
         path=out,

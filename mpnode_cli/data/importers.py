@@ -71,15 +71,23 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
 
     Raises:
         ValueError: an input that cannot be read or does not fit the others (one line),
-            or an output path that cannot be written (`mpnode_cli.paths.check_output_file`).
+            or an output path that cannot be written or is one of the inputs (checked and
+            reserved before anything is read, `mpnode_cli.paths.reserve_output`).
         FileExistsError: the output exists and `overwrite` is False.
         KeyboardInterrupt: SIGINT or SIGTERM during the write; nothing is left behind.
     """
-    from mpnode_cli.data.generate import split_trajectories
-    from mpnode_cli.paths import check_output_file
+    from mpnode_cli.paths import reserve_output
 
     out = output_path(config)
-    check_output_file(out, overwrite=overwrite)
+    inputs = (config.states, config.adjacency, config.edge_list, config.controls)
+    with reserve_output(out, overwrite=overwrite, inputs=inputs):
+        return _import(config, out)
+
+
+def _import(config: ImportConfig, out: Path) -> ImportSummary:
+    """`import_arrays` once its output is reserved: read, check, write."""
+    from mpnode_cli.data.generate import split_trajectories
+
     loaded = load_states(config.states)
     states = loaded.states
     k, t, n, d = states.shape
@@ -110,7 +118,8 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
         seed=config.seed, config=provenance, time=time, states=stored,
         controls=None if controls is None else controls.astype(config.dtype),
         graphs=graphs, graph_index=graph_index, split=split,
-        extra_attrs={"fingerprint": digest}), overwrite=overwrite)
+        extra_attrs={"fingerprint": digest}),
+        overwrite=True)  # over the reservation `import_arrays` made
     counts = np.bincount(split, minlength=3)
     return ImportSummary(path=out, trajectories=k, samples=t, nodes=n, node_dim=d,
                          control_dim=len(control_names), graphs=len(graphs),

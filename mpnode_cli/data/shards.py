@@ -142,27 +142,26 @@ def merge_shards(paths: list[str | Path], out: str | Path, *, overwrite: bool = 
 
     Raises:
         ValueError: files that are not shards of one dataset (one line saying why), or an
-            output path that cannot be written.
+            output path that cannot be written or is one of the shards
+            (`mpnode_cli.paths.reserve_output`).
         FileExistsError: `out` exists and `overwrite` is False.
         KeyboardInterrupt: SIGINT or SIGTERM; nothing is left at `out`.
     """
     import h5py
 
     from mpnode_cli.data.atomic import atomic_h5
-    from mpnode_cli.paths import check_output_file
+    from mpnode_cli.paths import reserve_output
 
     out = Path(out)
     shards = _check_shards([Path(p) for p in paths])
-    check_output_file(out, overwrite=overwrite)
-    if any(out.resolve() == s.path.resolve() for s in shards):
-        raise ValueError(f"{out} is one of the shards: choose another output path")
     k = shards[0].info["trajectories"]
-    with h5py.File(shards[0].path, "r") as first:
+    with reserve_output(out, overwrite=overwrite, inputs=[s.path for s in shards]), \
+            h5py.File(shards[0].path, "r") as first:
         per_trajectory = _per_trajectory_names(first)
         total = sum(int(np.prod(first[name].shape[1:])) * k for name in per_trajectory)
         nbytes = sum(int(np.prod(first[name].shape[1:])) * k * first[name].dtype.itemsize
                      for name in per_trajectory)
-        with atomic_h5(out, overwrite=overwrite) as (f, check):
+        with atomic_h5(out, overwrite=True) as (f, check):  # over the reservation
             f.attrs.update(_merged_attrs(shards, out))
             _copy_shared(first, f, shards, check)
             done = 0

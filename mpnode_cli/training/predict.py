@@ -238,20 +238,33 @@ def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
 
     Raises:
         FileNotFoundError, ValueError: a checkpoint, input or output that cannot be used
-            (one line; the output is checked before any rollout).
+            (one line; the output is checked and reserved before any rollout, and may be
+            none of the inputs, `mpnode_cli.paths.reserve_output`).
         FileExistsError: the output exists and `overwrite` is False.
         PredictionFailed: rollouts that did not finish (nothing written).
         KeyboardInterrupt: SIGINT or SIGTERM (nothing written).
     """
+    from mpnode_cli.paths import reserve_output
+    from mpnode_cli.training.checkpoint import resolve_path
+
+    out = simulate_output(config)
+    try:
+        checkpoint = resolve_path(config.checkpoint)  # a run folder's best.pt
+    except FileNotFoundError:  # load_checkpoint says so, once the output is checked
+        checkpoint = config.checkpoint
+    inputs = (checkpoint, config.x0, config.adjacency, config.edge_list, config.controls)
+    with reserve_output(out, overwrite=overwrite, inputs=inputs):
+        return _simulate(config, out)
+
+
+def _simulate(config, out: Path) -> SimulateSummary:
+    """`simulate` once its output is reserved: load, roll out, write."""
     import time as clock
 
     from mpnode_cli.data.importers import load_controls, load_graph, load_initial_states
-    from mpnode_cli.paths import check_output_file
     from mpnode_cli.training.checkpoint import load_checkpoint
     from mpnode_cli.training.extrapolation import extrapolation
 
-    out = simulate_output(config)
-    check_output_file(out, overwrite=overwrite)
     ckpt = load_checkpoint(config.checkpoint)
     x0 = load_initial_states(config.x0)
     k, n, _ = x0.shape
@@ -272,7 +285,8 @@ def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
     write_predictions(out, ckpt, pred, time=ts, graphs=graphs, graph_index=graph_index,
                       controls=controls, config={"verb": "simulate", **resolved,
                                                  "topology": _topology(config)},
-                      source=sources, dtype=config.dtype, overwrite=overwrite)
+                      source=sources, dtype=config.dtype,
+                      overwrite=True)  # over the reservation `simulate` made
     beyond = extrapolation(ckpt, graphs, graph_index)
     return SimulateSummary(path=out, trajectories=k, samples=len(ts), nodes=n,
                            graphs=len(graphs), n_f_evals=int(pred.n_f_evals.sum()),
