@@ -74,6 +74,7 @@ def run_command(
     import shlex
 
     from mpnode_cli.experiments.spec import load
+    from mpnode_cli.paths import check_output_folder
 
     if scale not in _SCALES:
         fail(f"unknown scale '{scale}' (choose from: {', '.join(_SCALES)})")
@@ -83,6 +84,9 @@ def run_command(
         fail(f"unknown recipe '{recipe}' (choose from: mpnode (or ours), paper)")
     try:
         experiment = load(name)
+        # Both folders are written: --work by every step, --out after the last.
+        check_output_folder(work)
+        check_output_folder(out / experiment.name)
     except ValueError as exc:
         fail(error_message(exc))
     command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
@@ -116,6 +120,9 @@ def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: st
     except StepFailed as exc:
         display.close()
         fail(str(exc), code=1)
+    except ValueError as exc:  # a work folder that cannot be used (before any step)
+        display.close()
+        fail(error_message(exc))
     except (TrainingInterrupted, KeyboardInterrupt) as exc:
         display.close()
         cause = exc.cause if isinstance(exc, TrainingInterrupted) else exc
@@ -123,7 +130,11 @@ def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: st
                    f"and an interrupted training continues from its last epoch; run the "
                    f"same command again to resume", err=True)
         raise typer.Exit(code=exit_code(cause)) from None
-    path = write_report(record, experiment, out)
+    try:
+        path = write_report(record, experiment, out)
+    except OSError as exc:  # checked first, but the disk may fill or the folder go
+        fail(f"cannot write the report in {out}: {exc.strerror or exc} (the steps are done "
+             f"and kept in {work}: run the same command again to write it)")
     ran = sum(step.status != "skipped" for step in record.steps)
     typer.echo(f"{experiment.name}: {ran} of {len(record.steps)} steps ran, "
                f"{record.wall_seconds / 60:.1f} min; wrote {path} and {out / 'README.md'}")

@@ -136,14 +136,18 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
             no other process holds.
 
     Raises:
+        ValueError: a work folder that cannot be made or written in (before any step).
         StepFailed: a step failed (its message names the step).
         TrainingInterrupted, KeyboardInterrupt: Ctrl-C; finished steps stay reusable and a
             training resumes from its last epoch on the next run.
     """
+    from mpnode_cli.paths import check_output_folder
+
     emit = progress or (lambda event: None)
     command = command or (f"mpnode experiment run {experiment.name} --scale {scale} "
                           f"--recipe {recipe} --work {work}")
     work = Path(work)
+    check_output_folder(work)
     work.mkdir(parents=True, exist_ok=True)
     machine = machine_facts()
     if jobs > 1:

@@ -60,7 +60,7 @@ from mpnode_cli.data.pooled import (
 )
 from mpnode_cli.data.stream import StreamedTrajectories
 from mpnode_cli.models.registry import OPTIONS, build_model, model_class, resolve_options
-from mpnode_cli.paths import check_writable_dir
+from mpnode_cli.paths import check_output_folder
 from mpnode_cli.signals import deferred_signals, raise_if_interrupted, signal_name
 from mpnode_cli.solver import Status
 from mpnode_cli.training import distributed
@@ -146,7 +146,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     world = distributed.world()
     emit = progress if progress is not None and world.main else (lambda event: None)
     if not resume and world.main:  # the run folder's place must be writable before any work
-        check_writable_dir(config.run_dir or runs.default_root())
+        check_output_folder(config.run_dir or runs.default_root())
 
     # 1. Data: each dataset's train split (optionally its first K trajectories) and validation
     # split, in memory or (`stream`, one dataset) read from the file batch by batch. The

@@ -82,10 +82,14 @@ def default_root() -> Path:
 def default_run_dir(dataset: Path | list[Path], model: str, root: Path | None = None) -> Path:
     """`runs/<dataset stem>-<model>-<YYYYmmdd-HHMMSS>`, with a suffix if that exists;
     several datasets: `<first stem>+<how many more>`."""
+    from mpnode_cli.paths import NAME_MAX, shorten
+
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     paths = dataset if isinstance(dataset, list) else [dataset]
-    stem = Path(paths[0]).stem + (f"+{len(paths) - 1}" if len(paths) > 1 else "")
-    base = (root or default_root()) / f"{stem}-{model}-{stamp}"
+    tail = (f"+{len(paths) - 1}" if len(paths) > 1 else "") + f"-{model}-{stamp}"
+    # A dataset's name may use all of a name's bytes: shorten it, leaving room for `-<n>`.
+    stem = shorten(Path(paths[0]).stem, NAME_MAX - 8 - len(tail))
+    base = (root or default_root()) / f"{stem}{tail}"
     path, n = base, 1
     while path.exists():
         n += 1
@@ -94,17 +98,26 @@ def default_run_dir(dataset: Path | list[Path], model: str, root: Path | None = 
 
 
 def create(run_dir: Path) -> bool:
-    """Make a new run folder; refuse to train over an existing run.
+    """Make a new run folder; refuse to train over an existing run, or beside another
+    training that took the same folder (`mpnode_cli.paths.reserve_folder`).
 
     Returns:
         Whether the folder itself was made (an existing empty folder is used as it is).
+
+    Raises:
+        ValueError: the folder holds a run already, or cannot be made (one line).
     """
-    if run_dir.exists() and any(run_dir.iterdir()):
+    from mpnode_cli.paths import check_output_folder, reserve_folder
+
+    check_output_folder(run_dir)
+    if run_dir.is_dir() and any(run_dir.iterdir()):
         raise ValueError(f"run folder {run_dir} already exists: continue it with "
                          f"--resume {run_dir}, or choose another --run-dir")
-    made = not run_dir.exists()
-    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    return made
+    try:
+        return reserve_folder(run_dir, "checkpoints")
+    except FileExistsError:  # since the line above
+        raise ValueError(f"run folder {run_dir} was just taken by another training: choose "
+                         "another --run-dir") from None
 
 
 def remove_unstarted(run_dir: Path, *, keep_folder: bool = False) -> None:
