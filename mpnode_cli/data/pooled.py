@@ -98,8 +98,10 @@ def train_and_validation(datasets: Sequence[Data], trajectories: int | None = No
         if trajectories is not None:
             train_set = train_set.select(torch.arange(min(trajectories, len(train_set))))
         if len(train_set) == 0 or len(val_set) == 0:
-            raise ValueError(f"{data.path.name} needs trajectories in both its train and "
-                             "validation splits (regenerate with --split)")
+            raise ValueError(f"{data.path.name} has {len(train_set)} train and {len(val_set)} "
+                             "validation trajectories: training needs both (validation "
+                             "chooses the best epoch); regenerate it with more trajectories "
+                             "or a --split that gives each some")
         train.append(train_set)
         validation.append(val_set)
     return train, validation

@@ -32,7 +32,9 @@ nothing that depends on the number of processes, so a run resumes with any numbe
 
 `progress`, if given, is called with one dict per event, `event` naming it:
 `start` (run_dir, first_epoch, epochs, batches), `batch` (epoch, batch, batches, loss),
-`skip` (epoch, batch, reason), `restore` (epoch, lr), `epoch` (the metrics row), `test`.
+`skip` (epoch, batch, reason), `restore` (epoch, lr), `epoch` (the metrics row), `test`,
+and `warning` (text: something the user asked for that the run does otherwise, e.g. more
+`trajectories` than a train split holds).
 """
 
 from __future__ import annotations
@@ -163,6 +165,12 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     device = _device(config.device)
     loss_fn = LOSSES[config.loss]
     train_sets, val_sets = train_and_validation(datas, config.trajectories)
+    short = [f"{Path(p).name} has {len(t)}" for p, t in zip(config.datasets, train_sets,
+                                                            strict=True)
+             if config.trajectories is not None and len(t) < config.trajectories]
+    if short:  # a data-size study would otherwise compare runs of the same size unawares
+        emit({"event": "warning", "text": f"--trajectories {config.trajectories}: "
+              f"{', '.join(short)} train trajectories; training on all of them"})
     config = resolve_compile(config, sum(len(t) for t in train_sets))
 
     # 2. The starting point: fresh weights, a parent checkpoint (finetune), or last.pt (resume).
