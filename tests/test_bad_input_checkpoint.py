@@ -86,8 +86,21 @@ def other_config(ckpt):  # weights of one architecture, the config of another
     return "the model expects"
 
 
+def complex_weight(ckpt):
+    name = first_weight(ckpt)
+    ckpt.state_dict = {**ckpt.state_dict, name: ckpt.state_dict[name].to(torch.complex64)}
+    return "not a dense real tensor"
+
+
+def short_range(ckpt):  # the extrapolation note would compare 2 ranges with 3 states
+    ckpt.dataset = {**ckpt.dataset, "train_range": {
+        **ckpt.dataset["train_range"], "states": ckpt.dataset["train_range"]["states"][:2]}}
+    return "train_range holds 2 state ranges"
+
+
 CORRUPTIONS = {f.__name__: f for f in (wrong_shape, nan_weights, zero_std, tiny_std,
-                                       missing_weight, other_config)}
+                                       missing_weight, other_config, complex_weight,
+                                       short_range)}
 
 
 def corrupted(trained, tmp_path, name: str):

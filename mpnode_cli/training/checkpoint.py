@@ -315,8 +315,9 @@ def _weights(want: dict[str, torch.Tensor], have: Any) -> list[str]:
     for name, tensor in have.items():
         if name not in want:
             continue
-        if not isinstance(tensor, torch.Tensor):
-            problems.append(f"weight {name} is not a tensor")
+        if not isinstance(tensor, torch.Tensor) or tensor.layout != torch.strided or (
+                tensor.is_complex()):
+            problems.append(f"weight {name} is not a dense real tensor")
         elif tensor.shape != want[name].shape:
             problems.append(f"weight {name} has shape {list(tensor.shape)}, the model "
                             f"expects {list(want[name].shape)}")
@@ -369,9 +370,13 @@ def _dataset_facts(facts: Any, d: int) -> list[str]:
         from mpnode_cli.training.extrapolation import TrainRange
 
         try:
-            TrainRange.from_dict(facts["train_range"])
+            spans = TrainRange.from_dict(facts["train_range"])
         except ValueError as exc:
             problems.append(str(exc))
+        else:
+            if len(spans.states) != d:
+                problems.append(f"train_range holds {len(spans.states)} state ranges, the "
+                                f"model's node_dim is {d}")
     return problems
 
 
