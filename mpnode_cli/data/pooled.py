@@ -107,6 +107,20 @@ def train_and_validation(datasets: Sequence[Data], trajectories: int | None = No
     return train, validation
 
 
+def fewer_than_asked(datasets: Sequence[Data], train: Sequence[Data],
+                     trajectories: int | None) -> str | None:
+    """One line when `trajectories` (K) exceeds a dataset's train split, which is then used
+    whole (`train` is `train_and_validation`'s); None when every split has K. A data-size
+    study would otherwise compare runs of one size unawares."""
+    short = [f"{data.path.name} has {len(part)}"
+             for data, part in zip(datasets, train, strict=True)
+             if trajectories is not None and len(part) < trajectories]
+    if not short:
+        return None
+    return (f"--trajectories {trajectories}: {', '.join(short)} train trajectories; training "
+            "on all of them")
+
+
 def _same_grid(a: torch.Tensor, b: torch.Tensor) -> bool:
     """Whether the shorter of two sample grids is the start of the longer (to rounding)."""
     n = min(a.numel(), b.numel())

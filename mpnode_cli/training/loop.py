@@ -56,6 +56,7 @@ from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
 from mpnode_cli.data.pooled import (
     dataset_names,
     epoch_batches,
+    fewer_than_asked,
     load_datasets,
     taken,
     train_and_validation,
@@ -165,12 +166,8 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     device = _device(config.device)
     loss_fn = LOSSES[config.loss]
     train_sets, val_sets = train_and_validation(datas, config.trajectories)
-    short = [f"{Path(p).name} has {len(t)}" for p, t in zip(config.datasets, train_sets,
-                                                            strict=True)
-             if config.trajectories is not None and len(t) < config.trajectories]
-    if short:  # a data-size study would otherwise compare runs of the same size unawares
-        emit({"event": "warning", "text": f"--trajectories {config.trajectories}: "
-              f"{', '.join(short)} train trajectories; training on all of them"})
+    if note := fewer_than_asked(datas, train_sets, config.trajectories):
+        emit({"event": "warning", "text": note})
     config = resolve_compile(config, sum(len(t) for t in train_sets))
 
     # 2. The starting point: fresh weights, a parent checkpoint (finetune), or last.pt (resume).
