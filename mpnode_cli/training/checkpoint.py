@@ -272,8 +272,7 @@ def checkpoint_problems(ckpt: Checkpoint) -> list[str]:
     model = _meta_model(ckpt, problems)
     if model is not None:
         problems += _weights(model.state_dict(), ckpt.state_dict)
-        sizes = (int(ckpt.model_config.get("node_dim", 0)),
-                 int(ckpt.model_config.get("control_dim", 0)))
+        sizes = (int(model.config.get("node_dim", 0)), int(model.config.get("control_dim", 0)))
         problems += _normalizer(ckpt.normalizer, *sizes)
         problems += _dataset_facts(ckpt.dataset, sizes[0])
         if ckpt.optimizer is not None:
@@ -286,8 +285,8 @@ def _meta_model(ckpt: Checkpoint, problems: list[str]) -> NeuralModel | None:
     """The checkpoint's model with weights on the meta device (None: a problem added)."""
     from mpnode_cli.models.registry import OPTIONS, build_model
 
-    if ckpt.model_kind not in OPTIONS:
-        problems.append(f"unknown model kind '{ckpt.model_kind}' (this mpnode knows: "
+    if not isinstance(ckpt.model_kind, str) or ckpt.model_kind not in OPTIONS:
+        problems.append(f"unknown model kind {ckpt.model_kind!r:.40} (this mpnode knows: "
                         f"{', '.join(OPTIONS)})")
         return None
     if not isinstance(ckpt.model_config, dict):
