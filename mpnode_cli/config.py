@@ -361,7 +361,8 @@ class TrainConfig(BaseModel):
         init_checkpoint: finetune: start from this checkpoint's weights and architecture
             (`model` and `model_options` are then ignored), with a fresh optimizer.
         trajectories: use only the first K trajectories of the train split (of each
-            dataset's).
+            dataset's); a split with fewer is used whole, and `train` says so (its
+            `warning` event).
         renormalize: finetune: fit the normalization on the new train split instead of
             reusing the checkpoint's.
         allow_other_system: finetune: accept a dataset whose `system` differs from the

@@ -27,7 +27,7 @@ from mpnode_cli.config import (
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import read_dataset, read_header
 from mpnode_cli.solver import METHODS, SolverOptions, solve
-from mpnode_cli.training.checkpoint import FORMAT, load_checkpoint
+from mpnode_cli.training.checkpoint import FORMAT, read_checkpoint
 from mpnode_cli.training.run import read_config
 
 runner = CliRunner()
@@ -104,7 +104,7 @@ def test_an_old_checkpoint_is_upgraded(tmp_path):
                "normalizer": {}, "train_config": train_config | FLAT | {"fixed_dt": 0.1},
                "dataset": {}, "epoch": 0}
     torch.save(payload, tmp_path / "v3.pt")
-    ckpt = load_checkpoint(tmp_path / "v3.pt")
+    ckpt = read_checkpoint(tmp_path / "v3.pt")  # the upgrade alone: a stub, not a model
     assert ckpt.train_config["solver"] == FLAT | {"fixed_dt": 0.1, "controller": "pi",
                                                   "compile": False}
     assert "rtol" not in ckpt.train_config

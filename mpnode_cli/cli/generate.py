@@ -17,7 +17,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, solver_option, task_bar
+from mpnode_cli.cli.common import THREADS, solver_option, task_bar, warn
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.config import generate_solver
@@ -51,6 +51,12 @@ def _topologies() -> str:
     return ", ".join(dict.fromkeys(t for cls in SYSTEMS.values() for t in cls.topologies))
 
 
+def _grid_systems() -> str:
+    from mpnode_cli.systems.registry import grid_systems
+
+    return ", ".join(grid_systems())
+
+
 def _parameters() -> str:
     from mpnode_cli.systems.registry import SYSTEMS
 
@@ -78,7 +84,9 @@ def generate_command(
         None, "--config", help="TOML (or JSON) file of config fields; options override it."
     ),
     nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
-    grid: str | None = typer.Option(None, metavar="N", help="Square grid side: N = grid²."),
+    grid: str | None = typer.Option(
+        None, metavar="N", help=f"Square grid side: N = grid², for systems whose nodes sit on "
+        f"a grid ({_grid_systems()}); others refuse it (give --nodes)."),
     topology: str | None = typer.Option(
         None, help=f"One of the system's topologies ({_topologies()})."),
     graphs: str | None = typer.Option(
@@ -230,6 +238,8 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         generate_inputs,
         output_path,
         resolve_config,
+        split_counts,
+        split_warning,
     )
     from mpnode_cli.paths import check_output_file
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
@@ -242,6 +252,10 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         config = resolve_config(config)
     except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))
+    # Before solving, so that it can be stopped; the whole dataset's split, shard or not.
+    empty = split_warning(split_counts(config.trajectories, config.split), config.split)
+    if empty:
+        warn(empty)
     columns = (
         "[progress.description]{task.description}",
         BarColumn(),

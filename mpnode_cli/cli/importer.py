@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console, error_message, fail
+from mpnode_cli.cli.common import console, error_message, fail, warn
 
 
 def import_command(
@@ -50,6 +50,7 @@ def import_command(
     from dataclasses import asdict
 
     from mpnode_cli.config import ImportConfig
+    from mpnode_cli.data.generate import split_warning
     from mpnode_cli.data.importers import import_arrays
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
@@ -66,6 +67,9 @@ def import_command(
     except KeyboardInterrupt as exc:
         typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
         raise typer.Exit(code=exit_code(exc)) from None
+    empty = split_warning(summary.split_counts, config.split)
+    if empty:
+        warn(empty)
     if json_out:
         typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
         return

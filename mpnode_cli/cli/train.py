@@ -23,7 +23,15 @@ from typing import Any, Literal, get_args, get_origin
 import typer
 from pydantic.fields import FieldInfo
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail, solver_option, speaks
+from mpnode_cli.cli.common import (
+    THREADS,
+    console,
+    error_message,
+    fail,
+    solver_option,
+    speaks,
+    warn,
+)
 from mpnode_cli.config import train_solver
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.threads import applied_threads
@@ -64,7 +72,9 @@ _CURR_START = typer.Option(None, help="Curriculum: samples in the first epoch (d
 _CURR_EPOCHS = typer.Option(None, help="Curriculum: epochs to reach the full horizon (100).")
 _BAD_STEPS = typer.Option(None, help="Bad batches in a row before a rollback (default 5).")
 _PLOTS = typer.Option(None, "--plots/--no-plots", help="Draw test plots at the end (on).")
-_TRAJECTORIES = typer.Option(None, help="Use only the first K train trajectories.")
+_TRAJECTORIES = typer.Option(
+    None, help="Use only the first K train trajectories (all of them, with a warning, where a "
+    "dataset has fewer).")
 _STREAM = typer.Option(
     None, "--stream/--in-memory",
     help="Read batches from the dataset file as they are needed (a thread reads two "
@@ -373,6 +383,8 @@ class _Display:
                                f"good epoch, lr now {event['lr']:.3g}")
         elif kind == "test":
             self.bar.update(self.batches, description="testing", completed=0)
+        elif kind == "warning":
+            warn(event["text"])
 
     def _epoch(self, row: dict[str, Any]) -> None:
         from mpnode_cli.report.tables import fmt

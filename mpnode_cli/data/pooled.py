@@ -98,11 +98,27 @@ def train_and_validation(datasets: Sequence[Data], trajectories: int | None = No
         if trajectories is not None:
             train_set = train_set.select(torch.arange(min(trajectories, len(train_set))))
         if len(train_set) == 0 or len(val_set) == 0:
-            raise ValueError(f"{data.path.name} needs trajectories in both its train and "
-                             "validation splits (regenerate with --split)")
+            raise ValueError(f"{data.path.name} has {len(train_set)} train and {len(val_set)} "
+                             "validation trajectories: training needs both (validation "
+                             "chooses the best epoch); regenerate it with more trajectories "
+                             "or a --split that gives each some")
         train.append(train_set)
         validation.append(val_set)
     return train, validation
+
+
+def fewer_than_asked(datasets: Sequence[Data], train: Sequence[Data],
+                     trajectories: int | None) -> str | None:
+    """One line when `trajectories` (K) exceeds a dataset's train split, which is then used
+    whole (`train` is `train_and_validation`'s); None when every split has K. A data-size
+    study would otherwise compare runs of one size unawares."""
+    short = [f"{data.path.name} has {len(part)}"
+             for data, part in zip(datasets, train, strict=True)
+             if trajectories is not None and len(part) < trajectories]
+    if not short:
+        return None
+    return (f"--trajectories {trajectories}: {', '.join(short)} train trajectories; training "
+            "on all of them")
 
 
 def _same_grid(a: torch.Tensor, b: torch.Tensor) -> bool:

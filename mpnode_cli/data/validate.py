@@ -3,8 +3,10 @@
 Every field of `docs/dataset-format.md` is checked against the others: array shapes and
 dtypes, indices (`graph_index`, `split`) inside their ranges, the root attributes against
 the arrays they describe (`num_nodes`, `node_dim`, `control_dim`, `dt` against `time`), the
-JSON attributes, the format name and version, and that every stored value is finite. A
-file that passes can be read by every verb; one that does not gets one line per problem.
+JSON attributes, the format name and version, and that every stored value is finite; in a
+virtual merge (`mpnode merge --virtual`), first that its shards are where HDF5 reads them
+from. A file that passes can be read by every verb; one that does not gets one line per
+problem.
 
 `mpnode check` prints the report; every reader (`TrajectoryData.load`, hence train,
 finetune, evaluate, zeroshot, and `mpnode info`) calls `require_valid` first, so that bad
@@ -30,6 +32,7 @@ from mpnode_cli.data.hdf5 import (
     SPLIT_NAMES,
     DatasetFormatError,
     _py,
+    virtual_source_problems,
 )
 from mpnode_cli.graphs import Graphs
 
@@ -115,6 +118,10 @@ class _Checker:
         attrs = {key: _py(value) for key, value in self.f.attrs.items()}
         if not self._format(attrs):
             return  # another kind of file: nothing else is meaningful
+        missing = virtual_source_problems(self.f)
+        if missing:  # the rest would only find the fill values read in their place
+            self.problems += missing
+            return
         missing = [name for name in REQUIRED_ATTRS if name not in attrs]
         if missing:
             self.problem(f"missing root attributes: {', '.join(missing)}")

@@ -140,6 +140,9 @@ class System(ABC):
         sparse: runs on graphs given as edge lists (`EdgeList`, `EdgeBatch`), hence on
             graphs above `DENSE_GRAPH_MAX_NODES` nodes; a system that needs the matrix
             itself (Lorenz's coupling H is `[3N, 3N]`) leaves it False and is refused there.
+        grid_layout: its nodes sit on a square grid (gene's hot-spot initial states), so
+            `--grid SIDE` (N = SIDE²) means something for it; any other system refuses
+            `grid`, which would only be a roundabout node count.
     """
 
     name: ClassVar[str]
@@ -160,6 +163,7 @@ class System(ABC):
     paper_loss: ClassVar[str] = "mse"
     recommended: ClassVar[dict[str, object]] = {}
     sparse: ClassVar[bool] = False
+    grid_layout: ClassVar[bool] = False
 
     @classmethod
     def recipe(cls) -> dict[str, dict[str, object]]:

@@ -46,6 +46,8 @@ class Gene(System):
     init: str
     # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
     sparse: ClassVar[bool] = True
+    # Hot-spot initial states are rectangles on the side×side grid: `--grid` means that.
+    grid_layout: ClassVar[bool] = True
     # Regulation sums over in-neighbours: the recipe's affine sum update fits it and carries
     # to larger graphs with higher in-degrees (docs/training-recipe.md).
     # The paper's 200 trajectories over 5 graphs, dt 0.1, 5 s, for every topology and size

@@ -65,6 +65,12 @@ def system_class(name: str) -> type[System]:
                      "with --system-file FILE, docs/custom-systems.md)")
 
 
+def grid_systems() -> list[str]:
+    """The built-in systems whose nodes sit on a grid (`System.grid_layout`): those that
+    take `grid`."""
+    return [name for name, cls in SYSTEMS.items() if cls.grid_layout]
+
+
 def all_systems() -> dict[str, type[System]]:
     """Every system known to this process: built in, from files, from entry points."""
     return {**entry_point_systems(), **_FILES, **SYSTEMS}

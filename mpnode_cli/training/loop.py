@@ -32,7 +32,9 @@ nothing that depends on the number of processes, so a run resumes with any numbe
 
 `progress`, if given, is called with one dict per event, `event` naming it:
 `start` (run_dir, first_epoch, epochs, batches), `batch` (epoch, batch, batches, loss),
-`skip` (epoch, batch, reason), `restore` (epoch, lr), `epoch` (the metrics row), `test`.
+`skip` (epoch, batch, reason), `restore` (epoch, lr), `epoch` (the metrics row), `test`,
+and `warning` (text: something the user asked for that the run does otherwise, e.g. more
+`trajectories` than a train split holds).
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ from mpnode_cli.data.dataset import SPLITS, Normalizer, TrajectoryData
 from mpnode_cli.data.pooled import (
     dataset_names,
     epoch_batches,
+    fewer_than_asked,
     load_datasets,
     taken,
     train_and_validation,
@@ -163,6 +166,8 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     device = _device(config.device)
     loss_fn = LOSSES[config.loss]
     train_sets, val_sets = train_and_validation(datas, config.trajectories)
+    if note := fewer_than_asked(datas, train_sets, config.trajectories):
+        emit({"event": "warning", "text": note})
     config = resolve_compile(config, sum(len(t) for t in train_sets))
 
     # 2. The starting point: fresh weights, a parent checkpoint (finetune), or last.pt (resume).
