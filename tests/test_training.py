@@ -58,9 +58,12 @@ def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
     assert summary.best_epoch == min(metrics, key=lambda r: r["val_loss"])["epoch"]
     assert summary.table2 == pytest.approx(summary.best_epoch * summary.min_val_loss)
     assert summary.test["mse"] < metrics[0]["val_mse"] / 10
-    # Gene's recipe aggregates with PNA: [x, 3 × 3 message channels] = 10 → 32 → 32 → 4.
-    # (The authors' mean gives 4 → 32 → 32 → 4 = 1348: MPNODE.jl exps/models.jl:92-95.)
-    assert summary.parameters == 10 * 32 + 32 + 32 * 32 + 32 + 32 * 4 + 4
+    # The recipe's affine update, D = 1, M = 3: F and G from x, 1 → 32 → 32 → (D + M) + D·M
+    # + M·M = 16; ψ from [x, m], 4 → 32 → 3; the first messages from x, 1 → 32 → 3.
+    # (The authors' MLP of [x, mean m] gives 4 → 32 → 32 → 4 = 1348: MPNODE.jl
+    # exps/models.jl:92-95.)
+    net = 1 * 32 + 32 + 32 * 32 + 32 + 32 * 16 + 16
+    assert summary.parameters == net + (4 * 32 + 32 + 32 * 3 + 3) + (1 * 32 + 32 + 32 * 3 + 3)
     files = {p.relative_to(tmp_path / "run").as_posix() for p in (tmp_path / "run").rglob("*")}
     assert {"config.json", "metrics.jsonl", "summary.json", "checkpoints/best.pt",
             "checkpoints/last.pt", "plots/gene-test-rollout.png",
