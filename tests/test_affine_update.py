@@ -35,6 +35,8 @@ def test_the_field_is_affine_in_the_neighbour_messages_at_any_degree(aggregate):
     # d goes beyond any degree seen.
     torch.manual_seed(0)
     model = affine_model(aggregate=aggregate)
+    with torch.no_grad():  # the gains start at zero; give them values to test
+        torch.nn.init.normal_(model.net[-1].weight)
     x_hub, leaf = torch.tensor([0.3]), torch.tensor([-0.2, 0.7, 0.5])  # leaf: [x, m₁, m₂]
 
     def hub_rate(d: int) -> torch.Tensor:
@@ -84,6 +86,15 @@ def test_learned_initial_messages_are_a_function_of_the_first_state():
     assert out.messages[:, 0].abs().sum() > 0
     zero = affine_model(message_init="zero")
     assert zero.rollout(x0, ts, star(4, 2), return_messages=True).messages[:, 0].abs().sum() == 0
+
+
+def test_training_starts_from_uncoupled_nodes():
+    # G = 0 at initialization: a node's rate does not depend on its neighbours yet.
+    torch.manual_seed(2)
+    model = affine_model()
+    z = torch.randn(1, 6, 3)
+    alone = model.vector_field(torch.zeros(1, 6, 6))(torch.zeros(1), z)
+    torch.testing.assert_close(model.vector_field(star(5))(torch.zeros(1), z), alone)
 
 
 def test_the_update_option_is_declared_and_refused_where_unknown():

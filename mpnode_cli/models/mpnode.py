@@ -86,6 +86,8 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             self.net = mlp(d + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
                            o.activation)
             self.emit = mlp(d + control_dim + m, o.hidden, 1, m, o.activation)
+            with torch.no_grad():  # G = 0: training starts from uncoupled nodes
+                self.net[-1].weight[d + m:].zero_()
         else:
             self.net = mlp(d + control_dim + c, o.hidden, o.layers, d + m, o.activation)
         if o.message_init == "learned":
