@@ -286,6 +286,43 @@ def write_table(args, quiet: bool = False) -> None:
         tmp.replace(args.out)
 
 
+# ------------------------------------------------------------------------ out of range
+
+
+def in_range_report(checkpoint: Path, dataset: Path) -> dict[str, Any]:
+    """Split a zero-shot error by whether a node's true states stay in the training range.
+
+    A node whose states leave the range its model was trained on asks the model for its
+    own dynamics where it has none; its error says nothing about the coupling's transfer.
+    Returns the share of state values outside, and the MSE (normalized, t₀ excluded) over
+    the nodes that stay inside and over those that leave, with their counts.
+    """
+    import numpy as np
+
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.predict import roll_out
+
+    ckpt, data = load_checkpoint(checkpoint), TrajectoryData.load(dataset)
+    x = data.states.double().numpy()  # (K, T, N, D)
+    pred = roll_out(ckpt, x[:, 0], data.time.numpy(), data.graphs, data.graph_index.numpy())
+    std = ckpt.build_normalizer().x_std.double().numpy()  # (D,)
+    err = ((pred.states[:, 1:] - x[:, 1:]) / std) ** 2  # (K, T-1, N, D)
+    lo, hi = np.asarray(ckpt.dataset["train_range"]["states"]).T  # (D,), (D,)
+    outside = (x < lo) | (x > hi)  # (K, T, N, D)
+    node_out = outside.any(axis=(1, 3))  # (K, N): leaves the range at some time
+    per_node = err.mean(axis=(1, 3))  # (K, N)
+    degree = np.asarray(data.graphs.in_degree())[data.graph_index.numpy()]  # (K, N)
+    return {"dataset": dataset.name, "states_outside": float(outside.mean()),
+            "mse": float(per_node.mean()),
+            "in_range_mse": float(per_node[~node_out].mean()) if (~node_out).any() else None,
+            "in_range_nodes": int((~node_out).sum()),
+            "out_of_range_mse": float(per_node[node_out].mean()) if node_out.any() else None,
+            "out_of_range_nodes": int(node_out.sum()),
+            "in_degree": [int(degree.min()), int(degree.max())],
+            "train_in_degree": ckpt.dataset["train_range"]["in_degree"]}
+
+
 # ------------------------------------------------------------------------------ main
 
 
@@ -301,7 +338,13 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=RESULTS)
     p.add_argument("--plan", action="store_true", help="print the estimate and stop")
     p.add_argument("--table-only", action="store_true", help="rebuild the table and stop")
+    p.add_argument("--in-range", nargs=2, type=Path, metavar=("CHECKPOINT", "DATASET"),
+                   help="print the zero-shot error split by nodes in and out of the "
+                   "training states' range (JSON), and stop")
     args = p.parse_args(argv)
+    if args.in_range:
+        print(json.dumps(in_range_report(*args.in_range)))
+        return 0
     benches = [BENCHES[n] for n in (args.only.split(",") if args.only else BENCHES)]
     wanted = set(args.variants.split(",")) if args.variants else None
     jobs = [(b, v, s) for b in benches for v in b.variants if wanted is None or v in wanted
