@@ -88,15 +88,27 @@ def console(stderr: bool = False):
 
 
 @contextmanager
-def task_bar(description: str, columns: tuple, total: float | None = None) -> Iterator[tuple]:
+def task_bar(description: str, columns: tuple | None = None, total: float | None = None, *,
+             quiet: bool = False) -> Iterator[tuple]:
     """A transient rich progress bar on stderr, and the `progress(done, total)` callback
     that moves it: `(bar, progress)`. No bar when stderr is not a terminal (pipes, logs,
-    tests): it would only add noise."""
-    from rich.progress import Progress
+    tests), nor when `quiet` (`--json`): it would only add noise.
+
+    Args:
+        description: what is being done.
+        columns: rich's progress columns (default: the description, a bar, the percentage,
+            the time elapsed and the time left).
+        total: the work in all, if known before the first call.
+        quiet: no bar, even on a terminal.
+    """
+    from rich.progress import BarColumn, Progress, TimeElapsedColumn, TimeRemainingColumn
 
     display = console(stderr=True)
+    columns = columns or ("[progress.description]{task.description}", BarColumn(),
+                          "[progress.percentage]{task.percentage:>3.0f}%",
+                          TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=display, transient=True,
-                  disable=not display.is_terminal) as bar:
+                  disable=quiet or not display.is_terminal) as bar:
         task = bar.add_task(description, total=total)
 
         def progress(done: float, total: float | None) -> None:

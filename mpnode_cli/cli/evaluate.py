@@ -68,7 +68,7 @@ def evaluate_command(
             fail(f"--save-predictions: {exc}")
     with reserved:  # the predictions replace the reservation: written with overwrite
         row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
-                        allow_other_system, save_predictions, force=True)
+                        allow_other_system, save_predictions, force=True, quiet=json_out)
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
         return
@@ -99,7 +99,7 @@ def zeroshot_command(
     _check_batch_size(batch_size)
     ckpt = _load_checkpoint(checkpoint)
     rows = [_evaluate(ckpt, path, split, "zeroshot", batch_size, device, None,
-                      allow_other_system) for path in datasets]
+                      allow_other_system, quiet=json_out) for path in datasets]
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), "trained_on": ckpt.dataset,
                                "datasets": rows}, indent=2))
@@ -149,9 +149,13 @@ def _check_batch_size(batch_size: int) -> None:
 
 def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, device: str,
               plot_dir: Path | None, allow_other_system: bool = False,
-              save_predictions: Path | None = None, force: bool = False) -> dict[str, Any]:
+              save_predictions: Path | None = None, force: bool = False,
+              quiet: bool = False) -> dict[str, Any]:
+    """`evaluate_checkpoint` of one dataset behind a progress bar, its errors as the
+    user's one line and exit code."""
     import torch
 
+    from mpnode_cli.cli.common import task_bar
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.evaluate import evaluate_checkpoint
     from mpnode_cli.training.predict import PredictionFailed
@@ -162,10 +166,12 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
         fail("--device cuda asked for, but torch sees no CUDA device")
     try:
         data = TrajectoryData.load(dataset)
-        return evaluate_checkpoint(ckpt, data, split=split, verb=verb, batch_size=batch_size,
-                                   device=device, plot_dir=plot_dir,
-                                   allow_other_system=allow_other_system,
-                                   save_predictions=save_predictions, overwrite=force)
+        with task_bar(f"{verb} {dataset.name}", quiet=quiet) as (_, progress):
+            return evaluate_checkpoint(ckpt, data, split=split, verb=verb,
+                                       batch_size=batch_size, device=device,
+                                       plot_dir=plot_dir, allow_other_system=allow_other_system,
+                                       save_predictions=save_predictions, overwrite=force,
+                                       progress=progress)
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
         fail(error_message(exc))
     except PredictionFailed as exc:

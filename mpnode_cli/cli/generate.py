@@ -263,7 +263,8 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         TimeElapsedColumn(),
     )
     with interrupt_on_signals(), task_bar(f"solving {config.system}", columns,
-                                          config.trajectories) as (bar, progress):
+                                          config.trajectories, quiet=json_out
+                                          ) as (bar, progress):
         try:
             summary = generate(config, overwrite=force, progress=progress)
         except (FileExistsError, ValueError) as exc:

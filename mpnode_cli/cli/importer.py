@@ -49,6 +49,7 @@ def import_command(
     import json
     from dataclasses import asdict
 
+    from mpnode_cli.cli.common import task_bar
     from mpnode_cli.config import ImportConfig
     from mpnode_cli.data.generate import split_warning
     from mpnode_cli.data.importers import import_arrays
@@ -60,13 +61,19 @@ def import_command(
              "out": out}
     try:
         config = ImportConfig(**{k: v for k, v in given.items() if v is not None})
-        with interrupt_on_signals():
-            summary = import_arrays(config, overwrite=force)
-    except (FileExistsError, ValueError) as exc:
+    except ValueError as exc:
         fail(error_message(exc))
-    except KeyboardInterrupt as exc:
-        typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
-        raise typer.Exit(code=exit_code(exc)) from None
+    with interrupt_on_signals(), task_bar(f"importing {states.name}", quiet=json_out
+                                          ) as (bar, progress):
+        try:
+            summary = import_arrays(config, overwrite=force, progress=progress)
+        except (FileExistsError, ValueError) as exc:
+            bar.stop()
+            fail(error_message(exc))
+        except KeyboardInterrupt as exc:
+            bar.stop()
+            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
+            raise typer.Exit(code=exit_code(exc)) from None
     empty = split_warning(summary.split_counts, config.split)
     if empty:
         warn(empty)

@@ -37,18 +37,13 @@ def merge_command(
     """Merge the shards of one dataset into one dataset file."""
     import json
 
-    from rich.progress import BarColumn, TimeElapsedColumn, TimeRemainingColumn
-
     from mpnode_cli.cli.common import error_message, task_bar
     from mpnode_cli.data.generate import format_bytes
     from mpnode_cli.data.shards import merge_shards
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
-    columns = ("[progress.description]{task.description}", BarColumn(),
-               "[progress.percentage]{task.percentage:>3.0f}%", TimeElapsedColumn(),
-               TimeRemainingColumn())
     with interrupt_on_signals(), task_bar(f"merging {len(shards)} shards",
-                                          columns) as (bar, progress):
+                                          quiet=json_out) as (bar, progress):
         try:
             summary = merge_shards(shards, out, overwrite=force, virtual=virtual,
                                    progress=progress)

@@ -49,6 +49,7 @@ def simulate_command(
     import json
     from dataclasses import asdict
 
+    from mpnode_cli.cli.common import task_bar
     from mpnode_cli.config import SimulateConfig
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.predict import PredictionFailed, simulate
@@ -64,15 +65,22 @@ def simulate_command(
 
             if not torch.cuda.is_available():
                 raise ValueError("--device cuda asked for, but torch sees no CUDA device")
-        with interrupt_on_signals():
-            summary = simulate(config, overwrite=force)
-    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+    except ValueError as exc:
         fail(error_message(exc))
-    except PredictionFailed as exc:
-        fail(str(exc), code=1)
-    except KeyboardInterrupt as exc:
-        typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
-        raise typer.Exit(code=exit_code(exc)) from None
+    with interrupt_on_signals(), task_bar(f"simulating {x0.name}", quiet=json_out
+                                          ) as (bar, progress):
+        try:
+            summary = simulate(config, overwrite=force, progress=progress)
+        except (FileExistsError, FileNotFoundError, ValueError) as exc:
+            bar.stop()
+            fail(error_message(exc))
+        except PredictionFailed as exc:
+            bar.stop()
+            fail(str(exc), code=1)
+        except KeyboardInterrupt as exc:
+            bar.stop()
+            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
+            raise typer.Exit(code=exit_code(exc)) from None
     if json_out:
         typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
         return

@@ -27,7 +27,6 @@ import functools
 import json
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +42,7 @@ from mpnode_cli.data.shards import (
     shard_range,
 )
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
+from mpnode_cli.progress import Progress
 from mpnode_cli.systems.base import System
 from mpnode_cli.systems.registry import get_system, grid_systems, load_system_file
 
@@ -50,9 +50,6 @@ from mpnode_cli.systems.registry import get_system, grid_systems, load_system_fi
 # independently with probability p per draw (p ≈ 0.2 for the pendulum's wide box), so 50
 # rounds only run out when something is systematically wrong.
 MAX_REDRAW_ROUNDS = 50
-
-# (trajectories solved, trajectories to solve); within a chunk, "solved" counts fractions.
-Progress = Callable[[float, int], None]
 
 # Bytes per float64 value a chunk's solve holds besides its output (the stages and the
 # step's temporaries, for a 7-stage method), per node state.

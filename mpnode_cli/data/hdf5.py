@@ -29,6 +29,7 @@ import numpy as np
 from mpnode_cli import __version__
 from mpnode_cli.config import upgrade_solver_fields
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
+from mpnode_cli.progress import Progress
 
 FORMAT = "mpnode-dataset"
 FORMAT_VERSION = 2
@@ -43,6 +44,9 @@ OPTIONAL_ATTRS: dict[str, Any] = {
     "control_dim": 0, "control_names": "[]", "seed": None, "config": "{}",
     "mpnode_version": None, "created_utc": None}
 _ROOT_ATTRS = frozenset(REQUIRED_ATTRS) | frozenset(OPTIONAL_ATTRS)
+# Values per block when trajectories are read or written a block at a time (64 MB of
+# float64): a file larger than memory passes through in pieces.
+BLOCK_VALUES = 8 * 2**20
 
 
 class DatasetFormatError(ValueError):
@@ -62,7 +66,9 @@ class Dataset:
         config: the resolved generate config (JSON-compatible dict; empty when the file
             holds none, e.g. data that mpnode did not generate).
         time: float64 `[T]`.
-        states: `[K, T, N, D]` (float32 or float64).
+        states: `[K, T, N, D]` (float32 or float64): a numpy array, or an array-like
+            that reads a block of trajectories as `states[a:b]` (`mpnode import` passes
+            a memory-mapped input cast block by block); the writer reads it so.
         graphs: the G graphs (`mpnode_cli.graphs.Graphs`: edge lists, and the `[G, N, N]`
             matrices, `A[g, i, j] = 1` iff node j sends to node i, only for N ≤
             `DENSE_GRAPH_MAX_NODES`).
@@ -136,7 +142,8 @@ class Dataset:
 
 
 def fingerprint(states: Any, graphs: Graphs, graph_index: np.ndarray,
-                time: np.ndarray, *, rows: int | None = None) -> str:
+                time: np.ndarray, *, rows: int | None = None,
+                progress: Progress | None = None) -> str:
     """The data's identity: sha256 of states (as float32), the graphs, graph_index and
     time, each as stored. Runs and checkpoints record it; a file whose data are the same has
     the same fingerprint wherever it lies.
@@ -150,24 +157,30 @@ def fingerprint(states: Any, graphs: Graphs, graph_index: np.ndarray,
             trajectories at a time; the digest is the same).
         graphs, graph_index, time: as stored in the file.
         rows: trajectories per read (default: all at once).
+        progress: called after each read, with the trajectories read and K.
     """
     digest = hashlib.sha256()
     step = max(1, rows or len(states))
     for start in range(0, len(states), step):
         block = np.asarray(states[start:start + step], dtype=np.float32)
         digest.update(np.ascontiguousarray(block).tobytes())
+        if progress is not None:
+            progress(min(start + step, len(states)), len(states))
     for array in (*graphs.fingerprint_arrays(), graph_index, time):
         digest.update(np.ascontiguousarray(array).tobytes())
     return digest.hexdigest()
 
 
-def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> Path:
+def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False,
+                  progress: Progress | None = None) -> Path:
     """Write `ds` to `path` atomically.
 
     Args:
         path: target file; its folder is created if missing.
         ds: the dataset; shapes are checked against each other first.
         overwrite: replace an existing file (otherwise refuse).
+        progress: called as the states are written, a block of trajectories at a time,
+            with the trajectories written and K.
 
     Returns:
         The path written.
@@ -182,11 +195,12 @@ def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False) -> 
 
     _check_shapes(ds)
     with atomic_h5(path, overwrite=overwrite) as (f, check):
-        _write(f, ds, check)
+        _write(f, ds, check, progress)
     return Path(path)
 
 
-def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None) -> None:
+def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None,
+           progress: Progress | None = None) -> None:
     """Fill `f` with `ds`; `check()` between fields raises if the write should stop."""
     k, t, n, d = ds.states.shape
     provenance = {} if ds.seed is None else {"seed": int(ds.seed)}
@@ -213,7 +227,14 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None) -> None:
         f.attrs[key] = value
     f.create_dataset("time", data=np.asarray(ds.time, dtype=np.float64))
     # One trajectory per chunk: training reads whole trajectories in random order.
-    f.create_dataset("states", data=ds.states, chunks=(1, t, n, d))
+    states = f.create_dataset("states", shape=(k, t, n, d), dtype=ds.states.dtype,
+                              chunks=(1, t, n, d))
+    rows = max(1, BLOCK_VALUES // max(t * n * d, 1))
+    for start in range(0, k, rows):
+        states[start:start + rows] = ds.states[start:start + rows]
+        check()
+        if progress is not None:
+            progress(min(start + rows, k), k)
     check()
     if ds.controls is not None and len(ds.control_names) > 0:
         f.create_dataset("controls", data=ds.controls, chunks=(1, *ds.controls.shape[1:]))

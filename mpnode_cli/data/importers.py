@@ -8,7 +8,10 @@ file written has system "custom", the resolved import config with the sha256 of 
 input (its provenance), and the data's `fingerprint` as a root attribute (the one training
 records, `mpnode_cli.data.hdf5.fingerprint`).
 
-Nothing here prints; the CLI (`mpnode import`) turns a `ValueError` into its one line.
+A `.npy` of states is memory-mapped and passed through a block of trajectories at a time
+(checked, fingerprinted, cast and written), so an import needs about one block of memory
+besides the mapped file, whatever its size. Nothing here prints; the CLI (`mpnode import`)
+turns a `ValueError` into its one line, and shows `progress`.
 """
 
 from __future__ import annotations
@@ -16,13 +19,16 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from mpnode_cli.config import ImportConfig
-from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
+from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, fingerprint, write_dataset
+from mpnode_cli.data.validate import nonfinite
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.paths import file_sha256
+from mpnode_cli.progress import Progress, pass_of
 
 # Columns of a long-format CSV besides the states (case does not matter).
 CSV_INDEX = ("trajectory", "time", "node")
@@ -35,7 +41,8 @@ class Loaded:
     """States read from a file.
 
     Attributes:
-        states: float64 `[K, T, N, D]`.
+        states: `[K, T, N, D]` numbers: a read-only memory map of a `.npy` in its own
+            dtype (read as it is used), float64 otherwise.
         names: `[D]` state names the file gives (CSV columns), or None.
         time: float64 `[T]` sample times the file gives, or None.
     """
@@ -66,8 +73,15 @@ class ImportSummary:
     fingerprint: str
 
 
-def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSummary:
+def import_arrays(config: ImportConfig, *, overwrite: bool = False,
+                  progress: Progress | None = None) -> ImportSummary:
     """Read, check and write the dataset `config` describes.
+
+    Args:
+        config: what to import.
+        overwrite: replace an existing regular file at the output path.
+        progress: called as `progress(done, total)` while the states are checked,
+            fingerprinted and written (three passes over the K trajectories: total 3K).
 
     Raises:
         ValueError: an input that cannot be read or does not fit the others (one line),
@@ -81,14 +95,14 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False) -> ImportSum
     out = output_path(config)
     inputs = (config.states, config.adjacency, config.edge_list, config.controls)
     with reserve_output(out, overwrite=overwrite, inputs=inputs):
-        return _import(config, out)
+        return _import(config, out, progress)
 
 
-def _import(config: ImportConfig, out: Path) -> ImportSummary:
+def _import(config: ImportConfig, out: Path, progress: Progress | None) -> ImportSummary:
     """`import_arrays` once its output is reserved: read, check, write."""
     from mpnode_cli.data.generate import split_trajectories
 
-    loaded = load_states(config.states)
+    loaded = load_states(config.states, progress=pass_of(progress, 0, 3))
     states = loaded.states
     k, t, n, d = states.shape
     time = _time(loaded.time, config.dt, t, config.states)
@@ -103,8 +117,9 @@ def _import(config: ImportConfig, out: Path) -> ImportSummary:
     elif config.control_names:
         raise ValueError("--control-names given without --controls")
     split = split_trajectories(k, config.split, config.seed)
-    stored = states.astype(config.dtype)
-    digest = fingerprint(stored, graphs, graph_index, time)
+    stored = _Cast(states, config.dtype)
+    digest = fingerprint(stored, graphs, graph_index, time, rows=_rows(states),
+                         progress=pass_of(progress, 1, 3))
     sources = {name: {"path": str(path.resolve()), "sha256": file_sha256(path)}
                for name in ("states", "adjacency", "edge_list", "controls")
                if (path := getattr(config, name)) is not None}
@@ -119,12 +134,33 @@ def _import(config: ImportConfig, out: Path) -> ImportSummary:
         controls=None if controls is None else controls.astype(config.dtype),
         graphs=graphs, graph_index=graph_index, split=split,
         extra_attrs={"fingerprint": digest}),
-        overwrite=True)  # over the reservation `import_arrays` made
+        overwrite=True,  # over the reservation `import_arrays` made
+        progress=pass_of(progress, 2, 3))
     counts = np.bincount(split, minlength=3)
     return ImportSummary(path=out, trajectories=k, samples=t, nodes=n, node_dim=d,
                          control_dim=len(control_names), graphs=len(graphs),
                          split_counts=(int(counts[0]), int(counts[1]), int(counts[2])),
                          fingerprint=digest)
+
+
+class _Cast:
+    """`array` as `dtype`, a block at a time: `cast[a:b]` reads and casts those rows only,
+    so a memory-mapped input is never copied whole."""
+
+    def __init__(self, array: Any, dtype: str):
+        self.array, self.dtype = array, np.dtype(dtype)
+        self.shape, self.ndim = array.shape, array.ndim
+
+    def __len__(self) -> int:
+        return len(self.array)
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return np.asarray(self.array[index], dtype=self.dtype)
+
+
+def _rows(array: Any) -> int:
+    """Rows (trajectories) per block of `BLOCK_VALUES` values."""
+    return max(1, BLOCK_VALUES // max(1, int(np.prod(array.shape[1:]))))
 
 
 def output_path(config: ImportConfig) -> Path:
@@ -133,14 +169,19 @@ def output_path(config: ImportConfig) -> Path:
         "datasets", f"{Path(config.states).stem}.h5")
 
 
-def load_states(path: str | Path) -> Loaded:
-    """Trajectories `[K, T, N, D]` from `.npy`, `.npz` or a long-format `.csv`.
+def load_states(path: str | Path, *, progress: Progress | None = None) -> Loaded:
+    """Trajectories `[K, T, N, D]` from `.npy` (memory-mapped), `.npz` or a long-format
+    `.csv`.
 
     A `.npz` holds them as `states` (or as its only array), and may hold `time [T]`. A
     CSV has a header row naming the columns `trajectory`, `time` and `node` (in any
     order) and one column per state component; each row is one node of one trajectory at
     one time. Trajectory and node ids are 0-based and contiguous, and every trajectory has
     a row for every node at every time (the same times for all).
+
+    Args:
+        path: the file.
+        progress: called as the values are checked, a block of trajectories at a time.
 
     Raises:
         ValueError: an unreadable file, another shape, or values that are not finite.
@@ -150,7 +191,7 @@ def load_states(path: str | Path) -> Loaded:
     if suffix == ".csv":
         loaded = _read_csv(path)
     elif suffix in (".npy", ".npz"):
-        arrays = _read_numpy(path)
+        arrays = _read_numpy(path, mmap=True)
         if "states" in arrays:
             states = arrays["states"]
         elif len(arrays) == 1:
@@ -159,7 +200,7 @@ def load_states(path: str | Path) -> Loaded:
             raise ValueError(f"{path} holds arrays {', '.join(arrays)}: name the trajectories "
                              "'states'")
         time = arrays.get("time")
-        loaded = Loaded(_numbers(states, path, "states"), None,
+        loaded = Loaded(_numeric(states, path, "states"), None,
                         None if time is None else _numbers(time, path, "time"))
     else:
         raise ValueError(f"{path}: states must be a .npy, .npz or .csv file")
@@ -171,7 +212,7 @@ def load_states(path: str | Path) -> Loaded:
     if k < 1 or t < 2 or n < 1 or d < 1:
         raise ValueError(f"{path}: states of shape {list(states.shape)}; a dataset needs at "
                          "least one trajectory, two samples, one node and one state")
-    _finite(states, path, ("trajectory", "sample", "node", "component"))
+    _finite(states, path, ("trajectory", "sample", "node", "component"), progress)
     return loaded
 
 
@@ -257,9 +298,11 @@ def load_controls(path: str | Path, ktn: tuple[int, int, int]) -> np.ndarray:
     return u
 
 
-def _read_numpy(path: Path) -> dict[str, np.ndarray]:
+def _read_numpy(path: Path, *, mmap: bool = False) -> dict[str, np.ndarray]:
+    """The arrays of a `.npy` (under the name "") or a `.npz`; with `mmap`, a `.npy` is
+    memory-mapped read-only (a `.npz` cannot be: its members are read whole)."""
     try:
-        data = np.load(path, allow_pickle=False)
+        data = np.load(path, allow_pickle=False, mmap_mode="r" if mmap else None)
         if isinstance(data, np.ndarray):  # a .npy
             return {"": data}
         with data:  # a .npz
@@ -280,19 +323,22 @@ def _single(path: Path) -> np.ndarray:
     return next(iter(arrays.values()))
 
 
-def _numbers(a: np.ndarray, path: Path, what: str) -> np.ndarray:
+def _numeric(a: np.ndarray, path: Path, what: str) -> np.ndarray:
+    """`a` as it is (a memory map stays one), once its dtype is known to hold numbers."""
     if a.dtype.kind not in "biuf":
         raise ValueError(f"{path}: {what} must hold numbers, not {a.dtype}")
-    return a.astype(np.float64)
+    return a
 
 
-def _finite(a: np.ndarray, path: Path, axes: tuple[str, ...]) -> None:
-    bad = ~np.isfinite(a)
-    if bad.any():
-        where = ", ".join(f"{axis} {i}" for axis, i in zip(axes, np.argwhere(bad)[0],
-                                                            strict=False))
-        raise ValueError(f"{path} holds {int(bad.sum())} non-finite value(s) (NaN or inf; the "
-                         f"first at {where})")
+def _numbers(a: np.ndarray, path: Path, what: str) -> np.ndarray:
+    return _numeric(a, path, what).astype(np.float64)
+
+
+def _finite(a: np.ndarray, path: Path, axes: tuple[str, ...],
+            progress: Progress | None = None) -> None:
+    line = nonfinite(a, axes, values=BLOCK_VALUES, progress=progress)
+    if line:
+        raise ValueError(f"{path} {line}")
 
 
 def _read_csv(path: Path) -> Loaded:

@@ -42,6 +42,8 @@ from typing import Any
 
 import numpy as np
 
+from mpnode_cli.progress import Progress
+
 SHARD_ATTR = "shard"
 MERGED_ATTR = "merged"
 # `default_rng([seed, 1])` draws the split; a shard's redraws come from the next stream.
@@ -51,8 +53,6 @@ REDRAW_STREAM = 2
 _PER_TRAJECTORY = ("states", "controls", "graph_index", "split", "solver/", "hidden/")
 # Values per read when copying: about 64 MiB of float64, whatever a trajectory's size.
 _BLOCK_VALUES = 8 * 2**20
-
-Progress = Callable[[int, int], None]  # (values copied, values to copy)
 
 
 def chunk_starts(k: int, chunk_size: int) -> list[int]:

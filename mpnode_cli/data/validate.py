@@ -35,6 +35,7 @@ from mpnode_cli.data.hdf5 import (
     virtual_source_problems,
 )
 from mpnode_cli.graphs import Graphs
+from mpnode_cli.progress import Progress
 
 # Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
 _BLOCK_VALUES = 1 << 26
@@ -416,22 +417,44 @@ class _Checker:
         obj = self.f[name]
         if obj.dtype.kind != "f" or obj.shape[0] == 0:
             return
-        per_row = max(1, int(np.prod(obj.shape[1:])))
-        rows = max(1, _BLOCK_VALUES // per_row)
-        bad, first = 0, None
-        for start in range(0, obj.shape[0], rows):
-            block = obj[start:start + rows]
-            mask = ~np.isfinite(block)
-            count = int(mask.sum())
-            if count and first is None:
-                first = tuple(int(i) for i in np.argwhere(mask)[0])
-                first = (first[0] + start, *first[1:])
-            bad += count
-        if bad:
-            axes = ("trajectory", "sample", "node", "component")
-            where = ", ".join(f"{axis} {i}" for axis, i in zip(axes, first, strict=False))
-            self.problem(f"{name} holds {bad} non-finite value{'s' * (bad > 1)} (NaN or inf; "
-                         f"the first at {where})")
+        line = nonfinite(obj, ("trajectory", "sample", "node", "component"),
+                         values=_BLOCK_VALUES)
+        if line:
+            self.problem(f"{name} {line}")
+
+
+def nonfinite(array: Any, axes: tuple[str, ...], *, values: int = _BLOCK_VALUES,
+              progress: Progress | None = None) -> str | None:
+    """Look for NaN and inf a block of rows (first axis) at a time, so that an array larger
+    than memory (an h5py dataset, a memory-mapped `.npy`) can be scanned.
+
+    Args:
+        array: `[K, ...]` numbers.
+        axes: the name of each axis, for the message.
+        values: values per block.
+        progress: called after each block with (rows done, K).
+
+    Returns:
+        None when every value is finite, else "holds C non-finite value(s) (NaN or inf;
+        the first at trajectory k, sample t, ...)".
+    """
+    k = len(array)
+    rows = max(1, values // max(1, int(np.prod(array.shape[1:]))))
+    bad, first = 0, None
+    for start in range(0, k, rows):
+        mask = ~np.isfinite(array[start:start + rows])
+        count = int(mask.sum())
+        if count and first is None:
+            first = tuple(int(i) for i in np.argwhere(mask)[0])
+            first = (first[0] + start, *first[1:])
+        bad += count
+        if progress is not None:
+            progress(min(start + rows, k), k)
+    if not bad:
+        return None
+    where = ", ".join(f"{axis} {i}" for axis, i in zip(axes, first, strict=False))
+    return (f"holds {bad} non-finite value{'s' * (bad > 1)} (NaN or inf; the first at "
+            f"{where})")
 
 
 def _json_list(raw: Any) -> list:

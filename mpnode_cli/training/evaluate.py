@@ -27,6 +27,7 @@ from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
 from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.registry import OPTIONS, model_class
+from mpnode_cli.progress import Progress, pass_of
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.extrapolation import data_extrapolation
 from mpnode_cli.training.losses import huber_loss
@@ -90,7 +91,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
              normalizer: Normalizer, *,
              batch_size: int = 128, solver: SolverOptions | None = None,
              device: str | torch.device = "cpu",
-             combine: Callable[[torch.Tensor], torch.Tensor] | None = None) -> EvalResult:
+             combine: Callable[[torch.Tensor], torch.Tensor] | None = None,
+             progress: Progress | None = None) -> EvalResult:
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
@@ -105,6 +107,7 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
         combine: when `data` is one part of a split that several processes share, adds
             the error sums of all parts (`[S]` float64 → `[S]`, e.g. an all-reduce), so
             that the result is the whole split's; RHS evaluations are then the parts' sum.
+        progress: called after each batch with the trajectories rolled out and K.
 
     Returns:
         An `EvalResult`; errors are NaN when every rollout failed (or `data` is empty).
@@ -118,11 +121,15 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     huber_sum, ok, failed, n_f_evals = 0.0, 0, 0, 0
     was_training = model.training
     model.eval()
+    done = 0
     with torch.no_grad(), prefetched(data, torch.arange(k).split(batch_size)) as batches:
         for batch in batches:
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
             out = model.rollout_from_data(x, ts, batch.graph(device), u, solver=solver)
             n_f_evals += out.n_f_evals
+            done += len(x)
+            if progress is not None:
+                progress(done, k)
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
             failed += int((~good).sum())
             if not good.any():
@@ -383,7 +390,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                         plot_dir: Path | None = None,
                         allow_other_system: bool = False,
                         save_predictions: Path | None = None,
-                        overwrite: bool = False) -> dict[str, Any]:
+                        overwrite: bool = False,
+                        progress: Progress | None = None) -> dict[str, Any]:
     """A checkpoint's errors on one split of a dataset (evaluate, zeroshot).
 
     The model rolls out with the checkpoint's training normalization and solver options.
@@ -398,6 +406,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         save_predictions: if given, write the split's predictions there as an
             `mpnode-dataset` file (`mpnode_cli.training.predict.write_predictions`).
         overwrite: replace an existing regular file at `save_predictions`.
+        progress: called as the split's trajectories are rolled out (twice over with
+            `save_predictions`: `progress(done, total)` counts both passes).
 
     Returns:
         JSON-able: dataset, system, num_nodes, topology, split, result (`EvalResult`),
@@ -420,7 +430,9 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     beyond = data_extrapolation(ckpt, subset)
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
     options = {"solver": rollout_solver(ckpt), "device": device}
-    result = evaluate(model, subset, normalizer, batch_size=batch_size, **options)
+    passes = 1 if save_predictions is None else 2
+    result = evaluate(model, subset, normalizer, batch_size=batch_size,
+                      progress=pass_of(progress, 0, passes), **options)
     train, note = train_reference(ckpt, data)
     baselines = {k: _finite(v) for k, v in baseline_mse(train, subset, normalizer).items()}
     plots: list[str] = []
@@ -443,7 +455,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     written = None
     if save_predictions is not None:
         written = str(_save_predictions(ckpt, data, subset, split, batch_size, device,
-                                        save_predictions, overwrite))
+                                        save_predictions, overwrite, pass_of(progress, 1, 2)))
     data_note = None
     if data.attrs.get("prediction"):
         data_note = (f"{data.path.name} holds a model's predictions, not ground truth: these "
@@ -498,13 +510,14 @@ def evaluate_datasets(ckpt, datasets: Sequence[TrajectoryData], names: Sequence[
 
 
 def _save_predictions(ckpt, data: TrajectoryData, subset: TrajectoryData, split: str,
-                      batch_size: int, device, path: Path, overwrite: bool) -> Path:
+                      batch_size: int, device, path: Path, overwrite: bool,
+                      progress: Progress | None = None) -> Path:
     """Roll out a split from its first states and write the predictions beside the facts
     of the data they were made for."""
     pred = roll_out(ckpt, subset.states[:, 0].numpy(), subset.time.numpy(),
                     subset.graphs, subset.graph_index.numpy(),
                     None if subset.controls is None else subset.controls.numpy(),
-                    batch_size=batch_size, device=device)
+                    batch_size=batch_size, device=device, progress=progress)
     source = {"dataset": str(Path(data.path).resolve()), "fingerprint": data.fingerprint,
               "split": split, "trajectories": _file_indices(data, split)}
     config = {"verb": "evaluate", "checkpoint": str(ckpt.path), "dataset": str(data.path),

@@ -35,6 +35,7 @@ from mpnode_cli.config import stored_solver, train_solver
 from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.paths import file_sha256
+from mpnode_cli.progress import Progress
 from mpnode_cli.solver.options import SolverOptions
 
 
@@ -67,7 +68,8 @@ def rollout_solver(ckpt) -> SolverOptions:
 
 def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: np.ndarray,
              controls: np.ndarray | None = None, *, batch_size: int = 128,
-             device: str | torch.device = "cpu") -> Predicted:
+             device: str | torch.device = "cpu", progress: Progress | None = None
+             ) -> Predicted:
     """Predict trajectories from `x0` with a checkpoint's model.
 
     Args:
@@ -80,6 +82,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
         controls: `[K, T, N, U]` physical, zero-order hold, or None.
         batch_size: trajectories per rollout.
         device: where the rollouts run.
+        progress: called after each batch with the trajectories rolled out and K.
 
     Raises:
         ValueError: sizes that do not fit the model (one line).
@@ -123,6 +126,8 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
                 messages.append(out.messages.double().cpu())  # (B, T, N, M)
             status[idx.numpy()] = out.status.cpu().numpy()
             n_f_evals[idx.numpy()] = out.n_f_evals
+            if progress is not None:
+                progress(int(idx[-1]) + 1, k)
     return Predicted(states=torch.cat(states).numpy(),
                      messages=torch.cat(messages).numpy() if messages else None,
                      status=status, n_f_evals=n_f_evals)
@@ -228,13 +233,15 @@ class SimulateSummary:
     extrapolation: dict[str, Any] | None = None
 
 
-def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
+def simulate(config, *, overwrite: bool = False,
+             progress: Progress | None = None) -> SimulateSummary:
     """Roll a checkpoint's model out from a user's initial states on a user's graph, and
     write the predictions (`mpnode simulate`). No ground truth is needed.
 
     Args:
         config: a `mpnode_cli.config.SimulateConfig`.
         overwrite: replace an existing regular file at the output path.
+        progress: called after each batch of rollouts with the trajectories done and K.
 
     Raises:
         FileNotFoundError, ValueError: a checkpoint, input or output that cannot be used
@@ -254,10 +261,10 @@ def simulate(config, *, overwrite: bool = False) -> SimulateSummary:
         checkpoint = config.checkpoint
     inputs = (checkpoint, config.x0, config.adjacency, config.edge_list, config.controls)
     with reserve_output(out, overwrite=overwrite, inputs=inputs):
-        return _simulate(config, out)
+        return _simulate(config, out, progress)
 
 
-def _simulate(config, out: Path) -> SimulateSummary:
+def _simulate(config, out: Path, progress: Progress | None) -> SimulateSummary:
     """`simulate` once its output is reserved: load, roll out, write."""
     import time as clock
 
@@ -276,7 +283,7 @@ def _simulate(config, out: Path) -> SimulateSummary:
         controls = load_controls(config.controls, (k, len(ts), n))
     start = clock.perf_counter()
     pred = roll_out(ckpt, x0, ts, graphs, graph_index, controls,
-                    batch_size=config.batch_size, device=config.device)
+                    batch_size=config.batch_size, device=config.device, progress=progress)
     seconds = clock.perf_counter() - start
     sources = {name: {"path": str(Path(path).resolve()), "sha256": file_sha256(path)}
                for name in ("x0", "adjacency", "edge_list", "controls")
