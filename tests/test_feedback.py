@@ -1,7 +1,9 @@
-"""What the verbs tell a user while they work: progress on long verbs."""
+"""What the verbs tell a user while and after they work: progress on long verbs, lines that
+are not broken when written to a pipe, and one `--json` name for one fact."""
 
 from __future__ import annotations
 
+import json
 from contextlib import contextmanager
 
 import numpy as np
@@ -58,3 +60,28 @@ def test_import_memory_maps_a_npy(tmp_path):
 
     np.save(tmp_path / "s.npy", np.arange(2 * 3 * 2 * 1, dtype=np.float32).reshape(2, 3, 2, 1))
     assert isinstance(load_states(tmp_path / "s.npy").states, np.memmap)
+
+
+def test_lines_are_not_wrapped_without_a_terminal(user_files, tmp_path):
+    deep = tmp_path / ("a-rather-long-folder-name-" * 3) / "data-with-a-long-name.h5"
+    result = invoke("import", "--states", user_files["states"], "--adjacency",
+                    user_files["adjacency"], "--dt", 0.1, "--out", deep)
+    assert result.exit_code == 0, result.output
+    assert f"check it with: mpnode check {deep}" in result.output.splitlines()[-1]
+    result = invoke("info", deep)
+    assert result.exit_code == 0, result.output
+    assert result.output.splitlines()[0].strip() == str(deep)  # a table's title, whole
+
+
+def test_json_names_split_counts_alike(user_files, tmp_path):
+    out = tmp_path / "d.h5"
+    imported = json.loads(invoke("import", "--states", user_files["states"], "--adjacency",
+                                 user_files["adjacency"], "--dt", 0.1, "--out", out,
+                                 "--json").stdout)
+    generated = json.loads(invoke("generate", "lorenz", "--nodes", 2, "--trajectories", 10,
+                                  "--t-end", 0.2, "--dt", 0.1, "--out", tmp_path / "g.h5",
+                                  "--json").stdout)
+    described = json.loads(invoke("info", out, "--json").stdout)
+    assert "split_counts" not in imported
+    assert imported["split"] == described["split"] == {"train": 4, "validation": 1, "test": 1}
+    assert generated["split"].keys() == imported["split"].keys()

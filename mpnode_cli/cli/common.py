@@ -80,11 +80,25 @@ def speaks() -> bool:
 
 
 def console(stderr: bool = False):
-    """A rich console; tables written to a pipe or file get 120 columns, not rich's 80."""
+    """A rich console. Written to a pipe or a file, its lines are never wrapped (rich would
+    break them at 80 columns, and a path or a suggested command in two is useless to
+    copy); tables stay as wide as their content."""
     from rich.console import Console
 
     probe = Console(stderr=stderr)
-    return probe if probe.is_terminal else Console(stderr=stderr, width=120)
+    return probe if probe.is_terminal else Console(stderr=stderr, width=_UNWRAPPED)
+
+
+# Columns of a console that is not a terminal: wider than any line mpnode prints.
+_UNWRAPPED = 100_000
+
+
+def split_by_name(counts) -> dict[str, int]:
+    """Trajectories per split as every verb's `--json` reports them (key "split"):
+    `{"train": ..., "validation": ..., "test": ...}` from the three counts."""
+    from mpnode_cli.data.hdf5 import SPLIT_NAMES
+
+    return {name: int(count) for name, count in zip(SPLIT_NAMES, counts, strict=True)}
 
 
 @contextmanager

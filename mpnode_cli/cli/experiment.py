@@ -34,12 +34,10 @@ def _complete_name(incomplete: str) -> list[str]:
 def list_command() -> None:
     """List the experiments: name, what of the paper it reproduces, steps, and the
     expected minutes at the small scale (one core; steps done earlier are skipped)."""
-    from rich.table import Table
-
     from mpnode_cli.experiments.spec import load, names
+    from mpnode_cli.report.tables import titled
 
-    table = Table(title="mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper]",
-                  title_justify="left")
+    table = titled("mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper]")
     for column in ("name", "the paper", "title", "steps", "small, min"):
         table.add_column(column)
     for name in names():

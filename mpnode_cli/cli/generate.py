@@ -17,7 +17,14 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, solver_option, task_bar, warn
+from mpnode_cli.cli.common import (
+    THREADS,
+    console,
+    solver_option,
+    split_by_name,
+    task_bar,
+    warn,
+)
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.config import generate_solver
@@ -314,12 +321,10 @@ def _confirm_size(config: Any, yes: bool) -> None:
 def _print_json(config: Any, summary: Any) -> None:
     import json
 
-    train, val, test = summary.split_counts
     typer.echo(json.dumps({
         "path": str(summary.path), "system": config.system, "nodes": config.nodes,
         "topology": config.topology, "graphs": config.graphs,
-        "trajectories": summary.trajectories,
-        "split": {"train": train, "validation": val, "test": test},
+        "trajectories": summary.trajectories, "split": split_by_name(summary.split_counts),
         "samples": config.num_steps + 1, "dt": config.dt, "t_end": config.t_end,
         "failed": summary.failed, "rejected": summary.rejected,
         "n_f_evals": summary.n_f_evals, "seconds": summary.seconds,
@@ -329,11 +334,10 @@ def _print_json(config: Any, summary: Any) -> None:
 
 
 def _print_summary(config: Any, summary: Any) -> None:
-    from rich.console import Console
-    from rich.table import Table
+    from mpnode_cli.report.tables import titled
 
     train, val, test = summary.split_counts
-    table = Table(title=f"wrote {summary.path}", show_header=False, title_justify="left")
+    table = titled(f"wrote {summary.path}", show_header=False)
     table.add_column(style="bold")
     table.add_column(justify="right")
     rows = [
@@ -353,7 +357,7 @@ def _print_summary(config: Any, summary: Any) -> None:
                                  f"{config.trajectories}"))
     for row in rows:
         table.add_row(*row)
-    Console().print(table)
+    console().print(table)
     if threads := applied_threads():
         typer.echo(f"threads: {threads.describe()}")
 

@@ -47,9 +47,8 @@ def import_command(
 ) -> None:
     """Turn your own trajectories and graph into an mpnode dataset (system "custom")."""
     import json
-    from dataclasses import asdict
 
-    from mpnode_cli.cli.common import task_bar
+    from mpnode_cli.cli.common import split_by_name, task_bar
     from mpnode_cli.config import ImportConfig
     from mpnode_cli.data.generate import split_warning
     from mpnode_cli.data.importers import import_arrays
@@ -78,7 +77,12 @@ def import_command(
     if empty:
         warn(empty)
     if json_out:
-        typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
+        typer.echo(json.dumps({
+            "path": str(summary.path), "trajectories": summary.trajectories,
+            "split": split_by_name(summary.split_counts), "samples": summary.samples,
+            "nodes": summary.nodes, "node_dim": summary.node_dim,
+            "control_dim": summary.control_dim, "graphs": summary.graphs,
+            "fingerprint": summary.fingerprint}))
         return
     train, val, test = summary.split_counts
     console().print(

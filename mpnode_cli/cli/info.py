@@ -15,11 +15,10 @@ def info_command(
     """Print a dataset's summary (after checking the file, as `mpnode check` does)."""
     import json
 
-    from rich.console import Console
-    from rich.table import Table
-
+    from mpnode_cli.cli.common import console
     from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
     from mpnode_cli.data.validate import require_valid
+    from mpnode_cli.report.tables import titled
 
     try:
         require_valid(path)
@@ -32,12 +31,12 @@ def info_command(
     if json_out:
         typer.echo(json.dumps({"path": str(path), **facts}))
         return
-    table = Table(title=str(path), show_header=False, title_justify="left")
+    table = titled(str(path), show_header=False)
     table.add_column(style="bold")
     table.add_column()
     for name, value in _rows(facts):
         table.add_row(name, value)
-    Console().print(table)
+    console().print(table)
 
 
 def _facts(header: dict[str, Any]) -> dict[str, Any]:

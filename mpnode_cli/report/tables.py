@@ -14,6 +14,19 @@ from typing import Any
 
 from rich import box
 from rich.table import Table
+from rich.text import Text
+
+
+def titled(title: str, **options: Any) -> Table:
+    """A table under a title that is never wrapped: rich wraps a title to the table's
+    width, and a narrow table would break a path in it mid-name.
+
+    Args:
+        title: the title (a path, a command, what the table is).
+        **options: rich's `Table` options.
+    """
+    text = Text(title, style="table.title", no_wrap=True, overflow="ignore")
+    return Table(title=text, title_justify="left", **options)
 
 
 def fmt(value: Any, digits: int = 4) -> str:
@@ -54,7 +67,7 @@ def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str
                   baselines: dict[str, Any] | None = None) -> Table:
     """One evaluation: errors (beside the naive baselines), per-state RMSE, error at a few
     horizons."""
-    table = Table(title=title, show_header=False, title_justify="left")
+    table = titled(title, show_header=False)
     table.add_column(style="bold")
     table.add_column(justify="right")
     table.add_row("trajectories", f"{result['trajectories']} ({result['failed']} failed)")
@@ -80,7 +93,7 @@ def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
     MSE is normalized, beside the baselines' (with their ratio to it); RMSE is in physical
     units, averaged over the states (per state in `--json`).
     """
-    table = Table(title=title, title_justify="left", box=box.SIMPLE_HEAD)
+    table = titled(title, box=box.SIMPLE_HEAD)
     for name in ("dataset", "system", "N", "topology", "K", "failed", "MSE", "hold x(0)",
                  "time mean", "Huber", "RMSE"):
         table.add_column(name, justify="left" if name in ("dataset", "system", "topology")
@@ -100,8 +113,7 @@ def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
 def compare_table(summaries: Sequence[dict[str, Any]]) -> Table:
     """Runs side by side. Table-2 is the paper's figure: best epoch × min validation loss;
     the test MSE sits beside the naive baselines' on the same split."""
-    table = Table(title="runs (val: validation loss; MSE normalized)", title_justify="left",
-                  box=box.SIMPLE_HEAD)
+    table = titled("runs (val: validation loss; MSE normalized)", box=box.SIMPLE_HEAD)
     columns = ("run", "model", "params", "epochs", "best", "min val", "Table-2", "test MSE",
                "hold x(0)", "time mean", "s/epoch")
     for name in columns:
@@ -120,8 +132,7 @@ def compare_table(summaries: Sequence[dict[str, Any]]) -> Table:
 
 def train_table(summary: dict[str, Any]) -> Table:
     """The end of a training run."""
-    table = Table(title=f"trained {summary['run_dir']}", show_header=False,
-                  title_justify="left")
+    table = titled(f"trained {summary['run_dir']}", show_header=False)
     table.add_column(style="bold")
     table.add_column(justify="right")
     test, base = summary.get("test") or {}, summary.get("baselines") or {}
