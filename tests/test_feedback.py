@@ -1,5 +1,6 @@
 """What the verbs tell a user while and after they work: progress on long verbs, lines that
-are not broken when written to a pipe, and one `--json` name for one fact."""
+are not broken when written to a pipe, plots that call predictions predictions, and one
+`--json` name for one fact."""
 
 from __future__ import annotations
 
@@ -71,6 +72,39 @@ def test_lines_are_not_wrapped_without_a_terminal(user_files, tmp_path):
     result = invoke("info", deep)
     assert result.exit_code == 0, result.output
     assert result.output.splitlines()[0].strip() == str(deep)  # a table's title, whole
+
+
+def _legends(monkeypatch) -> list[list[str]]:
+    """The legend of each rollout figure saved from now on."""
+    from mpnode_cli.report import plots
+
+    seen, save = [], plots._save
+
+    def keep(fig, path, dpi=plots.DPI):
+        legend = fig.axes[0].get_legend()
+        if legend is not None:
+            seen.append([text.get_text() for text in legend.get_texts()])
+        return save(fig, path, dpi)
+
+    monkeypatch.setattr(plots, "_save", keep)
+    return seen
+
+
+def test_predictions_are_plotted_as_predictions(user_files, tmp_path, monkeypatch):
+    f = user_files
+    predictions = tmp_path / "p.h5"
+    assert invoke("simulate", f["run"], "--x0", f["x0"], "--adjacency", f["adjacency"],
+                  "--t-end", 0.4, "--dt", 0.1, "--out", predictions).exit_code == 0
+    legends = _legends(monkeypatch)
+    result = invoke("evaluate", f["run"], predictions, "--plot", "--plot-dir", tmp_path / "e")
+    assert result.exit_code == 0, result.output
+    (evaluated,) = legends
+    assert "true" not in evaluated and any("prediction" in label for label in evaluated)
+    # The prediction file alone, as `info --plot` draws it.
+    result = invoke("info", predictions, "--plot", "--plot-dir", tmp_path / "i")
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "i" / "p-trajectory-0.png").is_file()
+    assert legends[1:] == [["predicted"]]
 
 
 def test_json_names_split_counts_alike(user_files, tmp_path):

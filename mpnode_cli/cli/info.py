@@ -1,4 +1,6 @@
-"""`mpnode info FILE`: a dataset's summary, read from its header without loading states."""
+"""`mpnode info FILE`: a dataset's summary, read from its header without loading states;
+with `--plot`, one of its trajectories drawn (a prediction file's too: `mpnode simulate`'s
+output has no ground truth to compare with, and is drawn as what it is)."""
 
 from __future__ import annotations
 
@@ -11,11 +13,17 @@ import typer
 def info_command(
     path: Path = typer.Argument(..., metavar="FILE", help="An mpnode dataset (.h5)."),
     json_out: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    plot: bool = typer.Option(
+        False, "--plot", help="Draw one trajectory's states per node (and its messages, "
+        "for predictions that hold them)."),
+    trajectory: int = typer.Option(0, help="The trajectory --plot draws."),
+    plot_dir: Path | None = typer.Option(
+        None, help="Where the plot goes (default plots/ beside FILE)."),
 ) -> None:
     """Print a dataset's summary (after checking the file, as `mpnode check` does)."""
     import json
 
-    from mpnode_cli.cli.common import console
+    from mpnode_cli.cli.common import console, fail
     from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
     from mpnode_cli.data.validate import require_valid
     from mpnode_cli.report.tables import titled
@@ -24,12 +32,12 @@ def info_command(
         require_valid(path)
         header = read_header(path)
     except (FileNotFoundError, DatasetFormatError) as exc:
-        typer.echo(f"Error: {exc}", err=True)
-        raise typer.Exit(code=2) from None
+        fail(str(exc))
 
     facts = _facts(header)
+    plots = [str(_plot(path, header, trajectory, plot_dir))] if plot else []
     if json_out:
-        typer.echo(json.dumps({"path": str(path), **facts}))
+        typer.echo(json.dumps({"path": str(path), **facts, **({"plots": plots} if plot else {})}))
         return
     table = titled(str(path), show_header=False)
     table.add_column(style="bold")
@@ -37,6 +45,32 @@ def info_command(
     for name, value in _rows(facts):
         table.add_row(name, value)
     console().print(table)
+    for written in plots:
+        typer.echo(f"wrote {written}")
+
+
+def _plot(path: Path, header: dict[str, Any], k: int, plot_dir: Path | None) -> Path:
+    """Draw trajectory `k` of the file as `<plot_dir>/<stem>-trajectory-<k>.png`."""
+    from mpnode_cli.cli.common import fail
+    from mpnode_cli.data.hdf5 import read_trajectory
+    from mpnode_cli.paths import check_output_folder
+    from mpnode_cli.report.plots import plot_rollout
+
+    folder = plot_dir or path.parent / "plots"
+    try:
+        check_output_folder(folder)
+        one = read_trajectory(path, k)
+        attrs = header["attrs"]
+        predicted = isinstance(attrs.get("prediction"), str)
+        what = "a model's predictions, not ground truth" if predicted else "data"
+        return plot_rollout(one["time"], one["states"], None, one["hidden"].get("messages"),
+                            attrs["state_names"], folder / f"{path.stem}-trajectory-{k}.png",
+                            title=f"{path.name}: trajectory {k} ({what})",
+                            labels=("predicted" if predicted else "true", ""))
+    except ValueError as exc:
+        fail(f"--plot: {exc}")
+    except OSError as exc:
+        fail(f"--plot: cannot write {exc.filename or 'the plot'}: {exc.strerror or exc}")
 
 
 def _facts(header: dict[str, Any]) -> dict[str, Any]:

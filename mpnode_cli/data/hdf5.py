@@ -390,6 +390,25 @@ def read_header(path: str | Path) -> dict[str, Any]:
         }
 
 
+def read_trajectory(path: str | Path, k: int) -> dict[str, Any]:
+    """One trajectory of a dataset file, without reading the others (`mpnode info --plot`).
+
+    Returns:
+        `{"time": [T], "states": [T, N, D], "hidden": {name: [T, ...]}}`.
+
+    Raises:
+        DatasetFormatError, FileNotFoundError: as `read_dataset`.
+        ValueError: no trajectory `k` in the file.
+    """
+    with _open(path) as f:
+        _root_attrs(f)
+        count = f["states"].shape[0]
+        if not 0 <= k < count:
+            raise ValueError(f"{path} has {count} trajectories (0 to {count - 1}), not {k}")
+        hidden = {name: value[k] for name, value in f["hidden"].items()} if "hidden" in f else {}
+        return {"time": f["time"][()], "states": f["states"][k], "hidden": hidden}
+
+
 def _group(f: h5py.File, name: str) -> h5py.Group | dict:
     """An optional group (`params`), or an empty mapping when the file has none."""
     return f[name] if name in f else {}

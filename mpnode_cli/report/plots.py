@@ -21,22 +21,29 @@ DPI = 110
 
 
 def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: str | Path,
-                 *, title: str = "", dpi: int = DPI) -> Path:
+                 *, title: str = "", dpi: int = DPI,
+                 labels: tuple[str, str] = ("true", "predicted")) -> Path:
     """Predicted vs true states per node, message norms beneath (the paper's Fig. 2).
 
     Args:
         time: `[T]` sample times.
-        true, pred: `[T, N, D]` one trajectory in physical units.
+        true, pred: `[T, N, D]` one trajectory in physical units, drawn solid and dashed;
+            `pred` may be None (a file's trajectory drawn on its own).
         messages: `[T, N, M]` the model's message states, or None.
         state_names: `[D]` labels of the rows.
         path: PNG to write (its folder is created).
         title: figure title.
         dpi: resolution of the PNG.
+        labels: the legend's names of `true` and `pred`: what they are (a prediction file
+            holds a model's predictions, not the truth).
 
     Returns:
         The path written.
     """
-    time, true, pred = _np(time), _np(true), _np(pred)
+    time, true = _np(time), _np(true)
+    curves = [(true, labels[0], {"color": "k"})]
+    if pred is not None:
+        curves.append((_np(pred), labels[1], {"color": "tab:red", "ls": "--"}))
     nodes, dims = min(true.shape[1], MAX_NODES), true.shape[2]
     shown = (f"all {nodes} nodes" if nodes == true.shape[1]
              else f"nodes 0–{nodes - 1} of {true.shape[1]}")
@@ -49,8 +56,8 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
         axes[0, i].set_title(f"node {i}", fontsize=9)
         for d in range(dims):
             ax = axes[d, i]
-            ax.plot(time, true[:, i, d], color="k", lw=1.2, label="true")
-            ax.plot(time, pred[:, i, d], color="tab:red", lw=1.2, ls="--", label="predicted")
+            for states, label, style in curves:
+                ax.plot(time, states[:, i, d], lw=1.2, label=label, **style)
             if i == 0:
                 ax.set_ylabel(state_names[d] if d < len(state_names) else f"x{d}")
         if has_msg:

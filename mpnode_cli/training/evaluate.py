@@ -443,11 +443,14 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         pred = predict(model, subset, normalizer, torch.arange(1), **options)
         messages = None if pred.messages is None else pred.messages[0]
         index = _file_index(data, split, 0)
+        # A prediction file holds a model's predictions: never call them the truth.
+        labels = (("prediction (file)", "predicted (this checkpoint)")
+                  if data.attrs.get("prediction") else ("true", "predicted"))
         plots = [
             str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
                              Path(plot_dir) / f"{stem}-rollout.png",
                              title=f"{data.path.name}: trajectory {index} (the first of the "
-                                   f"{split} split)")),
+                                   f"{split} split)", labels=labels)),
             str(plot_error_vs_time(data.time, result.mse_vs_time,
                                    Path(plot_dir) / f"{stem}-error.png",
                                    title=f"{data.path.name} ({split}): error vs time")),
