@@ -1,6 +1,6 @@
 """What the verbs tell a user while and after they work: progress on long verbs, lines that
-are not broken when written to a pipe, plots that call predictions predictions, and one
-`--json` name for one fact."""
+are not broken when written to a pipe, plots that call predictions predictions, what `info`
+says of imported data, and one `--json` name for one fact."""
 
 from __future__ import annotations
 
@@ -105,6 +105,17 @@ def test_predictions_are_plotted_as_predictions(user_files, tmp_path, monkeypatc
     assert result.exit_code == 0, result.output
     assert (tmp_path / "i" / "p-trajectory-0.png").is_file()
     assert legends[1:] == [["predicted"]]
+
+
+def test_info_of_imported_data_says_what_is_known(user_files):
+    result = invoke("info", user_files["data"])
+    assert result.exit_code == 0, result.output
+    assert "graphs ?" not in result.output and "trajectories 0" not in result.output
+    assert "split 0" in result.output  # the import's seed drew only the split
+    origin = next(line for line in result.output.splitlines() if "imported from" in line)
+    assert user_files["states"].name in origin and user_files["adjacency"].name in origin
+    facts = json.loads(invoke("info", user_files["data"], "--json").stdout)
+    assert facts["seeds"] == {"split": 0}
 
 
 def test_json_names_split_counts_alike(user_files, tmp_path):

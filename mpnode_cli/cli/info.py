@@ -99,7 +99,7 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
                                  for name, (shape, _) in shapes.items()
                                  if name.startswith("params/")},
         "states_dtype": states_dtype, "seed": attrs["seed"],
-        "graph_seed": config.get("graph_seed"),
+        "graph_seed": config.get("graph_seed"), "seeds": _seeds(config, attrs),
         # Imported and hand-written data were not solved by mpnode: no solver to show.
         "solver": (stored_solver(config, generate_solver).model_dump() if "solver" in config
                    else None),
@@ -142,10 +142,11 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
         ("parameters", scalars or "none"),
         ("per-graph parameters", per_graph or "none"),
         ("states dtype", facts["states_dtype"]),
-        ("seeds", f"trajectories {_known(facts['seed'])}, "
-                  f"graphs {_known(facts['graph_seed'])}"),
         ("solver", solved),
     ]
+    if facts["seeds"]:
+        rows.insert(-1, ("seeds", ", ".join(f"{what} {seed}"
+                                            for what, seed in facts["seeds"].items())))
     if facts["origin"]:
         rows.insert(2, ("origin", facts["origin"]))
     if "redrawn" in facts:
@@ -159,12 +160,25 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
+def _seeds(config: dict[str, Any], attrs: dict[str, Any]) -> dict[str, int]:
+    """The seeds the file records, by what they drew: generated data's initial states and
+    graphs; imported data's split alone (its trajectories and graph are the user's);
+    none for a model's predictions."""
+    if config.get("verb") == "import":
+        return {"split": attrs["seed"]}
+    seeds = {"trajectories": attrs["seed"], "graphs": config.get("graph_seed")}
+    return {what: seed for what, seed in seeds.items() if seed is not None}
+
+
 def _origin(config: dict[str, Any], attrs: dict[str, Any]) -> str | None:
     """Where the data came from, for files mpnode did not generate: imported arrays, or a
     model's predictions (`mpnode simulate`, `evaluate --save-predictions`)."""
     if config.get("verb") == "import":
-        source = config.get("sources", {}).get("states", {}).get("path", "?")
-        return f"imported from {source}"
+        sources = config.get("sources") or {}
+        files = ", ".join(f"{sources[name].get('path', '?')} ({name.replace('_', ' ')})"
+                          for name in ("states", "adjacency", "edge_list", "controls")
+                          if name in sources)
+        return f"imported from {files or '?'}"
     prediction = attrs.get("prediction")
     if isinstance(prediction, str):
         import json
