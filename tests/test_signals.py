@@ -85,9 +85,9 @@ def test_a_signal_during_the_hdf5_write_is_not_swallowed(tmp_path, monkeypatch, 
     the signal now stops the write and the temporary file goes."""
     real = hdf5._write
 
-    def write_and_signal(f, ds, check):
+    def write_and_signal(f, ds, *args):
         os.kill(os.getpid(), signum)  # arrives while the file is being written
-        real(f, ds, check)
+        real(f, ds, *args)
 
     monkeypatch.setattr(hdf5, "_write", write_and_signal)
     with pytest.raises(KeyboardInterrupt):
@@ -134,9 +134,9 @@ def test_import_and_simulate_stopped_while_writing_leave_nothing(tmp_path, monke
 
     write = hdf5._write
 
-    def interrupted_write(f, ds, check=lambda: None):
+    def interrupted_write(f, ds, *args):
         os.kill(os.getpid(), signal.SIGTERM)  # arrives inside the write
-        write(f, ds, check)
+        write(f, ds, *args)
 
     out = tmp_path / "out" / "x.h5"
     if verb == "import":
