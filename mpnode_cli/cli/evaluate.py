@@ -153,18 +153,14 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
               quiet: bool = False) -> dict[str, Any]:
     """`evaluate_checkpoint` of one dataset behind a progress bar, its errors as the
     user's one line and exit code."""
-    import torch
-
     from mpnode_cli.cli.common import task_bar
     from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.devices import torch_device
     from mpnode_cli.training.evaluate import evaluate_checkpoint
     from mpnode_cli.training.predict import PredictionFailed
 
-    if device not in ("cpu", "cuda"):
-        fail(f"unknown device '{device}' (cpu or cuda)")
-    if device == "cuda" and not torch.cuda.is_available():
-        fail("--device cuda asked for, but torch sees no CUDA device")
     try:
+        torch_device(device)
         data = TrajectoryData.load(dataset)
         with task_bar(f"{verb} {dataset.name}", quiet=quiet) as (_, progress):
             return evaluate_checkpoint(ckpt, data, split=split, verb=verb,

@@ -51,6 +51,7 @@ def simulate_command(
 
     from mpnode_cli.cli.common import task_bar
     from mpnode_cli.config import SimulateConfig
+    from mpnode_cli.devices import torch_device
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.predict import PredictionFailed, simulate
 
@@ -60,11 +61,7 @@ def simulate_command(
              "dtype": dtype}
     try:
         config = SimulateConfig(**{k: v for k, v in given.items() if v is not None})
-        if config.device == "cuda":
-            import torch
-
-            if not torch.cuda.is_available():
-                raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+        torch_device(config.device)
     except ValueError as exc:
         fail(error_message(exc))
     with interrupt_on_signals(), task_bar(f"simulating {x0.name}", quiet=json_out

@@ -41,6 +41,8 @@ from typing import Any, TypeVar
 import torch
 import torch.distributed as dist
 
+from mpnode_cli.devices import torch_device
+
 T = TypeVar("T")
 
 
@@ -172,8 +174,7 @@ def process_group(device: str) -> Iterator[World]:
     backend = "gloo"
     if device == "cuda":
         local = int(os.environ.get("LOCAL_RANK", "0"))
-        if not torch.cuda.is_available():
-            raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+        torch_device("cuda")
         if local >= torch.cuda.device_count():
             raise ValueError(f"process LOCAL_RANK {local} needs a GPU of its own, but this "
                              f"machine has {torch.cuda.device_count()}: start at most that "
