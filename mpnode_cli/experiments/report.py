@@ -21,6 +21,7 @@ from typing import Any
 
 from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.runner import RunRecord
+from mpnode_cli.jsonable import jsonable
 
 RESULTS = "results.json"
 REPORT = "report.md"
@@ -47,7 +48,7 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
         step["figures"] = names
     results = {r["id"]: r["result"] for r in data["steps"]}
     data["claims"] = [_claim(claim, results) for claim in experiment.claims]
-    (tmp / RESULTS).write_text(json.dumps(data, indent=2, default=str) + "\n")
+    (tmp / RESULTS).write_text(json.dumps(jsonable(data), indent=2, default=str) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
     os.replace(tmp, folder)
     path = rebuild_report(experiment, Path(out))

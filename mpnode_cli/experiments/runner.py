@@ -49,6 +49,7 @@ from typing import Any
 from mpnode_cli import __version__
 from mpnode_cli.experiments import commands
 from mpnode_cli.experiments.spec import TRAINING, Experiment, Scale, resolve
+from mpnode_cli.jsonable import jsonable
 
 Progress = Callable[[dict[str, Any]], None]
 STEP_JSON, PENDING_JSON = "step.json", "pending.json"
@@ -469,7 +470,7 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
         "model": summary["model"], "loss": summary["loss"], "epochs": summary["epochs"],
         "best_epoch": summary["best_epoch"], "min_val_loss": summary["min_val_loss"],
         "table2": summary["table2"], "min_train_loss": min(train_losses, default=None),
-        "val": {"mse": summary.get("min_val_mse"), **_finite(val)},
+        "val": {"mse": summary.get("min_val_mse"), **jsonable(val)},
         "test": {"mse": test.get("mse"), "failed": test.get("failed"),
                  **(summary.get("baselines") or {})},
         "wall_seconds": summary["wall_seconds"],
@@ -619,10 +620,6 @@ def _rollout_figure(ckpt, data, split: str, path: Path) -> str:
     title = f"{data.system}, N={data.num_nodes} ({split}), trajectory 0"
     return str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
                             path, title=title, dpi=FIGURE_DPI))
-
-
-def _finite(values: dict[str, float]) -> dict[str, float | None]:
-    return {k: (v if v == v and abs(v) != float("inf") else None) for k, v in values.items()}
 
 
 def _line(record: StepRecord) -> str:

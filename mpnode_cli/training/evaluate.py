@@ -25,6 +25,7 @@ import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
+from mpnode_cli.jsonable import jsonable
 from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
@@ -68,7 +69,7 @@ class EvalResult:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able, with non-finite numbers as None."""
-        return {k: _finite(v) for k, v in asdict(self).items()}
+        return jsonable(asdict(self))
 
 
 @dataclass
@@ -434,7 +435,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     result = evaluate(model, subset, normalizer, batch_size=batch_size,
                       progress=pass_of(progress, 0, passes), **options)
     train, note = train_reference(ckpt, data)
-    baselines = {k: _finite(v) for k, v in baseline_mse(train, subset, normalizer).items()}
+    baselines = jsonable(baseline_mse(train, subset, normalizer))
     plots: list[str] = []
     if plot_dir is not None:
         from mpnode_cli.report.plots import plot_error_vs_time, plot_rollout
@@ -554,7 +555,7 @@ def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):
 
 
 def _nan(value: Any) -> Any:
-    """`_finite` undone: None back to NaN (in dicts and lists too)."""
+    """`jsonable` undone: None back to NaN (in dicts and lists too)."""
     if value is None:
         return math.nan
     if isinstance(value, dict):
@@ -563,10 +564,3 @@ def _nan(value: Any) -> Any:
         return [_nan(v) for v in value]
     return value
 
-
-def _finite(value: Any) -> Any:
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, list):
-        return [_finite(v) for v in value]
-    return value

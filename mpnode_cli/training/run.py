@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
+from mpnode_cli.jsonable import jsonable
 
 CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
 
@@ -171,7 +171,7 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write JSON atomically (non-finite floats as null, so the file stays valid JSON)."""
     tmp = path.with_name(f".{path.name}.tmp")
     try:
-        tmp.write_text(json.dumps(_jsonable(data), indent=2) + "\n")
+        tmp.write_text(json.dumps(jsonable(data), indent=2) + "\n")
         os.replace(tmp, path)
     except BaseException:  # an interrupt too: no stray temporary file
         tmp.unlink(missing_ok=True)
@@ -186,7 +186,7 @@ def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:
 
 def append_metrics(run_dir: Path, row: dict[str, Any]) -> None:
     with open(Path(run_dir) / METRICS, "a") as f:
-        f.write(json.dumps(_jsonable(row)) + "\n")
+        f.write(json.dumps(jsonable(row)) + "\n")
 
 
 def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
@@ -236,14 +236,3 @@ def read_summary(run_dir: str | Path) -> dict[str, Any]:
         }  # fmt: skip
     return summary
 
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, Path):
-        return str(value)
-    return value
