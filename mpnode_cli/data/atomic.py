@@ -1,13 +1,17 @@
-"""An HDF5 file that appears whole at its path or not at all.
+"""Files that appear whole at their path or not at all: the one atomic write.
 
-The target is reserved first (`mpnode_cli.paths.reserve_output`: never an input, created
-exclusively, length checked). The file is written under a temporary name
-(`.<name>.<pid>.<random>.tmp`, `mpnode_cli.paths.temp_beside`) beside the target, on the
-same filesystem so that the final rename is atomic, and renamed when the block ends without
-an error. Any exception, an interrupt included, removes the temporary and the reservation.
-h5py would swallow an interrupt raised inside its C calls and finish the file, so SIGINT
-and SIGTERM are held during the write (`mpnode_cli.signals.deferred_signals`) and taken
-where the writer asks (`check()`), or when the block ends.
+A file is written under a temporary name (`.<name>.<pid>.<random>.tmp`,
+`mpnode_cli.paths.temp_beside`) beside its target, on the same filesystem so that the final
+rename is atomic, and renamed when the block ends without an error. Any exception, an
+interrupt included, removes the temporary. Libraries that write from C (h5py, torch.save)
+would swallow an interrupt raised inside their calls and finish the file, so SIGINT and
+SIGTERM are held during the write (`mpnode_cli.signals.deferred_signals`) and taken where
+the writer asks (`check()`), or once the file is in place.
+
+`atomic_path` is the write itself, for any writer that takes a path (torch.save, a JSON
+summary); `atomic_text` writes a string; `atomic_h5` writes a dataset file, which is a
+user's output: its target is reserved first (`mpnode_cli.paths.reserve_output`: never an
+input, created exclusively, length checked), and a signal during the write leaves nothing.
 """
 
 from __future__ import annotations
@@ -16,8 +20,51 @@ import os
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import h5py
+if TYPE_CHECKING:  # h5py is imported where an HDF5 file is written, not by every writer
+    import h5py
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[tuple[Path, Callable[[], None]]]:
+    """Write a file atomically through a temporary: `with atomic_path(p) as (tmp, check)`.
+
+    The block writes `tmp`; when it ends without an error, `tmp` replaces `path`. A signal
+    that arrived during the block and was not raised by `check()` is raised once the file
+    is in place (it is whole: stopping it halfway would gain nothing).
+
+    Args:
+        path: the target; its folder must exist. An existing file there is replaced.
+
+    Yields:
+        The temporary's path (nothing there yet) and `check()`, which raises
+        `KeyboardInterrupt` if SIGINT or SIGTERM arrived; call it between steps of a write
+        that should stop early, or last in the block for nothing to be left on a signal.
+
+    Raises:
+        KeyboardInterrupt: a signal during the write (after the rename unless `check()`
+            raised it first).
+    """
+    from mpnode_cli.paths import temp_beside
+    from mpnode_cli.signals import deferred_signals
+
+    path = Path(path)
+    tmp = temp_beside(path)
+    try:
+        with deferred_signals() as pending:
+            yield tmp, pending.check
+            os.replace(tmp, path)
+    except BaseException:  # an interrupt too: never leave a half-written temp behind
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def atomic_text(path: str | Path, text: str) -> Path:
+    """Write `text` to `path` atomically (`atomic_path`); returns the path."""
+    with atomic_path(path) as (tmp, _):
+        tmp.write_text(text)
+    return Path(path)
 
 
 @contextmanager
@@ -39,19 +86,12 @@ def atomic_h5(path: str | Path, *, overwrite: bool = False
         FileExistsError, ValueError: as `mpnode_cli.paths.reserve_output`.
         KeyboardInterrupt: a signal during the write; nothing is left behind.
     """
-    from mpnode_cli.paths import reserve_output, temp_beside
-    from mpnode_cli.signals import deferred_signals
+    import h5py
 
-    path = Path(path)
-    # Created by h5py itself so that the file gets the user's usual permissions.
-    tmp = temp_beside(path)
-    with reserve_output(path, overwrite=overwrite):
-        try:
-            with deferred_signals() as pending:
-                with h5py.File(tmp, "x") as f:
-                    yield f, pending.check
-                pending.check()
-                os.replace(tmp, path)
-        except BaseException:  # an interrupt too: never leave a half-written temp behind
-            tmp.unlink(missing_ok=True)
-            raise
+    from mpnode_cli.paths import reserve_output
+
+    with reserve_output(path, overwrite=overwrite), atomic_path(path) as (tmp, check):
+        # Created by h5py itself so that the file gets the user's usual permissions.
+        with h5py.File(tmp, "x") as f:
+            yield f, check
+        check()  # a signal during the write: no file rather than one the user stopped

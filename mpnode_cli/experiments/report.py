@@ -19,6 +19,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.runner import RunRecord
 from mpnode_cli.jsonable import jsonable
@@ -97,7 +98,7 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
         lines += _section(run)
     path = out / experiment.name / REPORT
     path.parent.mkdir(parents=True, exist_ok=True)
-    _write(path, "\n".join(lines).rstrip() + "\n")
+    atomic_text(path, "\n".join(lines).rstrip() + "\n")
     return path
 
 
@@ -286,7 +287,7 @@ def rebuild_index(out: Path) -> Path:
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
     path = out / INDEX
     path.parent.mkdir(parents=True, exist_ok=True)
-    _write(path, "\n".join(lines) + "\n")
+    atomic_text(path, "\n".join(lines) + "\n")
     return path
 
 
@@ -309,9 +310,3 @@ def _ratio(base: Any, value: Any) -> str:
     if base is None or value is None or not value > 0:
         return "—"
     return f"{base / value:.3g}"
-
-
-def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

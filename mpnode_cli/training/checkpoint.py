@@ -48,8 +48,6 @@ leaves the previous checkpoint intact.
 
 from __future__ import annotations
 
-import os
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -58,8 +56,8 @@ import torch
 
 from mpnode_cli import __version__
 from mpnode_cli.config import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.data.atomic import atomic_path
 from mpnode_cli.paths import file_sha256  # noqa: F401  (a checkpoint's identity)
-from mpnode_cli.signals import deferred_signals
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
@@ -127,14 +125,8 @@ def save_checkpoint(path: str | Path, ckpt: Checkpoint) -> Path:
         "parent_sha256": ckpt.parent_sha256,
         "metrics": ckpt.metrics,
     }
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
-        with deferred_signals():  # an interrupt waits for the save, then propagates
-            torch.save(payload, tmp)
-            os.replace(tmp, path)
-    except BaseException:  # an interrupt too: never leave a half-written temp behind
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as (tmp, _):  # an interrupt waits for the save, then propagates
+        torch.save(payload, tmp)
     return path
 
 

@@ -16,7 +16,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 from dataclasses import dataclass
 from datetime import datetime
@@ -24,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
+from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.jsonable import jsonable
 
 CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
@@ -169,13 +169,7 @@ def read_config(run_dir: str | Path) -> TrainConfig:
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Write JSON atomically (non-finite floats as null, so the file stays valid JSON)."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        tmp.write_text(json.dumps(jsonable(data), indent=2) + "\n")
-        os.replace(tmp, path)
-    except BaseException:  # an interrupt too: no stray temporary file
-        tmp.unlink(missing_ok=True)
-        raise
+    atomic_text(path, json.dumps(jsonable(data), indent=2) + "\n")
 
 
 def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:
@@ -199,9 +193,7 @@ def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
 def truncate_metrics(run_dir: Path, last_epoch: int) -> None:
     """Drop rows after `last_epoch`: an interrupt may land between a row and its checkpoint."""
     rows = [r for r in read_metrics(run_dir) if r["epoch"] <= last_epoch]
-    tmp = Path(run_dir) / f".{METRICS}.tmp"
-    tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
-    os.replace(tmp, Path(run_dir) / METRICS)
+    atomic_text(Path(run_dir) / METRICS, "".join(json.dumps(r) + "\n" for r in rows))
 
 
 def seconds_per_epoch(run_dir: Path) -> float | None:
