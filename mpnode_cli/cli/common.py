@@ -3,13 +3,15 @@ exceptions into one line for the user and an exit code."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, TypeVar
 
 import typer
 
 from mpnode_cli.solver.options import SolverOptions
+
+T = TypeVar("T")
 
 # Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
 # verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.
@@ -129,6 +131,39 @@ def task_bar(description: str, columns: tuple | None = None, total: float | None
             bar.update(task, completed=done, total=total)
 
         yield bar, progress
+
+
+def with_bar(description: str, work: Callable[[Callable], T], *, quiet: bool, stopped: str,
+             failures: tuple[type[Exception], ...] = (), columns: tuple | None = None,
+             total: float | None = None) -> T:
+    """`work(progress)` behind a `task_bar`, SIGTERM taken as Ctrl-C, and what it raises
+    turned into one line and an exit code: 2 for what the user can fix (a `ValueError`, a
+    missing or existing file), 1 for `failures` (numbers that did not work out), 130 / 143
+    for an interrupt ("Interrupted (SIGINT): <stopped>").
+
+    Args:
+        description, columns, total: the bar's (`task_bar`).
+        work: the library call, given the bar's `progress(done, total)` callback.
+        quiet: no bar (`--json`).
+        stopped: what an interrupt left, e.g. "nothing written".
+        failures: exception types that mean a numerical failure (exit 1).
+    """
+    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
+
+    with interrupt_on_signals(), task_bar(description, columns, total, quiet=quiet
+                                          ) as (bar, progress):
+        try:
+            return work(progress)
+        except (FileExistsError, FileNotFoundError, ValueError) as exc:
+            bar.stop()
+            fail(error_message(exc))
+        except failures as exc:
+            bar.stop()
+            fail(str(exc), code=1)
+        except KeyboardInterrupt as exc:
+            bar.stop()
+            typer.echo(f"Interrupted ({signal_name(exc)}): {stopped}", err=True)
+            raise typer.Exit(code=exit_code(exc)) from None
 
 
 def hide_flag_types() -> None:

@@ -22,8 +22,8 @@ from mpnode_cli.cli.common import (
     console,
     solver_option,
     split_by_name,
-    task_bar,
     warn,
+    with_bar,
 )
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
@@ -249,7 +249,6 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         split_warning,
     )
     from mpnode_cli.paths import check_output_file
-    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
     try:
         config = resolve_config(config, dry_run=False)
@@ -269,23 +268,10 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         MofNCompleteColumn(),
         TimeElapsedColumn(),
     )
-    with interrupt_on_signals(), task_bar(f"solving {config.system}", columns,
-                                          config.trajectories, quiet=json_out
-                                          ) as (bar, progress):
-        try:
-            summary = generate(config, overwrite=force, progress=progress)
-        except (FileExistsError, ValueError) as exc:
-            bar.stop()
-            _usage_error(_message(exc))
-        except GenerateError as exc:
-            bar.stop()
-            typer.echo(f"Error: {exc}", err=True)
-            raise typer.Exit(code=1) from None
-        except KeyboardInterrupt as exc:
-            bar.stop()
-            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written to "
-                       f"{output_path(config)}", err=True)
-            raise typer.Exit(code=exit_code(exc)) from None
+    summary = with_bar(f"solving {config.system}",
+                       lambda progress: generate(config, overwrite=force, progress=progress),
+                       quiet=json_out, stopped=f"nothing written to {output_path(config)}",
+                       failures=(GenerateError,), columns=columns, total=config.trajectories)
     if json_out:
         _print_json(config, summary)
     else:

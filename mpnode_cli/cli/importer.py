@@ -48,11 +48,10 @@ def import_command(
     """Turn your own trajectories and graph into an mpnode dataset (system "custom")."""
     import json
 
-    from mpnode_cli.cli.common import split_by_name, task_bar
+    from mpnode_cli.cli.common import split_by_name, with_bar
     from mpnode_cli.config import ImportConfig
     from mpnode_cli.data.generate import split_warning
     from mpnode_cli.data.importers import import_arrays
-    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
     given = {"states": states, "adjacency": adjacency, "edge_list": edge_list,
              "directed": directed, "dt": dt, "controls": controls, "state_names": state_names,
@@ -62,17 +61,9 @@ def import_command(
         config = ImportConfig(**{k: v for k, v in given.items() if v is not None})
     except ValueError as exc:
         fail(error_message(exc))
-    with interrupt_on_signals(), task_bar(f"importing {states.name}", quiet=json_out
-                                          ) as (bar, progress):
-        try:
-            summary = import_arrays(config, overwrite=force, progress=progress)
-        except (FileExistsError, ValueError) as exc:
-            bar.stop()
-            fail(error_message(exc))
-        except KeyboardInterrupt as exc:
-            bar.stop()
-            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
-            raise typer.Exit(code=exit_code(exc)) from None
+    summary = with_bar(f"importing {states.name}",
+                       lambda progress: import_arrays(config, overwrite=force, progress=progress),
+                       quiet=json_out, stopped="nothing written")
     empty = split_warning(summary.split_counts, config.split)
     if empty:
         warn(empty)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console, fail
+from mpnode_cli.cli.common import console
 
 
 def merge_command(
@@ -37,23 +37,14 @@ def merge_command(
     """Merge the shards of one dataset into one dataset file."""
     import json
 
-    from mpnode_cli.cli.common import error_message, task_bar
+    from mpnode_cli.cli.common import with_bar
     from mpnode_cli.data.generate import format_bytes
     from mpnode_cli.data.shards import merge_shards
-    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
-    with interrupt_on_signals(), task_bar(f"merging {len(shards)} shards",
-                                          quiet=json_out) as (bar, progress):
-        try:
-            summary = merge_shards(shards, out, overwrite=force, virtual=virtual,
-                                   progress=progress)
-        except (FileExistsError, ValueError) as exc:
-            bar.stop()
-            fail(error_message(exc))
-        except KeyboardInterrupt as exc:
-            bar.stop()
-            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written to {out}", err=True)
-            raise typer.Exit(code=exit_code(exc)) from None
+    summary = with_bar(f"merging {len(shards)} shards",
+                       lambda progress: merge_shards(shards, out, overwrite=force,
+                                                     virtual=virtual, progress=progress),
+                       quiet=json_out, stopped=f"nothing written to {out}")
     if json_out:
         typer.echo(json.dumps({"path": str(summary.path), "shards": summary.shards,
                                "trajectories": summary.trajectories,

@@ -49,10 +49,9 @@ def simulate_command(
     import json
     from dataclasses import asdict
 
-    from mpnode_cli.cli.common import task_bar
+    from mpnode_cli.cli.common import with_bar
     from mpnode_cli.config import SimulateConfig
     from mpnode_cli.devices import torch_device
-    from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.predict import PredictionFailed, simulate
 
     given = {"checkpoint": checkpoint, "x0": x0, "adjacency": adjacency,
@@ -64,20 +63,9 @@ def simulate_command(
         torch_device(config.device)
     except ValueError as exc:
         fail(error_message(exc))
-    with interrupt_on_signals(), task_bar(f"simulating {x0.name}", quiet=json_out
-                                          ) as (bar, progress):
-        try:
-            summary = simulate(config, overwrite=force, progress=progress)
-        except (FileExistsError, FileNotFoundError, ValueError) as exc:
-            bar.stop()
-            fail(error_message(exc))
-        except PredictionFailed as exc:
-            bar.stop()
-            fail(str(exc), code=1)
-        except KeyboardInterrupt as exc:
-            bar.stop()
-            typer.echo(f"Interrupted ({signal_name(exc)}): nothing written", err=True)
-            raise typer.Exit(code=exit_code(exc)) from None
+    summary = with_bar(f"simulating {x0.name}",
+                       lambda progress: simulate(config, overwrite=force, progress=progress),
+                       quiet=json_out, stopped="nothing written", failures=(PredictionFailed,))
     if json_out:
         typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
         return
