@@ -21,7 +21,7 @@ import numpy as np
 
 from mpnode_cli.config import ImportConfig
 from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.graphs import Graphs, missing_ids
 from mpnode_cli.paths import file_sha256
 
 # Columns of a long-format CSV besides the states (case does not matter).
@@ -186,11 +186,7 @@ def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: in
     from mpnode_cli.graphs import read_edges
 
     if edge_list is not None:
-        try:
-            a = read_edges(edge_list, directed=directed)
-        except OSError as exc:
-            raise ValueError(f"cannot read edge list {edge_list}: "
-                             f"{exc.strerror or exc}") from None
+        a = read_edges(edge_list, directed=directed)
         if a.num_nodes != n:
             raise ValueError(f"{edge_list} has {a.num_nodes} nodes (ids 0..{a.num_nodes - 1})"
                              f" but the states have {n}")
@@ -316,11 +312,14 @@ def _read_csv(path: Path) -> Loaded:
         v = col[name]
         if not (np.isfinite(v).all() and (v == np.round(v)).all() and v.min() >= 0):
             raise ValueError(f"{path}: {name} ids must be whole numbers from 0")
-        ids[name] = v.astype(np.int64)
-        gaps = np.setdiff1d(np.arange(ids[name].max() + 1), ids[name])
-        if len(gaps):
+        # Contiguous ids from 0 are all below the row count: larger ones mean a gap, found
+        # among the ids present (no range up to the largest, which may be any number).
+        below = v < len(v)
+        gaps = missing_ids(v[below].astype(np.int64), int(v.max()) + 1)
+        if gaps:
             raise ValueError(f"{path}: {name} ids are 0-based and contiguous, but "
-                             f"{', '.join(map(str, gaps[:5]))} never appear")
+                             f"{', '.join(map(str, gaps))} never appear")
+        ids[name] = v.astype(np.int64)
     if not np.isfinite(col["time"]).all():
         raise ValueError(f"{path}: the time column holds values that are not finite")
     times, t_index = np.unique(col["time"], return_inverse=True)
