@@ -22,6 +22,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.textfiles import read_text
 
 # Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
 SEED_MAX = 2**63 - 1
@@ -538,10 +539,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         ValueError: a missing file, or one that does not parse.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ValueError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    text = read_text(path, "config file")
     try:
         if path.suffix == ".json":
             data = json.loads(text)

@@ -28,13 +28,15 @@ from __future__ import annotations
 
 import itertools
 from array import array
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from mpnode_cli.textfiles import text_lines
 
 if TYPE_CHECKING:
     import torch
@@ -205,7 +207,7 @@ def read_edges(path: str | Path, *, directed: bool = False) -> EdgeList:
     """
     ends = array("q")  # i, j of each edge of weight 1, one after another
     ids = array("q")  # every id on any line
-    for lineno, raw in _text_lines(path):
+    for lineno, raw in text_lines(path, "edge list", _LINE_CHARS):
         line = raw.split("#", 1)[0].replace(",", " ").strip()
         if not line:
             continue
@@ -248,30 +250,6 @@ def read_edges(path: str | Path, *, directed: bool = False) -> EdgeList:
         senders, receivers = (np.concatenate([senders, receivers]),
                               np.concatenate([receivers, senders]))
     return EdgeList.build(n, senders, receivers)  # duplicates merged
-
-
-def _text_lines(path: str | Path) -> Iterator[tuple[int, str]]:
-    """`(line number from 1, line)` of a text file, each at most `_LINE_CHARS` long.
-
-    Raises:
-        ValueError: a file that cannot be opened, is not UTF-8 text (a NUL byte counts as
-            binary), or has a line too long for an edge list; each names the file.
-    """
-    try:
-        with open(path, encoding="utf-8", newline=None) as f:
-            lineno = 0
-            while raw := f.readline(_LINE_CHARS + 1):
-                lineno += 1
-                if len(raw) > _LINE_CHARS or "\x00" in raw:
-                    why = "a NUL byte" if "\x00" in raw else f"over {_LINE_CHARS} characters"
-                    raise ValueError(f"{path}:{lineno}: not an edge list of 'i j' lines "
-                                     f"({why}: a binary file?)")
-                yield lineno, raw
-    except UnicodeDecodeError:
-        raise ValueError(f"{path} is not a text file (it is not UTF-8: a binary file?); an "
-                         "edge list holds lines of 'i j'") from None
-    except OSError as exc:
-        raise ValueError(f"cannot read edge list {path}: {exc.strerror or exc}") from None
 
 
 def _shown(raw: str) -> str:
