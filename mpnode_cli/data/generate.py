@@ -43,8 +43,8 @@ from mpnode_cli.data.shards import (
     shard_range,
 )
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
-from mpnode_cli.systems.base import System
-from mpnode_cli.systems.registry import get_system, load_system_file
+from mpnode_cli.systems.contract import CheckedSystem, named
+from mpnode_cli.systems.registry import load_system_file, system_class
 
 # Redraw rounds before giving up on trajectories that keep failing. A trajectory fails
 # independently with probability p per draw (p ≈ 0.2 for the pendulum's wide box), so 50
@@ -227,7 +227,7 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         return resolved
 
     graph = _graph(system, resolved, 0)
-    system.sample_initial(graph, 1, np.random.default_rng(0))
+    system.sample(graph, 1, np.random.default_rng(0))
     return resolved
 
 
@@ -410,8 +410,9 @@ def generate(
     )
 
 
-def build_system(config: GenerateConfig) -> System:
-    """The config's system with its parameters and options; a system of your own is first
+def build_system(config: GenerateConfig) -> CheckedSystem:
+    """The config's system with its parameters and options, as generate calls it (each
+    method's result checked, `mpnode_cli.systems.contract`); a system of your own is first
     loaded from `config.system_file` (or found among the installed entry points).
 
     Raises:
@@ -423,10 +424,14 @@ def build_system(config: GenerateConfig) -> System:
         if cls.name != config.system:
             raise ValueError(f"--system-file {config.system_file} defines the system "
                              f"'{cls.name}', not '{config.system}'")
-    return get_system(config.system, **config.params)
+    cls = system_class(config.system)
+    try:
+        return CheckedSystem(cls(**config.params))
+    except BaseException as exc:  # a plug-in's own __init__ may raise anything
+        raise named(cls, "__init__", exc) from None
 
 
-def _graph(system: System, config: GenerateConfig, g: int) -> np.ndarray | EdgeList:
+def _graph(system: CheckedSystem, config: GenerateConfig, g: int) -> np.ndarray | EdgeList:
     """Graph g, built with seed `graph_seed + g` (or the edge list): uint8 `[N, N]` up to
     `DENSE_GRAPH_MAX_NODES` nodes, an `EdgeList` above."""
     if config.edge_list is not None:
