@@ -1,12 +1,14 @@
-"""A user's text files (edge lists, CSV tables, config files, experiment specs), read in one
-place: a file that is missing, unreadable or not UTF-8 text is one `ValueError` that names
-it, never a bare `'utf-8' codec can't decode` from deep inside a parser.
+"""A user's text files (edge lists, CSV tables, config files, experiment specs, a run
+folder's JSON), read in one place: a file that is missing, unreadable or not UTF-8 text is
+one `ValueError` that names it, never a bare `'utf-8' codec can't decode` from deep inside
+a parser.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 
 def read_text(path: str | Path, what: str) -> str:
@@ -28,6 +30,21 @@ def read_text(path: str | Path, what: str) -> str:
     if "\x00" in text:
         raise ValueError(_not_text(path, what))
     return text
+
+
+def read_json(path: str | Path, what: str = "") -> Any:
+    """A UTF-8 JSON file's value.
+
+    Raises:
+        ValueError: as `read_text`, or text that is not JSON (with the line).
+    """
+    import json
+
+    try:
+        return json.loads(read_text(path, what))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{_named(path, what)} is not valid JSON (line {exc.lineno}: "
+                         f"{exc.msg})") from None
 
 
 def text_lines(path: str | Path, what: str, max_chars: int) -> Iterator[tuple[int, str]]:

@@ -5,7 +5,7 @@ Once: an empty `.npy` gave "Aborted." and exit 1; a text file named `.npy` passe
 numpy's hint to load it with `allow_pickle`, which invites running a pickle's code; a
 binary edge list gave a bare `'utf-8' codec` error without the file's name; a CSV with a
 header and no rows leaked numpy's warning; a raw pickle named `.pt` leaked torch's
-two-line warning before the error.
+two-line warning before the error; a damaged run folder gave a bare JSON or `utf-8` error.
 """
 
 from __future__ import annotations
@@ -165,3 +165,21 @@ def test_a_binary_config_or_experiment_is_one_line_naming_it(tmp_path):
                                           tmp_path / "config.toml", names="config.toml")
     assert "is not UTF-8 text" in refused("experiment", "run", tmp_path / "spec.toml",
                                           names="spec.toml")
+
+
+@pytest.mark.parametrize(("name", "content", "words"), [
+    ("config.json", BINARY, "config.json is not UTF-8 text"),
+    ("config.json", b'{"model": ', "config.json is not valid JSON (line 1"),
+    ("config.json", b"[1, 2]", "config.json holds no JSON object"),
+    ("metrics.jsonl", b'{"epoch": 0}\n{"epoch": 1, "val_lo', "metrics.jsonl:2 is not a row"),
+])
+def test_a_damaged_run_folder_is_one_line_naming_its_file(tmp_path, tiny_checkpoint, name,
+                                                          content, words):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_checkpoint.parent.parent, run)
+    (run / "summary.json").unlink()  # compare then reads the config and the metrics
+    (run / name).write_bytes(content)
+    assert words in refused("compare", run, names=name)
+    assert words in refused("train", "--resume", run, "--epochs", 3, names=name)
