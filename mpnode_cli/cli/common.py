@@ -11,6 +11,11 @@ import typer
 
 from mpnode_cli.solver.options import SolverOptions
 
+# Jobs whose memory estimate passes these sizes get the estimate printed, and a question
+# (`confirm_size`: generate and simulate).
+SHOW_BYTES = 256 * 2**20
+CONFIRM_BYTES = 4 * 2**30
+
 # Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
 # verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.
 THREADS = typer.Option(
@@ -69,6 +74,34 @@ def extrapolation_note(row: dict[str, Any], name: str | None = None) -> None:
     note = (row.get("extrapolation") or {}).get("note")
     if note:
         warn(f"{name}: {note}" if name else note)
+
+
+def confirm_size(size: Any, job: str, yes: bool) -> None:
+    """Print the size of a big job; above `CONFIRM_BYTES` ask (or refuse without a terminal).
+
+    Args:
+        size: the job's `mpnode_cli.data.generate.Estimate`.
+        job: what it makes, "K trajectories × T samples × N nodes".
+        yes: go ahead without asking (`--yes`).
+
+    Raises:
+        ValueError: the user said no, or could not be asked and did not pass --yes.
+    """
+    import sys
+
+    from mpnode_cli.data.generate import format_bytes
+
+    if size.memory_bytes < SHOW_BYTES:
+        return
+    typer.echo(f"this job: {job}; file about {format_bytes(size.file_bytes)}, memory about "
+               f"{format_bytes(size.memory_bytes)}", err=True)
+    if size.memory_bytes < CONFIRM_BYTES or yes:
+        return
+    if not sys.stdin.isatty():
+        raise ValueError(f"a job this big (about {format_bytes(size.memory_bytes)} of memory) "
+                         "needs confirmation: pass --yes to go ahead")
+    if not typer.confirm("Go ahead?", default=False, err=True):
+        raise ValueError("not confirmed; nothing done")
 
 
 def speaks() -> bool:
