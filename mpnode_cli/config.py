@@ -22,6 +22,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.textfiles import read_text
 
 # Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
 SEED_MAX = 2**63 - 1
@@ -29,6 +30,11 @@ SEED_MAX = 2**63 - 1
 # Relative slack when checking that t_end is a whole number of dt steps (0.3 / 0.1 is not
 # exactly 3 in binary floating point).
 _GRID_TOL = 1e-9
+# The most dt steps in a horizon `0, dt, ..., t_end`: float64 holds every whole number up to
+# 2⁵³, so beyond it "t_end is a whole number of dt steps" means nothing (and at inf, from a
+# dt of 1e-300, nothing can be counted). Smaller horizons that would not fit in memory are
+# refused by the memory estimates of generate and simulate, before anything is allocated.
+MAX_STEPS = 2**53
 
 
 def generate_solver() -> SolverOptions:
@@ -77,6 +83,9 @@ def _check_grid(dt: float, t_end: float) -> None:
     if dt > t_end:
         raise ValueError(f"dt ({dt:g}) is larger than t_end ({t_end:g})")
     steps = t_end / dt
+    if not steps <= MAX_STEPS:  # also NaN and inf, which `round` cannot take
+        raise ValueError(f"t_end / dt is {steps:.3g} steps, more than the 2**53 a horizon may "
+                         "hold: lower t_end or raise dt")
     if abs(steps - round(steps)) > _GRID_TOL * max(1.0, steps):
         raise ValueError(f"t_end ({t_end:g}) must be a whole number of dt ({dt:g}) steps")
 
@@ -531,10 +540,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         ValueError: a missing file, or one that does not parse.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ValueError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    text = read_text(path, "config file")
     try:
         if path.suffix == ".json":
             data = json.loads(text)

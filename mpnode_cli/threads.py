@@ -21,6 +21,10 @@ from dataclasses import dataclass
 ENV_VAR = "MPNODE_THREADS"
 FLAG = "--threads"
 DEFAULT = 1
+# The most threads a process may ask for. Beyond the cores, threads only spin-wait on each
+# other, and 256 is above the cores of the machines mpnode is built for; a larger count is a
+# slip, and at some thousands OpenMP fails to create its pool and takes the process down.
+MAX_THREADS = 256
 
 
 @dataclass(frozen=True)
@@ -41,14 +45,26 @@ _applied: ThreadChoice | None = None  # torch's pools are per process, and so is
 
 
 def parse_count(text: str | int, where: str) -> int:
-    """`text` as a thread count, or a `ValueError` naming `where` the value came from."""
+    """`text` as a thread count (1 to `MAX_THREADS`), or a `ValueError` naming `where` the
+    value came from."""
     try:
         count = int(str(text).strip())
     except ValueError:
         count = 0
     if count < 1:
         raise ValueError(f"{where} must be a whole number ≥ 1, got {str(text)!r}")
+    if count > MAX_THREADS:
+        raise ValueError(f"{where} must be at most {MAX_THREADS}, got {str(text).strip()!r} "
+                         "(one thread per process is fastest; see the README's Threads)")
     return count
+
+
+def available_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # macOS and Windows have no affinity call
+        return os.cpu_count() or 1
 
 
 def choose_threads(flag: str | int | None = None,

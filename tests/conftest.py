@@ -132,3 +132,59 @@ def own_user_files(user_files, tmp_path) -> dict[str, Path]:
     root = user_files["data"].parent
     shutil.copytree(root, tmp_path, dirs_exist_ok=True)
     return {name: tmp_path / path.relative_to(root) for name, path in user_files.items()}
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    """A one-epoch MP-NODE checkpoint on 8 Lorenz trajectories of 3 nodes (D = 3): a model
+    for `simulate` and `evaluate` to read."""
+    from typer.testing import CliRunner
+
+    from mpnode_cli.cli.app import app
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import generate
+
+    root = tmp_path_factory.mktemp("tiny")
+    data = generate(GenerateConfig(system="lorenz", nodes=3, trajectories=8, t_end=0.2,
+                                   dt=0.05, out=root / "l3.h5")).path
+    result = CliRunner().invoke(app, ["train", str(data), "--epochs", "1", "--batch-size", "8",
+                                      "--no-plots", "--run-dir", str(root / "run")])
+    assert result.exit_code == 0, result.output
+    return root / "run" / "checkpoints" / "best.pt"
+
+
+# Run by `guarded_cli` in a child process: CLI commands under a cap on address space.
+_GUARDED = """
+import json, resource, sys
+resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[1]), int(sys.argv[1])))
+from typer.testing import CliRunner
+from mpnode_cli.cli.app import app
+results = []
+for args in json.loads(sys.argv[2]):
+    result = CliRunner().invoke(app, args, input="")
+    results.append({"exit_code": result.exit_code, "output": result.output})
+print(json.dumps(results))
+"""
+
+
+def guarded_cli(*commands: list, memory: int = 3 * 2**30, timeout: float = 120,
+                **env: str) -> list:
+    """CLI results (`exit_code`, `output`) of `commands` run one after another in a child
+    process whose address space is capped at `memory` bytes, with `env` added to its
+    environment.
+
+    For inputs that once made a verb allocate without bound: such a verb then fails in the
+    child (MemoryError, or a kill at `timeout` seconds) instead of exhausting the machine,
+    and a crash (a segfault) fails the test instead of ending the test run.
+    """
+    import json
+    import subprocess
+    import sys
+    from types import SimpleNamespace
+
+    args = json.dumps([[str(a) for a in command] for command in commands])
+    proc = subprocess.run([sys.executable, "-c", _GUARDED, str(memory), args],
+                          env=child_env(**env), capture_output=True, text=True,
+                          timeout=timeout)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return [SimpleNamespace(**r) for r in json.loads(proc.stdout.splitlines()[-1])]

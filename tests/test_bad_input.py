@@ -17,6 +17,7 @@ import shutil
 import h5py
 import numpy as np
 import pytest
+from conftest import one_line_error
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -53,14 +54,6 @@ def run(data, tmp_path_factory):
 
 def invoke(*args, **kw):
     return runner.invoke(app, [str(a) for a in args], **kw)
-
-
-def one_line_error(result, code: int = 2) -> str:
-    assert result.exit_code == code, result.output
-    assert "Traceback" not in result.output
-    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
-    assert len(lines) == 1, result.output
-    return lines[0]
 
 
 def _copy_with(src, dst, edit):
@@ -244,8 +237,8 @@ def test_numbers_out_of_range_name_their_option(data, run, tmp_path, args, words
 
 def test_big_jobs_print_their_size_and_ask(tmp_path, monkeypatch):
     # Thresholds lowered so that a small job counts as big (the real ones are GiB).
-    monkeypatch.setattr("mpnode_cli.cli.generate.SHOW_BYTES", 2**10)
-    monkeypatch.setattr("mpnode_cli.cli.generate.CONFIRM_BYTES", 2**20)
+    monkeypatch.setattr("mpnode_cli.cli.common.SHOW_BYTES", 2**10)
+    monkeypatch.setattr("mpnode_cli.cli.common.CONFIRM_BYTES", 2**20)
     out = tmp_path / "big.h5"
     args = ["generate", "lorenz", "--nodes", 3, "--trajectories", 2000, "--t-end", 1,
             "--dt", 0.1, "--out", out]

@@ -13,6 +13,11 @@ from mpnode_cli.solver.options import SolverOptions
 
 T = TypeVar("T")
 
+# Jobs whose memory estimate passes these sizes get the estimate printed, and a question
+# (`confirm_size`: generate and simulate).
+SHOW_BYTES = 256 * 2**20
+CONFIRM_BYTES = 4 * 2**30
+
 # Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
 # verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.
 THREADS = typer.Option(
@@ -73,6 +78,34 @@ def extrapolation_note(row: dict[str, Any], name: str | None = None) -> None:
         warn(f"{name}: {note}" if name else note)
 
 
+def confirm_size(size: Any, job: str, yes: bool) -> None:
+    """Print the size of a big job; above `CONFIRM_BYTES` ask (or refuse without a terminal).
+
+    Args:
+        size: the job's `mpnode_cli.data.generate.Estimate`.
+        job: what it makes, "K trajectories × T samples × N nodes".
+        yes: go ahead without asking (`--yes`).
+
+    Raises:
+        ValueError: the user said no, or could not be asked and did not pass --yes.
+    """
+    import sys
+
+    from mpnode_cli.data.generate import format_bytes
+
+    if size.memory_bytes < SHOW_BYTES:
+        return
+    typer.echo(f"this job: {job}; file about {format_bytes(size.file_bytes)}, memory about "
+               f"{format_bytes(size.memory_bytes)}", err=True)
+    if size.memory_bytes < CONFIRM_BYTES or yes:
+        return
+    if not sys.stdin.isatty():
+        raise ValueError(f"a job this big (about {format_bytes(size.memory_bytes)} of memory) "
+                         "needs confirmation: pass --yes to go ahead")
+    if not typer.confirm("Go ahead?", default=False, err=True):
+        raise ValueError("not confirmed; nothing done")
+
+
 def speaks() -> bool:
     """False in the processes other than rank 0 that torchrun starts (its RANK variable):
     they exit as rank 0 does, but only rank 0 prints."""
@@ -107,8 +140,10 @@ def split_by_name(counts) -> dict[str, int]:
 def task_bar(description: str, columns: tuple | None = None, total: float | None = None, *,
              quiet: bool = False) -> Iterator[tuple]:
     """A transient rich progress bar on stderr, and the `progress(done, total)` callback
-    that moves it: `(bar, progress)`. No bar when stderr is not a terminal (pipes, logs,
-    tests), nor when `quiet` (`--json`): it would only add noise.
+    that moves it: `(bar, progress)`. The bar appears at the first call of `progress`, so
+    what the work prints or asks before it starts (`confirm_size`) is not under a live
+    display. No bar when stderr is not a terminal (pipes, logs, tests), nor when `quiet`
+    (`--json`): it would only add noise.
 
     Args:
         description: what is being done.
@@ -123,14 +158,20 @@ def task_bar(description: str, columns: tuple | None = None, total: float | None
     columns = columns or ("[progress.description]{task.description}", BarColumn(),
                           "[progress.percentage]{task.percentage:>3.0f}%",
                           TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=display, transient=True,
-                  disable=quiet or not display.is_terminal) as bar:
-        task = bar.add_task(description, total=total)
+    bar = Progress(*columns, console=display, transient=True,
+                   disable=quiet or not display.is_terminal)
+    task = bar.add_task(description, total=total)
 
-        def progress(done: float, total: float | None) -> None:
-            bar.update(task, completed=done, total=total)
+    def progress(done: float, total: float | None) -> None:
+        if not bar.live.is_started:
+            bar.start()
+        bar.update(task, completed=done, total=total)
 
+    try:
         yield bar, progress
+    finally:
+        if bar.live.is_started:
+            bar.stop()
 
 
 def with_bar(description: str, work: Callable[[Callable], T], *, quiet: bool, stopped: str,
@@ -150,20 +191,17 @@ def with_bar(description: str, work: Callable[[Callable], T], *, quiet: bool, st
     """
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
 
-    with interrupt_on_signals(), task_bar(description, columns, total, quiet=quiet
-                                          ) as (bar, progress):
-        try:
+    try:  # the bar is gone before a message is printed
+        with interrupt_on_signals(), task_bar(description, columns, total, quiet=quiet
+                                              ) as (_, progress):
             return work(progress)
-        except (FileExistsError, FileNotFoundError, ValueError) as exc:
-            bar.stop()
-            fail(error_message(exc))
-        except failures as exc:
-            bar.stop()
-            fail(str(exc), code=1)
-        except KeyboardInterrupt as exc:
-            bar.stop()
-            typer.echo(f"Interrupted ({signal_name(exc)}): {stopped}", err=True)
-            raise typer.Exit(code=exit_code(exc)) from None
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+        fail(error_message(exc))
+    except failures as exc:
+        fail(str(exc), code=1)
+    except KeyboardInterrupt as exc:
+        typer.echo(f"Interrupted ({signal_name(exc)}): {stopped}", err=True)
+        raise typer.Exit(code=exit_code(exc)) from None
 
 
 def hide_flag_types() -> None:

@@ -73,11 +73,15 @@ def run_command(
 
     from mpnode_cli.experiments.spec import load
     from mpnode_cli.paths import check_output_folder
+    from mpnode_cli.threads import available_cpus
 
     if scale not in _SCALES:
         fail(f"unknown scale '{scale}' (choose from: {', '.join(_SCALES)})")
     if jobs < 1:
         fail(f"jobs: Input should be greater than or equal to 1 (got {jobs})")
+    if jobs > available_cpus():  # each job is a process holding torch: never one per typo
+        fail(f"--jobs must be at most {available_cpus()}, the CPUs this process may use, "
+             f"got {jobs}")
     if recipe not in _RECIPES:
         fail(f"unknown recipe '{recipe}' (choose from: mpnode (or ours), paper)")
     try:

@@ -4,8 +4,8 @@ The command only parses: it layers a preset, a config file and the options given
 wins), builds a `GenerateConfig`, calls `mpnode_cli.data.generate.generate`, and turns the
 result or the error into output and an exit code (2 for usage errors, 1 for numerical
 failure, 130 for Ctrl-C, 143 for SIGTERM; either leaves nothing behind). Before a big job
-it prints the size and memory it will take and, above `CONFIRM_BYTES`, asks to go on
-(`--yes` answers for a script). torch and h5py are imported inside the function.
+it prints the size and memory it will take and, above `common.CONFIRM_BYTES`, asks to go
+on (`--yes` answers for a script). torch and h5py are imported inside the function.
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ import typer
 
 from mpnode_cli.cli.common import (
     THREADS,
+    confirm_size,
     console,
     solver_option,
     split_by_name,
@@ -30,9 +31,6 @@ from mpnode_cli.cli.common import fail as _usage_error
 from mpnode_cli.config import generate_solver
 from mpnode_cli.threads import applied_threads
 
-# Jobs whose memory estimate passes these sizes get the estimate printed, and a question.
-SHOW_BYTES = 256 * 2**20
-CONFIRM_BYTES = 4 * 2**30
 
 def _complete_system(incomplete: str) -> list[str]:
     from mpnode_cli.systems.registry import SYSTEMS
@@ -279,29 +277,16 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
 
 
 def _confirm_size(config: Any, yes: bool) -> None:
-    """Print the size of a big job; above `CONFIRM_BYTES` ask (or refuse without a terminal).
+    """`confirm_size` of a resolved config's job (its shard's, for a shard).
 
     Raises:
-        ValueError: the user said no, or could not be asked and did not pass --yes.
+        ValueError: as `confirm_size`.
     """
-    import sys
+    from mpnode_cli.data.generate import estimate, trajectory_range
 
-    from mpnode_cli.data.generate import estimate, format_bytes, trajectory_range
-
-    size = estimate(config)
-    if size.memory_bytes < SHOW_BYTES:
-        return
     start, stop = trajectory_range(config)
-    typer.echo(f"this job: {stop - start} trajectories × {config.num_steps + 1} "
-               f"samples × {config.nodes} nodes; file about {format_bytes(size.file_bytes)}, "
-               f"memory about {format_bytes(size.memory_bytes)}", err=True)
-    if size.memory_bytes < CONFIRM_BYTES or yes:
-        return
-    if not sys.stdin.isatty():
-        raise ValueError(f"a job this big (about {format_bytes(size.memory_bytes)} of memory) "
-                         "needs confirmation: pass --yes to go ahead")
-    if not typer.confirm("Go ahead?", default=False, err=True):
-        raise ValueError("not confirmed; nothing done")
+    confirm_size(estimate(config), f"{stop - start} trajectories × {config.num_steps + 1} "
+                 f"samples × {config.nodes} nodes", yes)
 
 
 def _print_json(config: Any, summary: Any) -> None:

@@ -3,9 +3,10 @@ a trained node model on graphs nobody has data for.
 
 The command parses, builds a `SimulateConfig` and calls
 `mpnode_cli.training.predict.simulate`, which writes the predictions as an
-`mpnode-dataset` file (docs/dataset-format.md, "Predictions"). Exit 2 for anything the
-user can fix, 1 when rollouts did not finish, 130 / 143 for Ctrl-C / SIGTERM (nothing
-written).
+`mpnode-dataset` file (docs/dataset-format.md, "Predictions"). Before a big rollout it
+prints the size and memory it will take and asks to go on, as `generate` does (`--yes`
+answers for a script). Exit 2 for anything the user can fix, 1 when rollouts did not
+finish, 130 / 143 for Ctrl-C / SIGTERM (nothing written).
 """
 
 from __future__ import annotations
@@ -14,7 +15,14 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, console, error_message, extrapolation_note, fail
+from mpnode_cli.cli.common import (
+    THREADS,
+    confirm_size,
+    console,
+    error_message,
+    extrapolation_note,
+    fail,
+)
 
 
 def simulate_command(
@@ -41,6 +49,8 @@ def simulate_command(
     batch_size: int | None = typer.Option(None, help="Trajectories per rollout (128)."),
     device: str | None = typer.Option(None, help="cpu (default) or cuda."),
     dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
+    yes: bool = typer.Option(
+        False, "--yes", "-y", help="Go ahead with a big job without asking."),
     json_out: bool = typer.Option(
         False, "--json", help="Print the summary as one JSON object on stdout."),
     threads: str | None = THREADS,
@@ -64,7 +74,9 @@ def simulate_command(
     except ValueError as exc:
         fail(error_message(exc))
     summary = with_bar(f"simulating {x0.name}",
-                       lambda progress: simulate(config, overwrite=force, progress=progress),
+                       lambda progress: simulate(
+                           config, overwrite=force, progress=progress,
+                           confirm=lambda size, job: confirm_size(size, job, yes)),
                        quiet=json_out, stopped="nothing written", failures=(PredictionFailed,))
     if json_out:
         typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))

@@ -43,8 +43,8 @@ from mpnode_cli.data.shards import (
 )
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
 from mpnode_cli.progress import Progress
-from mpnode_cli.systems.base import System
-from mpnode_cli.systems.registry import get_system, grid_systems, load_system_file
+from mpnode_cli.systems.contract import CheckedSystem, named
+from mpnode_cli.systems.registry import grid_systems, load_system_file, system_class
 
 # Redraw rounds before giving up on trajectories that keep failing. A trajectory fails
 # independently with probability p per draw (p ≈ 0.2 for the pendulum's wide box), so 50
@@ -91,12 +91,13 @@ class GenerateSummary:
 
 @dataclass(frozen=True)
 class Estimate:
-    """What a generate job will take, before it runs.
+    """What a job will take, before it runs: a generate job (`estimate`), or a simulate
+    job (`mpnode_cli.training.predict.simulate_estimate`).
 
     Attributes:
-        file_bytes: the dataset file (states, controls, graphs).
-        memory_bytes: peak memory: the float64 states of every trajectory, their cast for
-            storage, the graphs, and one chunk's solve. Graphs above
+        file_bytes: the file written (states, controls, graphs; a simulation's messages).
+        memory_bytes: peak memory. For generate: the float64 states of every trajectory,
+            their cast for storage, the graphs, and one chunk's solve. Graphs above
             `DENSE_GRAPH_MAX_NODES` nodes are edge lists, counted at `_EDGES_PER_NODE`
             messages per node (their true count is only known once they are built).
         values: numbers in `states` (K·T·N·D).
@@ -147,6 +148,22 @@ def output_path(config: GenerateConfig) -> Path:
     return shard_path(config.out, *config.shard)
 
 
+def check_memory(size: Estimate, what: str, advice: str) -> None:
+    """Refuse a job whose memory estimate exceeds this machine's memory.
+
+    Args:
+        size: the job's estimate. what: the job, as the message names it ("this dataset").
+        advice: what to change ("lower --t-end or raise --dt").
+
+    Raises:
+        ValueError: the job would not fit (one line).
+    """
+    need, have = size.memory_bytes, physical_memory()
+    if have is not None and need > have:
+        raise ValueError(f"{what} needs about {format_bytes(need)} of memory, more than this "
+                         f"machine's {format_bytes(have)}: {advice}")
+
+
 def physical_memory() -> int | None:
     """This machine's memory in bytes (None where the OS does not say)."""
     import os
@@ -183,7 +200,7 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
             fields[key] = value
 
     if config.edge_list is not None:
-        n = _read_edge_list(config.edge_list, config.directed).num_nodes
+        n = read_edges(config.edge_list, directed=config.directed).num_nodes
         asked = config.nodes or (config.grid**2 if config.grid else None)
         if asked not in (None, n):
             raise ValueError(f"{asked} nodes asked for, but the edge list has {n}")
@@ -201,12 +218,8 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
     trajectory_range(resolved)  # a shard spec that fits these trajectories
-    need, have = estimate(resolved).memory_bytes, physical_memory()
-    if have is not None and need > have:
-        raise ValueError(
-            f"this dataset needs about {format_bytes(need)} of memory, more than this "
-            f"machine's {format_bytes(have)}: lower --trajectories, --t-end or --nodes, or "
-            "raise --dt")
+    check_memory(estimate(resolved), "this dataset",
+                 "lower --trajectories, --t-end or --nodes, or raise --dt")
     if resolved.nodes > DENSE_GRAPH_MAX_NODES and not system.sparse:
         raise ValueError(
             f"system '{system.name}' needs its graph as an N×N matrix, which mpnode builds "
@@ -216,7 +229,7 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         return resolved
 
     graph = _graph(system, resolved, 0)
-    system.sample_initial(graph, 1, np.random.default_rng(0))
+    system.sample(graph, 1, np.random.default_rng(0))
     return resolved
 
 
@@ -410,8 +423,9 @@ def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
     )
 
 
-def build_system(config: GenerateConfig) -> System:
-    """The config's system with its parameters and options; a system of your own is first
+def build_system(config: GenerateConfig) -> CheckedSystem:
+    """The config's system with its parameters and options, as generate calls it (each
+    method's result checked, `mpnode_cli.systems.contract`); a system of your own is first
     loaded from `config.system_file` (or found among the installed entry points).
 
     Raises:
@@ -423,24 +437,20 @@ def build_system(config: GenerateConfig) -> System:
         if cls.name != config.system:
             raise ValueError(f"--system-file {config.system_file} defines the system "
                              f"'{cls.name}', not '{config.system}'")
-    return get_system(config.system, **config.params)
+    cls = system_class(config.system)
+    try:
+        return CheckedSystem(cls(**config.params))
+    except BaseException as exc:  # a plug-in's own __init__ may raise anything
+        raise named(cls, "__init__", exc) from None
 
 
-def _graph(system: System, config: GenerateConfig, g: int) -> np.ndarray | EdgeList:
+def _graph(system: CheckedSystem, config: GenerateConfig, g: int) -> np.ndarray | EdgeList:
     """Graph g, built with seed `graph_seed + g` (or the edge list): uint8 `[N, N]` up to
     `DENSE_GRAPH_MAX_NODES` nodes, an `EdgeList` above."""
     if config.edge_list is not None:
-        graph = _read_edge_list(config.edge_list, config.directed)
+        graph = read_edges(config.edge_list, directed=config.directed)
         return graph.to_dense() if graph.num_nodes <= DENSE_GRAPH_MAX_NODES else graph
     return system.graph(config.topology, config.nodes, config.graph_seed + g)
-
-
-def _read_edge_list(path: Path, directed: bool = False) -> EdgeList:
-    """`graphs.read_edges` with a missing or unreadable file as a ValueError."""
-    try:
-        return read_edges(path, directed=directed)
-    except OSError as exc:
-        raise ValueError(f"cannot read edge list {path}: {exc.strerror or exc}") from None
 
 
 def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):

@@ -16,7 +16,6 @@ turns a `ValueError` into its one line, and shows `progress`.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,9 +23,10 @@ from typing import Any
 import numpy as np
 
 from mpnode_cli.config import ImportConfig
+from mpnode_cli.data.arrays import read_arrays, read_table
 from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, fingerprint, write_dataset
 from mpnode_cli.data.validate import nonfinite
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.graphs import Graphs, missing_ids
 from mpnode_cli.paths import file_sha256
 from mpnode_cli.progress import Progress, pass_of
 
@@ -191,7 +191,7 @@ def load_states(path: str | Path, *, progress: Progress | None = None) -> Loaded
     if suffix == ".csv":
         loaded = _read_csv(path)
     elif suffix in (".npy", ".npz"):
-        arrays = _read_numpy(path, mmap=True)
+        arrays = read_arrays(path, mmap=True)
         if "states" in arrays:
             states = arrays["states"]
         elif len(arrays) == 1:
@@ -236,11 +236,7 @@ def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: in
     from mpnode_cli.graphs import read_edges
 
     if edge_list is not None:
-        try:
-            a = read_edges(edge_list, directed=directed)
-        except OSError as exc:
-            raise ValueError(f"cannot read edge list {edge_list}: "
-                             f"{exc.strerror or exc}") from None
+        a = read_edges(edge_list, directed=directed)
         if a.num_nodes != n:
             raise ValueError(f"{edge_list} has {a.num_nodes} nodes (ids 0..{a.num_nodes - 1})"
                              f" but the states have {n}")
@@ -298,26 +294,11 @@ def load_controls(path: str | Path, ktn: tuple[int, int, int]) -> np.ndarray:
     return u
 
 
-def _read_numpy(path: Path, *, mmap: bool = False) -> dict[str, np.ndarray]:
-    """The arrays of a `.npy` (under the name "") or a `.npz`; with `mmap`, a `.npy` is
-    memory-mapped read-only (a `.npz` cannot be: its members are read whole)."""
-    try:
-        data = np.load(path, allow_pickle=False, mmap_mode="r" if mmap else None)
-        if isinstance(data, np.ndarray):  # a .npy
-            return {"": data}
-        with data:  # a .npz
-            return {name: data[name] for name in data.files}
-    except FileNotFoundError:
-        raise ValueError(f"no such file: {path}") from None
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"cannot read {path} as numpy data: {exc}") from None
-
-
 def _single(path: Path) -> np.ndarray:
     """The one array of a `.npy` (or a `.npz` holding one)."""
     if path.suffix.lower() not in (".npy", ".npz"):
         raise ValueError(f"{path}: expected a .npy (or .npz) file")
-    arrays = _read_numpy(path)
+    arrays = read_arrays(path)
     if len(arrays) != 1:
         raise ValueError(f"{path} holds {len(arrays)} arrays ({', '.join(arrays)}); give one")
     return next(iter(arrays.values()))
@@ -342,15 +323,10 @@ def _finite(a: np.ndarray, path: Path, axes: tuple[str, ...],
 
 
 def _read_csv(path: Path) -> Loaded:
-    try:
-        with open(path, newline="") as f:
-            header = next(csv.reader(f), None)
-    except OSError as exc:
-        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
-    if not header:
+    columns, rows = read_table(path)
+    if not columns:
         raise ValueError(f"{path} is empty: expected a header row naming trajectory, time, "
                          "node and the state columns")
-    columns = [name.strip() for name in header]
     lower = [name.lower() for name in columns]
     missing = [name for name in CSV_INDEX if name not in lower]
     if missing:
@@ -359,10 +335,6 @@ def _read_csv(path: Path) -> Loaded:
     names = tuple(c for c, low in zip(columns, lower, strict=True) if low not in CSV_INDEX)
     if not names:
         raise ValueError(f"{path}: no state columns besides trajectory, time and node")
-    try:
-        rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64)
-    except ValueError as exc:
-        raise ValueError(f"{path}: every row must hold {len(columns)} numbers ({exc})") from None
     if rows.shape[0] == 0:
         raise ValueError(f"{path} has a header but no rows")
     col = {name: rows[:, lower.index(name)] for name in CSV_INDEX}
@@ -371,11 +343,14 @@ def _read_csv(path: Path) -> Loaded:
         v = col[name]
         if not (np.isfinite(v).all() and (v == np.round(v)).all() and v.min() >= 0):
             raise ValueError(f"{path}: {name} ids must be whole numbers from 0")
-        ids[name] = v.astype(np.int64)
-        gaps = np.setdiff1d(np.arange(ids[name].max() + 1), ids[name])
-        if len(gaps):
+        # Contiguous ids from 0 are all below the row count: larger ones mean a gap, found
+        # among the ids present (no range up to the largest, which may be any number).
+        below = v < len(v)
+        gaps = missing_ids(v[below].astype(np.int64), int(v.max()) + 1)
+        if gaps:
             raise ValueError(f"{path}: {name} ids are 0-based and contiguous, but "
-                             f"{', '.join(map(str, gaps[:5]))} never appear")
+                             f"{', '.join(map(str, gaps))} never appear")
+        ids[name] = v.astype(np.int64)
     if not np.isfinite(col["time"]).all():
         raise ValueError(f"{path}: the time column holds values that are not finite")
     times, t_index = np.unique(col["time"], return_inverse=True)

@@ -30,6 +30,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from mpnode_cli.textfiles import read_text
+
 SCALES = ("tiny", "small", "paper")
 Scale = Literal["tiny", "small", "paper"]
 _ID = r"^[a-z0-9][a-z0-9-]*$"
@@ -234,9 +236,7 @@ def load(name_or_path: str | Path) -> Experiment:
                              f"{', '.join(names())})")
         path = shipped(str(name_or_path))
     try:
-        fields = tomllib.loads(path.read_text())
-    except OSError as exc:
-        raise ValueError(f"cannot read {path}: {exc.strerror or exc}") from None
+        fields = tomllib.loads(read_text(path, ""))
     except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path.name} does not parse: {exc}") from None
     fields.setdefault("name", path.stem)

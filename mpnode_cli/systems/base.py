@@ -323,9 +323,12 @@ class System(ABC):
             A `Simulation`.
         """
         from mpnode_cli.solver import solve
+        from mpnode_cli.systems.contract import checked_rhs
 
-        sol = solve(self.rhs(adjacency, params), y0, ts, **solver.solve_kwargs(),
-                    progress=progress)
+        # Checked: a vector field of the wrong shape is one line naming it, not an error
+        # from deep inside the solver's stage sums.
+        sol = solve(checked_rhs(self, self.rhs(adjacency, params)), y0, ts,
+                    **solver.solve_kwargs(), progress=progress)
         return Simulation(states=sol.ys, status=sol.status, n_f_evals=sol.stats["n_f_evals"])
 
     def reject(self, states: np.ndarray) -> np.ndarray:

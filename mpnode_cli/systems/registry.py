@@ -18,10 +18,12 @@ from __future__ import annotations
 import functools
 import importlib.util
 import inspect
+import json
+import math
 import sys
 from pathlib import Path
 
-from mpnode_cli.systems.base import System
+from mpnode_cli.systems.base import Option, System
 from mpnode_cli.systems.gene import Gene
 from mpnode_cli.systems.kuramoto import Kuramoto
 from mpnode_cli.systems.lorenz import Lorenz
@@ -91,9 +93,11 @@ def entry_point_systems() -> dict[str, type[System]]:
     for point in entry_points(group=ENTRY_POINT_GROUP):
         try:
             cls = point.load()
-        except Exception as exc:  # the user's code: any error means "cannot load"
+        except KeyboardInterrupt:
+            raise
+        except BaseException as exc:  # the user's code: any error, or exit, is "cannot load"
             raise ValueError(f"the {ENTRY_POINT_GROUP} entry point '{point.name}' "
-                             f"({point.value}) does not load: {exc}") from None
+                             f"({point.value}) does not load: {_failure(exc)}") from None
         _check_class(cls, f"entry point '{point.name}' ({point.value})")
         if cls.name != point.name:
             raise ValueError(f"entry point '{point.name}' ({point.value}) names a system "
@@ -126,10 +130,11 @@ def load_system_file(path: str | Path) -> type[System]:
         sys.modules[module_name] = module
         try:
             spec.loader.exec_module(module)
-        except Exception as exc:  # the user's code: any error means "cannot load"
+        except BaseException as exc:  # the user's code: any error, or exit, is "cannot load"
             del sys.modules[module_name]
-            raise ValueError(f"--system-file {path} does not import: "
-                             f"{type(exc).__name__}: {exc}") from None
+            if isinstance(exc, KeyboardInterrupt):
+                raise
+            raise ValueError(f"--system-file {path} does not import: {_failure(exc)}") from None
     classes = [cls for _, cls in inspect.getmembers(module, inspect.isclass)
                if issubclass(cls, System) and cls.__module__ == module_name]
     concrete = [cls for cls in classes if not inspect.isabstract(cls)]
@@ -147,6 +152,13 @@ def load_system_file(path: str | Path) -> type[System]:
     return cls
 
 
+def _failure(exc: BaseException) -> str:
+    """Why importing a plug-in failed, in a few words (`sys.exit` said as such)."""
+    if isinstance(exc, SystemExit):
+        return f"it called sys.exit({exc.code!r}) as it was imported"
+    return f"{type(exc).__name__}: {exc}"
+
+
 def _check_class(cls: object, where: str) -> None:
     """A plug-in must be a concrete `System` with the declarations generate needs."""
     if not (inspect.isclass(cls) and issubclass(cls, System)):
@@ -157,9 +169,65 @@ def _check_class(cls: object, where: str) -> None:
         what = ", ".join(missing) or "sample_initial or rhs"
         raise ValueError(f"{where}: the system {cls.__name__} does not declare {what} "
                          "(docs/custom-systems.md)")
+    wrong = _wrong_declaration(cls)
+    if wrong:
+        raise ValueError(f"{where}: the system {cls.__name__} declares {wrong} "
+                         "(docs/custom-systems.md)")
     if cls.name in SYSTEMS and SYSTEMS[cls.name] is not cls:
         raise ValueError(f"{where}: '{cls.name}' is a built-in system; give yours another "
                          "name")
     if cls.default_topology not in cls.topologies:
         raise ValueError(f"{where}: default_topology '{cls.default_topology}' is not among "
                          f"its topologies ({', '.join(cls.topologies)})")
+
+
+def _wrong_declaration(cls: type[System]) -> str | None:
+    """The first class attribute of a plug-in that is not what `System` documents (as
+    `name = 3, not a non-empty string`), or None: read at generate time, a wrong one would
+    fail far from the class."""
+
+    def names(value: object, least: int = 0) -> bool:
+        return (isinstance(value, tuple | list) and len(value) >= least
+                and all(isinstance(v, str) and v for v in value))
+
+    def number(value: object, low: float = -math.inf) -> bool:
+        return (isinstance(value, int | float) and not isinstance(value, bool)
+                and math.isfinite(value) and value > low)
+
+    def table(value: object, keys: object, values) -> bool:
+        return isinstance(value, dict) and all(
+            isinstance(k, str) and (keys is None or k in keys) and values(v)
+            for k, v in value.items())
+
+    def recipe() -> bool:
+        try:
+            json.dumps(cls.recipe())
+        except (TypeError, ValueError):
+            return False
+        return True
+
+    checks = [
+        ("name", lambda v: isinstance(v, str) and v.strip() != "", "a non-empty string"),
+        ("state_names", lambda v: names(v, 1), "a tuple of at least one name"),
+        ("control_names", names, "a tuple of names"),
+        ("topologies", lambda v: names(v, 1), "a tuple of at least one topology"),
+        ("default_nodes", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+         "a whole number ≥ 1"),
+        ("defaults", lambda v: table(v, None, number), "a dict of names to finite numbers"),
+        ("options", lambda v: table(v, None, lambda o: isinstance(o, Option)),
+         "a dict of names to Option"),
+        ("data_defaults", lambda v: table(v, ("trajectories", "t_end", "dt"),
+                                          lambda x: number(x, 0)),
+         "a dict of trajectories, t_end and dt to positive numbers"),
+        ("presets", lambda v: table(v, None, lambda p: isinstance(p, dict)),
+         "a dict of preset names to dicts of generate fields"),
+        ("recommended", lambda v: isinstance(v, dict) and recipe(),
+         "a dict of train-config fields that JSON can hold"),
+        ("sparse", lambda v: isinstance(v, bool), "True or False"),
+    ]
+    for attr, ok, what in checks:
+        value = getattr(cls, attr)
+        if not ok(value):
+            shown = repr(value)
+            return f"{attr} = {shown if len(shown) <= 40 else shown[:37] + '...'}, not {what}"
+    return None

@@ -48,6 +48,7 @@ leaves the previous checkpoint intact.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -183,7 +184,11 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     if not path.is_file():
         raise CheckpointFormatError(f"{path} is not a regular file")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():
+            # torch warns of pickles it is about to refuse (another protocol, a legacy
+            # file); the refusal below says it, in one line.
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception:  # pickle, zip and weights_only errors all mean "not ours"
         raise CheckpointFormatError(
             f"{path} is not an mpnode checkpoint (torch cannot read it as a saved "

@@ -25,6 +25,7 @@ from typing import Any
 from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.jsonable import jsonable
+from mpnode_cli.textfiles import read_json, read_text
 
 CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
 
@@ -164,7 +165,7 @@ def read_config(run_dir: str | Path) -> TrainConfig:
     path = Path(run_dir) / CONFIG
     if not path.is_file():
         raise ValueError(f"{run_dir} is not a run folder (no {CONFIG})")
-    return TrainConfig(**pin_stored_solver(upgrade_train_fields(json.loads(path.read_text()))))
+    return TrainConfig(**pin_stored_solver(upgrade_train_fields(_json_object(path))))
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:
@@ -175,7 +176,7 @@ def write_json(path: Path, data: dict[str, Any]) -> None:
 def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:
     """Add facts that the caller knows and the loop does not to a finished run's summary."""
     path = Path(run_dir) / SUMMARY
-    write_json(path, {**json.loads(path.read_text()), **fields})
+    write_json(path, {**_json_object(path), **fields})
 
 
 def append_metrics(run_dir: Path, row: dict[str, Any]) -> None:
@@ -187,7 +188,19 @@ def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
     path = Path(run_dir) / METRICS
     if not path.is_file():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows = []
+    for lineno, line in enumerate(read_text(path, "").splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            row = None
+        if not (isinstance(row, dict) and isinstance(row.get("epoch"), int)):
+            raise ValueError(f"{path}:{lineno} is not a row of metrics (a JSON object with "
+                             "its epoch): a damaged run folder")
+        rows.append(row)
+    return rows
 
 
 def truncate_metrics(run_dir: Path, last_epoch: int) -> None:
@@ -211,10 +224,10 @@ def read_summary(run_dir: str | Path) -> dict[str, Any]:
     run_dir = Path(run_dir)
     path = run_dir / SUMMARY
     if path.is_file():
-        return json.loads(path.read_text())
+        return _json_object(path)
     if not (run_dir / CONFIG).is_file():
         raise ValueError(f"{run_dir} is not a run folder (no {CONFIG})")
-    config = json.loads((run_dir / CONFIG).read_text())
+    config = _json_object(run_dir / CONFIG)
     rows = [r for r in read_metrics(run_dir) if r.get("val_loss") is not None]
     summary: dict[str, Any] = {"run_dir": str(run_dir), "model": config.get("model"),
                                "finished": False, "test": None}
@@ -227,4 +240,16 @@ def read_summary(run_dir: str | Path) -> dict[str, Any]:
             "seconds_per_epoch": seconds_per_epoch(run_dir),
         }  # fmt: skip
     return summary
+
+
+def _json_object(path: Path) -> dict[str, Any]:
+    """A run folder's JSON record (config, summary).
+
+    Raises:
+        ValueError: a file that cannot be read, is not JSON, or holds no JSON object.
+    """
+    value = read_json(path)
+    if not isinstance(value, dict):
+        raise ValueError(f"{path} holds no JSON object: a damaged run folder")
+    return value
 
