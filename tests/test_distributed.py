@@ -103,6 +103,11 @@ def one_step(gene, rank: int | None, out: Path, batch: int, fail: str | None = N
     torch.manual_seed(0)
     model = build_model(config.model, {"node_dim": 1, "control_dim": 0, "num_nodes": 4,
                                        **config.model_options}).double()
+    if getattr(model, "update", None) == "affine":
+        # The affine gains start at zero, which leaves ψ without a gradient at the first
+        # step; give them values, so that every parameter takes part in the step.
+        with torch.no_grad():
+            torch.nn.init.normal_(model.net[-1].weight, std=0.3)
     model.fit_statistics(normalizer.norm_x(train_set.states), 0.1, train_set.adjacency)
     optimizer = Adam(model.parameters(), lr=1e-2)
     part = world.shard(batch)
