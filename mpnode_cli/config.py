@@ -325,7 +325,7 @@ class TrainConfig(BaseModel):
             file); each model declares its own, with their defaults, in
             `mpnode_cli.models.options`. Options left out take the model's defaults; the
             training layer validates them against the model
-            (`mpnode_cli.training.loop.resolve_config`), and the resolved config written to
+            (`mpnode_cli.training.recipe.resolve_config`), and the resolved config written to
             a run holds every option of the model that was built.
         recipe: where fields not given come from: "mpnode" (default; measured choices and
             the dataset system's recommendation) or "paper" (the paper's and its authors'

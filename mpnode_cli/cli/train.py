@@ -113,7 +113,9 @@ def train_command(
     chosen = _given(model_options, exclude=())  # model options given
     try:
         if resume is not None:
-            config = _resume_config(resume, datasets or None, options | chosen)
+            from mpnode_cli.training.resume import resume_config
+
+            config = resume_config(resume, datasets or None, options | chosen)
         else:
             if not datasets:
                 raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")
@@ -243,40 +245,6 @@ def _config(config_file: Path | None, options: dict[str, Any],
         if given and isinstance(in_file, dict):  # else TrainConfig says what is wrong
             fields[table] = in_file | given
     return TrainConfig(**{**fields, **options})
-
-
-# The rest would make the run something else (streaming reads the same batches).
-_RESUMABLE = {"epochs", "device", "plots", "stream"}
-
-
-def _resume_config(run_dir: Path, datasets: list[Path] | None, options: dict[str, Any]):
-    from mpnode_cli.training.run import read_config
-
-    config = read_config(run_dir)
-    changed = sorted(set(options) - _RESUMABLE)
-    if changed:
-        shown = ", ".join("--" + name.replace("_", "-") for name in changed)
-        raise ValueError(f"--resume continues {run_dir} as configured; only --epochs, "
-                         f"--device, --plots and --stream may change (got {shown})")
-    trained = config.datasets
-    if datasets is not None and len(datasets) != len(trained):
-        raise ValueError(f"{run_dir} trained on {_count(len(trained), 'dataset')} but "
-                         f"{_count(len(datasets), 'was', 'were')} given: give all of them, in "
-                         "the run's order, or none")
-    gone = [str(p) for p in trained if not Path(p).is_file()]
-    if datasets is None and gone:
-        how = ("its new path, mpnode train DATASET" if len(trained) == 1 else
-               "the paths of all its datasets, in order, mpnode train DATASET...")
-        raise ValueError(f"{run_dir} trained on {', '.join(gone)}, which is not there any "
-                         f"more: give {how} --resume {run_dir}")
-    # Datasets given are taken if they are the same data: training compares fingerprints.
-    where = {"dataset": [d.resolve() for d in datasets]} if datasets is not None else {}
-    return type(config)(**{**config.model_dump(), **options, **where, "run_dir": run_dir})
-
-
-def _count(n: int, one: str, several: str | None = None) -> str:
-    """`1 dataset`, `2 datasets`; `1 was`, `2 were`."""
-    return f"{n} {one if n == 1 else several or one + 's'}"
 
 
 def _run(config: Any, resume: bool, json_out: bool = False) -> None:
