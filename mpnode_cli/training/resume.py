@@ -24,6 +24,12 @@ if TYPE_CHECKING:
 RESUMABLE = ("epochs", "device", "plots", "stream")
 
 
+def resumable_options() -> str:
+    """`--epochs, --device, --plots and --stream`: the options `RESUMABLE` stands for."""
+    flags = ["--" + name.replace("_", "-") for name in RESUMABLE]
+    return ", ".join(flags[:-1]) + " and " + flags[-1]
+
+
 def resume_config(run_dir: Path, datasets: list[Path] | None,
                   changes: dict[str, Any]) -> TrainConfig:
     """The config that continues the run in `run_dir`.
@@ -41,9 +47,9 @@ def resume_config(run_dir: Path, datasets: list[Path] | None,
     config = read_config(run_dir)
     changed = sorted(set(changes) - set(RESUMABLE))
     if changed:
+        shown = ", ".join("--" + name.replace("_", "-") for name in changed)
         raise ValueError(f"--resume continues {run_dir} as configured; only "
-                         f"{_and(_flag(name) for name in RESUMABLE)} may change "
-                         f"(got {', '.join(_flag(name) for name in changed)})")
+                         f"{resumable_options()} may change (got {shown})")
     trained = config.datasets
     if datasets is not None and len(datasets) != len(trained):
         raise ValueError(f"{run_dir} trained on {_count(len(trained), 'dataset')} but "
@@ -86,16 +92,6 @@ def check_same_data(last: Checkpoint, datas: list) -> None:
     raise ValueError(f"{given} are not the {len(records)} datasets this run trained on, in "
                      "its order (their fingerprints differ from the run's): resume needs the "
                      "same data")
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
-
-
-def _and(items) -> str:
-    """`a, b and c`."""
-    items = list(items)
-    return ", ".join(items[:-1]) + " and " + items[-1] if len(items) > 1 else "".join(items)
 
 
 def _count(n: int, one: str, several: str | None = None) -> str:
