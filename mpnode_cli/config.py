@@ -320,99 +320,92 @@ class TrainConfig(BaseModel):
     """What `mpnode train` (and `mpnode finetune`) does: one model, its datasets, one run folder.
 
     Fields not given are filled from the run's recipe (`mpnode_cli.training.recipe`); the
-    defaults below equal mpnode's recipe without a system's recommendation.
-
-    Attributes:
-        dataset: the training dataset (an mpnode `.h5` file); its train split is fitted,
-            its validation split selects the best epoch, its test split is reported. Or a
-            list of datasets of one system and per-node sizes (N, graphs and the number of
-            samples may differ), trained on at once: their splits are pooled
-            (`mpnode_cli.data.pooled`). A list of one is stored as that one path, so a
-            one-file config reads as it always has; `datasets` gives the list either way.
-        model: registry name of the model (`mpnode`, `l2s`, `gnode`, `node`).
-        model_options: options of that model, by name (a `[model_options]` table in a TOML
-            file); each model declares its own, with their defaults, in
-            `mpnode_cli.models.options`. Options left out take the model's defaults; the
-            training layer validates them against the model
-            (`mpnode_cli.training.loop.resolve_config`), and the resolved config written to
-            a run holds every option of the model that was built.
-        recipe: where fields not given come from: "mpnode" (default; measured choices and
-            the dataset system's recommendation) or "paper" (the paper's and its authors'
-            exact choices). See `mpnode_cli.training.recipe`.
-        loss: "mse" or "huber" (δ = 1, summed over time and features, mean over
-            trajectories × nodes; the authors' "Huber along time").
-        lr: Adam learning rate. min_lr: the lr never goes below this.
-        schedule: "plateau" (halve the lr after `patience` epochs without validation
-            improvement), "cosine" (from lr down to min_lr over `epochs`) or "constant".
-        batch_size: trajectories per step.
-        even_batches: split each epoch into ⌈K / batch_size⌉ batches of nearly equal size
-            (no tiny last batch); False keeps full batches and a partial last one.
-        val_batch_size: trajectories per validation rollout (independent of training).
-        clip: global gradient-norm clip.
-        patience: plateau schedule: epochs without validation improvement before the lr is
-            halved.
-        noise: std of Gaussian noise added to normalized training states (inputs and
-            targets alike), fresh every batch.
-        epochs: the last epoch to train (on resume: the total, not the extra).
-        seed: model initialization, shuffling and noise.
-        device: "cpu" or "cuda".
-        run_dir: the run folder (default `runs/<dataset>-<model>-<time>`).
-        solver: how the rollouts are integrated, in training and in every evaluation of
-            the checkpoints; default adaptive Tsit5 at rtol = atol = 1e-4 (`train_solver`).
-            A table that names only some options takes the others from that default.
-        horizon_curriculum: train on prefixes of the trajectories that grow linearly from
-            `curriculum_start` samples to the whole horizon over `curriculum_epochs` epochs
-            (validation always uses the whole horizon). The mpnode recipe turns it on for
-            trajectories of more than 60 samples.
-        max_bad_steps: consecutive skipped batches (non-finite loss or gradient, solver
-            failure) before the last good state is restored with a halved lr.
-        plots: draw the test-split plots into `run_dir/plots` at the end.
-        init_checkpoint: finetune: start from this checkpoint's weights and architecture
-            (`model` and `model_options` are then ignored), with a fresh optimizer.
-        trajectories: use only the first K trajectories of the train split (of each
-            dataset's); a split with fewer is used whole, and `train` says so (its
-            `warning` event).
-        renormalize: finetune: fit the normalization on the new train split instead of
-            reusing the checkpoint's.
-        allow_other_system: finetune: accept a dataset whose `system` differs from the
-            checkpoint's (refused by default: the model learned another system).
-        stream: read the batches from the dataset file as they are needed (a background
-            thread reads ahead) instead of loading every trajectory into memory; the
-            losses are the same (`mpnode_cli.data.stream`).
+    defaults below equal mpnode's recipe without a system's recommendation. Each field's
+    `description` documents it, and is the help of its option in `mpnode train` and
+    `mpnode finetune`, which are built from these fields.
     """
 
     # No inf or NaN in any number (`--t-end inf` would never end).
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    dataset: Path | list[Path]
-    model: str = "mpnode"
-    model_options: dict[str, Any] = Field(default_factory=dict)
-    recipe: Literal["mpnode", "paper"] = "mpnode"
-    loss: Literal["huber", "mse"] = "mse"
-    lr: float = Field(1e-3, gt=0)
-    min_lr: float = Field(1e-6, ge=0)
-    schedule: Literal["plateau", "cosine", "constant"] = "plateau"
-    batch_size: int = Field(32, ge=1)
-    even_batches: bool = True
-    val_batch_size: int = Field(1024, ge=1)
-    clip: float = Field(500.0, gt=0)
-    patience: int = Field(50, ge=1)
-    noise: float = Field(1e-4, ge=0)
-    epochs: int = Field(4000, ge=1)
-    seed: int = Field(0, ge=0, le=SEED_MAX)
-    device: Literal["cpu", "cuda"] = "cpu"
-    run_dir: Path | None = None
-    solver: SolverOptions = Field(default_factory=train_solver)
-    horizon_curriculum: bool = False
-    curriculum_start: int = Field(5, ge=2)
-    curriculum_epochs: int = Field(100, ge=1)
-    max_bad_steps: int = Field(5, ge=1)
-    plots: bool = True
-    init_checkpoint: Path | None = None
-    trajectories: int | None = Field(None, ge=1)
-    renormalize: bool = False
-    allow_other_system: bool = False
-    stream: bool = False
+    dataset: Path | list[Path] = Field(description=(
+        "The training dataset (an mpnode .h5 file): its train split is fitted, its "
+        "validation split selects the best epoch, its test split is reported. Or a list of "
+        "datasets of one system and per-node sizes (N, graphs and the number of samples "
+        "may differ), trained on at once: their splits are pooled (mpnode_cli.data.pooled). "
+        "A list of one is stored as that one path, so a one-file config reads as it always "
+        "has; `datasets` gives the list either way."))
+    model: str = Field("mpnode", description="The model, by its registry name.")
+    model_options: dict[str, Any] = Field(default_factory=dict, description=(
+        "Options of that model, by name (a [model_options] table in a TOML file); each "
+        "model declares its own, with their defaults, in mpnode_cli.models.options. Options "
+        "left out take the model's defaults; the training layer validates them against the "
+        "model (mpnode_cli.training.recipe.resolve_config), and the resolved config written "
+        "to a run holds every option of the model that was built."))
+    recipe: Literal["mpnode", "paper"] = Field("mpnode", description=(
+        "Where the fields left out come from: mpnode (measured choices and the dataset "
+        "system's recommendation) or paper (the paper's exact choices)."))
+    loss: Literal["huber", "mse"] = Field("mse", description=(
+        "Training loss: mse, or huber (δ = 1, summed over time and features, mean over "
+        "trajectories × nodes: the authors' Huber along time)."))
+    lr: float = Field(1e-3, gt=0, description="Adam learning rate.")
+    min_lr: float = Field(1e-6, ge=0, description=(
+        "Lowest lr: schedules stop there, and a rollback below it ends the run as "
+        "diverged."))
+    schedule: Literal["plateau", "cosine", "constant"] = Field("plateau", description=(
+        "lr schedule: plateau (halve it after `patience` epochs without validation gain), "
+        "cosine (down to min_lr over the epochs) or constant."))
+    batch_size: int = Field(32, ge=1, description="Trajectories per step.")
+    even_batches: bool = Field(True, description=(
+        "Batches of nearly equal size each epoch (no tiny last one), or full ones and a "
+        "partial last one."))
+    val_batch_size: int = Field(1024, ge=1, description=(
+        "Trajectories per validation rollout."))
+    clip: float = Field(500.0, gt=0, description="Global gradient-norm clip.")
+    patience: int = Field(50, ge=1, description=(
+        "Plateau schedule: epochs without validation gain before the lr halves."))
+    noise: float = Field(1e-4, ge=0, description=(
+        "Std of Gaussian noise on the normalized training states (inputs and targets "
+        "alike), fresh every batch."))
+    epochs: int = Field(4000, ge=1, description=(
+        "The last epoch to train (on resume the total, not the extra)."))
+    seed: int = Field(0, ge=0, le=SEED_MAX, description=(
+        "Seed of initialization, shuffling and noise."))
+    device: Literal["cpu", "cuda"] = Field("cpu", description="Where to train.")
+    run_dir: Path | None = Field(None, description=(
+        "The run folder (default runs/<dataset>-<model>-<time>)."))
+    solver: SolverOptions = Field(default_factory=train_solver, description=(
+        "How the rollouts are integrated, in training and in every evaluation of the "
+        "checkpoints; default adaptive Tsit5 at rtol = atol = 1e-4 (train_solver). A table "
+        "that names only some options takes the others from that default."))
+    horizon_curriculum: bool = Field(False, description=(
+        "Train on prefixes of the trajectories growing from curriculum_start samples to "
+        "the whole horizon over curriculum_epochs epochs (validation takes it whole)."))
+    curriculum_start: int = Field(5, ge=2, description=(
+        "Curriculum: samples per trajectory in the first epoch."))
+    curriculum_epochs: int = Field(100, ge=1, description=(
+        "Curriculum: epochs to reach the whole horizon."))
+    max_bad_steps: int = Field(5, ge=1, description=(
+        "Skipped batches in a row (non-finite loss or gradient, failed solves) before the "
+        "last epoch's state is restored at half the lr."))
+    plots: bool = Field(True, description=(
+        "Draw the test-split plots into the run folder at the end."))
+    init_checkpoint: Path | None = Field(None, description=(
+        "Finetune: start from this checkpoint's weights and architecture (model and "
+        "model_options are then ignored), with a fresh optimizer."))
+    trajectories: int | None = Field(None, ge=1, description=(
+        "Use only the first K train trajectories of each dataset (all of them, with a "
+        "warning, where a dataset has fewer)."))
+    renormalize: bool = Field(False, description=(
+        "Finetune: fit the normalization on the new train split instead of reusing the "
+        "checkpoint's."))
+    allow_other_system: bool = Field(False, description=(
+        "Finetune: accept a dataset whose system differs from the checkpoint's (refused "
+        "by default: the model learned another system)."))
+    stream: bool = Field(False, description=(
+        "Read the batches from the dataset file as they are needed (a thread reads two "
+        "ahead), for data larger than memory; the losses are those of the data in "
+        "memory."))
 
     @field_validator("solver", mode="before")
     @classmethod

@@ -3,28 +3,32 @@ doors.
 
 The commands only parse: options left out stay out, so `TrainConfig` and the models'
 declared options hold the only defaults; a `--config` TOML file sits beneath the options.
-The model options (`--hidden`, `--message-dim`, ...) are built from the registry's
-declarations (`mpnode_cli.models.options`), one per option any model declares; the chosen
-model refuses the ones it does not declare. `--resume RUN_DIR` rebuilds the
-run's own config (only `--epochs`, `--device`, `--plots` and `--stream` may change), from
-any folder: the run knows its datasets' absolute paths, and datasets given beside
-`--resume` are accepted when their fingerprints are the run's. Several datasets are
-trained on at once (`mpnode_cli.data.pooled`). Exit codes: 2 for usage errors,
-1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after saving `last.pt`
-and a `summary.json` that says the run was interrupted).
+Every option is built from a declaration: a `TrainConfig` field's (its description is the
+help; its default, and the recipes' where they differ, are shown), a solver option's
+(`SolverOptions`), or a model option's (`mpnode_cli.models.options`: one per option any
+model declares; the chosen model refuses the ones it does not declare). `--help` groups
+them in panels, as a user looks for them. `--resume RUN_DIR` continues a run as its folder
+says (`mpnode_cli.training.resume`: what may change, and which datasets it takes). Several
+datasets are trained on at once (`mpnode_cli.data.pooled`). Exit codes: 2 for usage
+errors, 1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after saving
+`last.pt` and a `summary.json` that says the run was interrupted).
 """
 
 from __future__ import annotations
 
+import copy
 import inspect
+import types
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin
+from typing import Any, Literal, Union, get_args, get_origin
 
 import typer
 from pydantic.fields import FieldInfo
+from typer.models import ArgumentInfo
 
 from mpnode_cli.cli.common import (
     THREADS,
+    _number,
     console,
     error_message,
     fail,
@@ -32,53 +36,47 @@ from mpnode_cli.cli.common import (
     speaks,
     warn,
 )
-from mpnode_cli.config import train_solver
+from mpnode_cli.config import TrainConfig, train_solver
 from mpnode_cli.models.registry import OPTIONS
+from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.threads import applied_threads
+from mpnode_cli.training.recipe import CURRICULUM_MIN_SAMPLES, recipe_values
+from mpnode_cli.training.resume import resumable_options
 
-# Options shared by both commands, declared once (typer reads them as plain defaults).
+# The panels of `--help`, as a user looks for an option. The curriculum's three have their
+# own: `--no-horizon-curriculum` widens a panel's columns until its help is cut to a sliver.
+DATA, RECIPE, CURRICULUM, SOLVER, RUN, MODEL = (
+    "Data", "Recipe and optimization", "Horizon curriculum", "Solver", "Output and run",
+    "Model options")
+
+# The solver options, which fill the config's `solver` table (`train_solver()`'s defaults).
+_SOLVER = ("method", "rtol", "atol", "fixed_dt")
+
+# Every option of the two commands, by panel, in the order shown (the model options follow
+# `model`). A `TrainConfig` field or a solver option is built from its declaration; the
+# other names are the command's own parameters. A command has the ones it takes.
+_PANELS = {
+    DATA: ("renormalize", "allow_other_system", "trajectories", "stream"),
+    RECIPE: ("recipe", "loss", "epochs", "batch_size", "even_batches", "lr", "min_lr",
+             "schedule", "patience", "clip", "noise", "max_bad_steps", "val_batch_size",
+             "seed"),
+    CURRICULUM: ("horizon_curriculum", "curriculum_start", "curriculum_epochs"),
+    SOLVER: _SOLVER,
+    RUN: ("run_dir", "resume", "config_file", "device", "threads", "plots", "json_out"),
+    MODEL: ("model",),
+}
+
+# Flags spelt otherwise than `--name/--no-name`: two names for the two ways, or a switch
+# that only turns something on.
+_FLAGS = {"even_batches": ("--even-batches/--tail-batch",), "stream": ("--stream/--in-memory",),
+          "renormalize": ("--renormalize",), "allow_other_system": ("--allow-other-system",)}
+
+# Every system declares the loss of the paper recipe (`System.paper_loss`).
+_SYSTEM_CHOOSES = {"loss"}
+
+
 _CONFIG = typer.Option(None, "--config", help="TOML (or JSON) file of train config fields.")
-_RECIPE = typer.Option(
-    None, help="Where options left out come from: mpnode (default; measured, plus the "
-    "dataset's system recommendation) or paper (the paper's exact choices).")
-_LOSS = typer.Option(None, help="mse (recipe default) or huber (δ=1, summed along time).")
-_LR = typer.Option(None, help="Adam learning rate (default 1e-3).")
-_MIN_LR = typer.Option(None, help="Lowest lr any schedule reaches (default 1e-6).")
-_SCHEDULE = typer.Option(
-    None, help="lr schedule: plateau (default; halve after --patience epochs without "
-    "gain), cosine (to --min-lr over --epochs) or constant.")
-_BATCH = typer.Option(None, help="Trajectories per step (default 32; paper recipe 128).")
-_EVEN = typer.Option(
-    None, "--even-batches/--tail-batch",
-    help="Equal-size batches each epoch (default), or full ones and a partial last one.")
-_VAL_BATCH = typer.Option(None, help="Trajectories per validation rollout (default 1024).")
-_CLIP = typer.Option(None, help="Global gradient-norm clip (default 500).")
-_PATIENCE = typer.Option(
-    None, help="Plateau schedule: epochs without validation gain before the lr halves (50).")
-_NOISE = typer.Option(None, help="Gaussian noise std on normalized train data (1e-4).")
-_EPOCHS = typer.Option(None, help="Epochs to train (default 4000; on --resume, the total).")
-_FINETUNE_EPOCHS = typer.Option(None, help="Epochs to train (default 4000).")
 _JSON = typer.Option(False, "--json", help="Print the summary as one JSON object on stdout.")
-_SEED = typer.Option(None, help="Seed of initialization, shuffling and noise (default 0).")
-_DEVICE = typer.Option(None, help="cpu (default) or cuda.")
-_RUN_DIR = typer.Option(None, help="Run folder (default runs/<dataset>-<model>-<time>).")
-_METHOD, _RTOL, _ATOL, _FIXED_DT = (solver_option(name, train_solver())
-                                    for name in ("method", "rtol", "atol", "fixed_dt"))
-_CURRICULUM = typer.Option(
-    None, "--horizon-curriculum/--no-horizon-curriculum",
-    help="Train on growing prefixes of the trajectories (default: on for more than 60 "
-    "samples per trajectory).")
-_CURR_START = typer.Option(None, help="Curriculum: samples in the first epoch (default 5).")
-_CURR_EPOCHS = typer.Option(None, help="Curriculum: epochs to reach the full horizon (100).")
-_BAD_STEPS = typer.Option(None, help="Bad batches in a row before a rollback (default 5).")
-_PLOTS = typer.Option(None, "--plots/--no-plots", help="Draw test plots at the end (on).")
-_TRAJECTORIES = typer.Option(
-    None, help="Use only the first K train trajectories (all of them, with a warning, where a "
-    "dataset has fewer).")
-_STREAM = typer.Option(
-    None, "--stream/--in-memory",
-    help="Read batches from the dataset file as they are needed (a thread reads two "
-    "ahead), for datasets larger than memory; same losses as in memory (the default).")
 
 
 def train_command(
@@ -86,41 +84,150 @@ def train_command(
         None, help="One or more mpnode datasets (.h5); several (one system and per-node "
         "sizes, any N and graphs, one dt) are trained on at once, each batch from one of "
         "them. Optional with --resume.", show_default=False, metavar="DATASET"),
-    resume: Path | None = typer.Option(None, help="Continue the run in this folder."),
-    model: str | None = typer.Option(
-        None, help=f"The model: {', '.join(OPTIONS)} (default mpnode)."),
-    config_file: Path | None = _CONFIG, recipe: str | None = _RECIPE,
-    loss: str | None = _LOSS, lr: float | None = _LR,
-    min_lr: float | None = _MIN_LR, schedule: str | None = _SCHEDULE,
-    batch_size: int | None = _BATCH, even_batches: bool | None = _EVEN,
-    val_batch_size: int | None = _VAL_BATCH,
-    clip: float | None = _CLIP, patience: int | None = _PATIENCE,
-    noise: float | None = _NOISE, epochs: int | None = _EPOCHS, seed: int | None = _SEED,
-    device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
-    method: str | None = _METHOD, rtol: float | None = _RTOL, atol: float | None = _ATOL,
-    fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
-    curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
-    max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
-    trajectories: int | None = _TRAJECTORIES, stream: bool | None = _STREAM,
-    threads: str | None = THREADS, json_out: bool = _JSON,
-    **model_options: Any,
+    resume: Path | None = typer.Option(
+        None, help="Continue the run in this folder, as configured: only "
+        f"{resumable_options()} may change."),
+    config_file: Path | None = _CONFIG, threads: str | None = THREADS,
+    json_out: bool = _JSON, **options: Any,
 ) -> None:
     """Train a model on a dataset's train split, or on several datasets' at once (fitted on
     their train splits pooled; validation and test reported per dataset and pooled, the
     best epoch chosen by the pooled validation loss); results go to runs/<name>/."""
-    options = _given(locals(), exclude=("datasets", "resume", "config_file", "model_options",
-                                        "threads", "json_out"))
-    chosen = _given(model_options, exclude=())  # model options given
+    fields, chosen = _given(options)
     try:
         if resume is not None:
-            config = _resume_config(resume, datasets or None, options | chosen)
+            from mpnode_cli.training.resume import resume_config
+
+            config = resume_config(resume, datasets or None, fields | chosen)
         else:
             if not datasets:
                 raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")
-            config = _config(config_file, {**options, "dataset": datasets}, chosen)
+            config = _config(config_file, {**fields, "dataset": datasets}, chosen)
     except ValueError as exc:
         fail(error_message(exc))
     _run(config, resume=resume is not None, json_out=json_out)
+
+
+def finetune_command(
+    checkpoint: Path = typer.Argument(..., help="The checkpoint to start from (.pt).",
+                                      metavar="CHECKPOINT"),
+    datasets: list[Path] = typer.Argument(
+        ..., help="The dataset to finetune on (.h5), or several at once (as train takes "
+        "them).", metavar="DATASET"),
+    config_file: Path | None = _CONFIG, threads: str | None = THREADS,
+    json_out: bool = _JSON, **options: Any,
+) -> None:
+    """Train from a checkpoint's weights and architecture on another dataset, or on several
+    at once (a new run).
+
+    CHECKPOINT may be a run folder (its checkpoints/best.pt).
+    """
+    fields, _ = _given(options)
+    from mpnode_cli.training.checkpoint import resolve_path
+
+    try:
+        config = _config(config_file, {**fields, "dataset": datasets,
+                                       "init_checkpoint": resolve_path(checkpoint)})
+    except (ValueError, FileNotFoundError) as exc:
+        fail(error_message(exc))
+    _run(config, resume=False, json_out=json_out)
+
+
+def _given(options: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The options given (not None): config and solver fields, and model options."""
+    given = {k: v for k, v in options.items() if v is not None}
+    model = {k: v for k, v in given.items() if k in _MODEL_OPTIONS}
+    return {k: v for k, v in given.items() if k not in model}, model
+
+
+def _config(config_file: Path | None, options: dict[str, Any],
+            model_options: dict[str, Any] | None = None):
+    """The train config: the file's fields (upgraded if written by an earlier version),
+    beneath the options given; model options and solver options are merged into the file's
+    `[model_options]` and `[solver]` tables one by one."""
+    from mpnode_cli.config import read_config_file, upgrade_train_fields
+
+    fields = upgrade_train_fields(read_config_file(config_file)) if config_file else {}
+    solver = {k: v for k, v in options.items() if k in _SOLVER}
+    options = {k: v for k, v in options.items() if k not in _SOLVER}
+    for table, given in (("model_options", model_options), ("solver", solver)):
+        in_file = fields.get(table, {})
+        if given and isinstance(in_file, dict):  # else TrainConfig says what is wrong
+            fields[table] = in_file | given
+    return TrainConfig(**{**fields, **options})
+
+
+def _with_options(command, leave_out: tuple[str, ...] = (), model_options: bool = False):
+    """Give `command` (whose `**options` collects them) its options in `_PANELS`' order: its
+    own parameters placed in their panels, an option for each `TrainConfig` field and
+    solver option there but those in `leave_out`, and the models' options if
+    `model_options`."""
+    signature = inspect.signature(command)
+    own = {p.name: p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD}
+    params = [p for p in own.values() if isinstance(p.default, ArgumentInfo)]
+    for panel, names in _PANELS.items():
+        for name in names:
+            if name in own:
+                params.append(own[name].replace(kind=inspect.Parameter.KEYWORD_ONLY,
+                                                default=_in_panel(own[name].default, panel)))
+            elif name in _SOLVER:
+                params.append(_solver_parameter(name, panel))
+            elif name in TrainConfig.model_fields and name not in leave_out:
+                params.append(_field_parameter(name, panel))
+    if model_options:
+        params += _model_option_parameters()
+    if missing := set(own) - {p.name for p in params}:
+        raise TypeError(f"parameters of {command.__name__} in no panel: {sorted(missing)}")
+    command.__signature__ = signature.replace(parameters=params)
+    return command
+
+
+def _field_parameter(name: str, panel: str) -> inspect.Parameter:
+    """The option of `TrainConfig` field `name`: its description, its choices (a `Literal`'s,
+    or the registry's models) where the description does not name them all, and the
+    default a user gets (`_default_shown`)."""
+    field = TrainConfig.model_fields[name]
+    choices = tuple(OPTIONS) if name == "model" else _choices(field.annotation)
+    value_type = str if choices else _plain(field.annotation)
+    decls = _FLAGS.get(name) or _decls(name, value_type)
+    default = _default_shown(name, field, switch="/" not in decls[0])
+    help_text = " ".join(part for part in (
+        field.description if default is None else
+        f"{field.description.removesuffix('.')} (default {default}).",
+        None if all(c in field.description for c in choices) else
+        f"Choices: {', '.join(choices)}.",
+    ) if part)
+    return _parameter(name, value_type, decls, help_text, panel)
+
+
+def _default_shown(name: str, field: FieldInfo, switch: bool) -> str | None:
+    """The default a user gets: the mpnode recipe's (that is the field's default where the
+    recipe leaves it; the dataset's system may recommend another), and the paper recipe's
+    where it differs. None where there is nothing to say: a `switch` (a flag with no
+    name for off) that is off, a field whose description says what leaving it out does."""
+    below, above = (recipe_values("mpnode", {}, n)
+                    for n in (CURRICULUM_MIN_SAMPLES - 1, CURRICULUM_MIN_SAMPLES))
+    ours = below.get(name, field.default)
+    if ours is None or (ours is False and switch):
+        return None
+    shown = _shown(ours)
+    if above.get(name, ours) != ours:  # the mpnode recipe decides by the trajectories' length
+        shown = f"{_shown(above[name])} from {CURRICULUM_MIN_SAMPLES} samples per trajectory"
+    paper = recipe_values("paper", {}, CURRICULUM_MIN_SAMPLES).get(name, field.default)
+    if name in _SYSTEM_CHOOSES:
+        shown += "; paper recipe: the system's"
+    elif paper is not None and paper != ours:
+        shown += f"; paper recipe {_shown(paper)}"
+    return shown
+
+
+def _solver_parameter(name: str, panel: str) -> inspect.Parameter:
+    """The option of `SolverOptions` field `name` with `train_solver()`'s default
+    (`solver_option`); its choices are checked with the config, in one line."""
+    annotation = SolverOptions.model_fields[name].annotation
+    value_type = str if _choices(annotation) else _plain(annotation)
+    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=value_type | None,
+                             default=_in_panel(solver_option(name, train_solver()), panel))
 
 
 def _model_option_parameters() -> list[inspect.Parameter]:
@@ -137,146 +244,72 @@ def _model_option_parameters() -> list[inspect.Parameter]:
             if field.annotation != first.annotation:
                 raise TypeError(f"model option '{name}' has two types: {first.annotation} "
                                 f"and {field.annotation} ({kind})")
+            if name in TrainConfig.model_fields or name in _SOLVER:
+                raise TypeError(f"model option '{name}' ({kind}) has the name of a train "
+                                "option")
             takers.append(f"{kind} ({_shown(field.default)})")
     params = []
     for name, (field, takers) in fields.items():
         # Choices are checked with the rest of the options, so that a bad one is refused
         # in the same one line (click would draw its own error box).
-        choices = get_args(field.annotation) if get_origin(field.annotation) is Literal else ()
+        choices = _choices(field.annotation)
         value_type = str if choices else field.annotation
-        if value_type not in (bool, int, float, str):
-            raise TypeError(f"model option '{name}' has a type the CLI cannot take: "
-                            f"{field.annotation}")
-        flag = "--" + name.replace("_", "-")
-        decls = [f"{flag}/--no-{flag[2:]}"] if value_type is bool else [flag]
         help_text = " ".join(part for part in (
             field.description,
             f"Choices: {', '.join(choices)}." if choices else None,
             f"Models (default): {', '.join(takers)}.",
         ) if part)
-        option = typer.Option(None, *decls, help=help_text, rich_help_panel="Model options")
-        params.append(inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
-                                        annotation=value_type | None))
+        params.append(_parameter(name, value_type, _decls(name, value_type), help_text,
+                                 MODEL))
     return params
+
+
+def _parameter(name: str, value_type: type, decls: tuple[str, ...], help_text: str,
+               panel: str) -> inspect.Parameter:
+    """A keyword parameter whose typer option is left out as None."""
+    if value_type not in (bool, int, float, str, Path):
+        raise TypeError(f"option '{name}' has a type the CLI cannot take: {value_type}")
+    option = typer.Option(None, *decls, help=help_text, rich_help_panel=panel)
+    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
+                             annotation=value_type | None)
+
+
+def _in_panel(option: Any, panel: str) -> Any:
+    """A copy of a declared typer option, shown in `panel` (`THREADS` and the solver's
+    options serve other verbs as they are)."""
+    option = copy.copy(option)
+    option.rich_help_panel = panel
+    return option
+
+
+def _decls(name: str, value_type: type) -> tuple[str, ...]:
+    flag = "--" + name.replace("_", "-")
+    return (f"{flag}/--no-{flag[2:]}",) if value_type is bool else (flag,)
+
+
+def _choices(annotation: Any) -> tuple[str, ...]:
+    return get_args(annotation) if get_origin(annotation) is Literal else ()
+
+
+def _plain(annotation: Any) -> Any:
+    """`int` of `int | None`; other types as they are."""
+    if get_origin(annotation) in (Union, types.UnionType):
+        (kept,) = [a for a in get_args(annotation) if a is not type(None)]
+        return kept
+    return annotation
 
 
 def _shown(value: Any) -> str:
     if isinstance(value, bool):
         return "on" if value else "off"
-    return f"{value:g}" if isinstance(value, float) else str(value)
+    return _number(value)
 
 
-def _with_model_options(command):
-    """Give `command` (whose `**model_options` collects them) the model options' parameters."""
-    signature = inspect.signature(command)
-    fixed = [p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD]
-    command.__signature__ = signature.replace(parameters=fixed + _model_option_parameters())
-    return command
-
-
-train_command = _with_model_options(train_command)
-
-
-def finetune_command(
-    checkpoint: Path = typer.Argument(..., help="The checkpoint to start from (.pt)."),
-    datasets: list[Path] = typer.Argument(
-        ..., help="The dataset to finetune on (.h5), or several at once (as train takes "
-        "them).", metavar="DATASET"),
-    renormalize: bool = typer.Option(
-        False, "--renormalize", help="Fit the normalization on the new data."),
-    allow_other_system: bool = typer.Option(
-        False, "--allow-other-system",
-        help="Accept a dataset of another system than the checkpoint was trained on."),
-    config_file: Path | None = _CONFIG, recipe: str | None = _RECIPE,
-    loss: str | None = _LOSS, lr: float | None = _LR,
-    min_lr: float | None = _MIN_LR, schedule: str | None = _SCHEDULE,
-    batch_size: int | None = _BATCH, even_batches: bool | None = _EVEN,
-    val_batch_size: int | None = _VAL_BATCH,
-    clip: float | None = _CLIP, patience: int | None = _PATIENCE,
-    noise: float | None = _NOISE, epochs: int | None = _FINETUNE_EPOCHS,
-    seed: int | None = _SEED,
-    device: str | None = _DEVICE, run_dir: Path | None = _RUN_DIR,
-    method: str | None = _METHOD, rtol: float | None = _RTOL, atol: float | None = _ATOL,
-    fixed_dt: float | None = _FIXED_DT, horizon_curriculum: bool | None = _CURRICULUM,
-    curriculum_start: int | None = _CURR_START, curriculum_epochs: int | None = _CURR_EPOCHS,
-    max_bad_steps: int | None = _BAD_STEPS, plots: bool | None = _PLOTS,
-    trajectories: int | None = _TRAJECTORIES, stream: bool | None = _STREAM,
-    threads: str | None = THREADS, json_out: bool = _JSON,
-) -> None:
-    """Train from a checkpoint's weights and architecture on another dataset, or on several
-    at once (a new run).
-
-    CHECKPOINT may be a run folder (its checkpoints/best.pt).
-    """
-    options = _given(locals(), exclude=("checkpoint", "datasets", "config_file", "threads",
-                                        "json_out"))
-    from mpnode_cli.training.checkpoint import resolve_path
-
-    try:
-        config = _config(config_file, {**options, "dataset": datasets,
-                                       "init_checkpoint": resolve_path(checkpoint)})
-    except (ValueError, FileNotFoundError) as exc:
-        fail(error_message(exc))
-    _run(config, resume=False, json_out=json_out)
-
-
-def _given(values: dict[str, Any], exclude: tuple[str, ...]) -> dict[str, Any]:
-    return {k: v for k, v in values.items() if v is not None and k not in exclude}
-
-
-# The options that fill the config's `solver` table.
-_SOLVER = ("method", "rtol", "atol", "fixed_dt")
-
-
-def _config(config_file: Path | None, options: dict[str, Any],
-            model_options: dict[str, Any] | None = None):
-    """The train config: the file's fields (upgraded if written by an earlier version),
-    beneath the options given; model options and solver options are merged into the file's
-    `[model_options]` and `[solver]` tables one by one."""
-    from mpnode_cli.config import TrainConfig, read_config_file, upgrade_train_fields
-
-    fields = upgrade_train_fields(read_config_file(config_file)) if config_file else {}
-    solver = {k: v for k, v in options.items() if k in _SOLVER}
-    options = {k: v for k, v in options.items() if k not in _SOLVER}
-    for table, given in (("model_options", model_options), ("solver", solver)):
-        in_file = fields.get(table, {})
-        if given and isinstance(in_file, dict):  # else TrainConfig says what is wrong
-            fields[table] = in_file | given
-    return TrainConfig(**{**fields, **options})
-
-
-# The rest would make the run something else (streaming reads the same batches).
-_RESUMABLE = {"epochs", "device", "plots", "stream"}
-
-
-def _resume_config(run_dir: Path, datasets: list[Path] | None, options: dict[str, Any]):
-    from mpnode_cli.training.run import read_config
-
-    config = read_config(run_dir)
-    changed = sorted(set(options) - _RESUMABLE)
-    if changed:
-        shown = ", ".join("--" + name.replace("_", "-") for name in changed)
-        raise ValueError(f"--resume continues {run_dir} as configured; only --epochs, "
-                         f"--device, --plots and --stream may change (got {shown})")
-    trained = config.datasets
-    if datasets is not None and len(datasets) != len(trained):
-        raise ValueError(f"{run_dir} trained on {_count(len(trained), 'dataset')} but "
-                         f"{_count(len(datasets), 'was', 'were')} given: give all of them, in "
-                         "the run's order, or none")
-    gone = [str(p) for p in trained if not Path(p).is_file()]
-    if datasets is None and gone:
-        how = ("its new path, mpnode train DATASET" if len(trained) == 1 else
-               "the paths of all its datasets, in order, mpnode train DATASET...")
-        raise ValueError(f"{run_dir} trained on {', '.join(gone)}, which is not there any "
-                         f"more: give {how} --resume {run_dir}")
-    # Datasets given are taken if they are the same data: training compares fingerprints.
-    where = {"dataset": [d.resolve() for d in datasets]} if datasets is not None else {}
-    return type(config)(**{**config.model_dump(), **options, **where, "run_dir": run_dir})
-
-
-def _count(n: int, one: str, several: str | None = None) -> str:
-    """`1 dataset`, `2 datasets`; `1 was`, `2 were`."""
-    return f"{n} {one if n == 1 else several or one + 's'}"
+_MODEL_OPTIONS = {name for declared in OPTIONS.values() for name in declared.model_fields}
+# A finetune's model is its checkpoint's; renormalizing and another system are a finetune's.
+train_command = _with_options(train_command, leave_out=("renormalize", "allow_other_system"),
+                              model_options=True)
+finetune_command = _with_options(finetune_command, leave_out=("model",))
 
 
 def _run(config: Any, resume: bool, json_out: bool = False) -> None:

@@ -14,15 +14,19 @@ A run's config is resolved in this order (later wins):
 3. a `--config` file; 4. command-line options.
 Fields given at steps 3–4 are those in `TrainConfig.model_fields_set`; the resolved config
 (every field explicit) is what a run folder's `config.json` keeps, so a resume never
-re-applies a recipe.
+re-applies a recipe. `resolve_config` applies the recipe and checks the model's options.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from mpnode_cli.config import TrainConfig
+from mpnode_cli.models.registry import OPTIONS, resolve_options
+
+if TYPE_CHECKING:
+    from mpnode_cli.data.dataset import TrajectoryData
 
 RECIPES = ("mpnode", "paper")
 
@@ -108,3 +112,23 @@ def resolve_recipe(config: TrainConfig, system: str, stored: dict[str, Any] | No
             chosen.setdefault(k, v)
     update["model_options"] = chosen
     return config.model_copy(update=update)
+
+
+def resolve_config(config: TrainConfig, data: TrajectoryData) -> TrainConfig:
+    """Fill what `config` was not given from its recipe (for `data`), then check the model
+    and its options and fill in the options' defaults.
+
+    A finetune's model comes from its checkpoint, so its model options are left as they are.
+
+    Raises:
+        ValueError: unknown model, or an option the model does not declare or refuses
+            (one line naming the model and the option).
+    """
+    finetune = config.init_checkpoint is not None
+    declared = () if finetune or config.model not in OPTIONS else OPTIONS[config.model].model_fields
+    config = resolve_recipe(config, data.system, data.attrs.get("recipe"), data.time.numel(),
+                            lambda name: name in declared)
+    if finetune:
+        return config
+    options = resolve_options(config.model, config.model_options)
+    return config.model_copy(update={"model_options": options.model_dump()})

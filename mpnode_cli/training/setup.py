@@ -1,0 +1,336 @@
+"""A training run's setup: what the epochs work with, a `Run`.
+
+Two calls, `load_data` and `set_up`, with the loop's `resolve_compile` between them (it
+settles compiling by the number of train trajectories). In this order, which is the order
+of the draws from torch's generator, so that one seed makes one run:
+1. the data: each dataset's train split (optionally its first K trajectories) and
+   validation split, in memory or (`stream`, one dataset) read from the file batch by
+   batch; the first dataset's system and recipe resolve the config
+   (`mpnode_cli.training.recipe`, `mpnode_cli.data.pooled`);
+2. the starting point: fresh weights, a parent checkpoint (finetune) or the run's
+   `last.pt` (resume: `mpnode_cli.training.resume` says what must match);
+3. the model, built after seeding, and the normalizer: the starting point's, or fitted on
+   the train splits (pooled);
+4. Adam, the loop's generator (batch order and noise) and its counters, restored from
+   `last.pt` on resume;
+5. the run folder: made (a new run) or cut back to `last.pt`'s epoch (resume), with the
+   resolved `config.json`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from mpnode_cli.config import TrainConfig
+from mpnode_cli.data.dataset import Normalizer, TrajectoryData
+from mpnode_cli.data.pooled import (
+    dataset_names,
+    fewer_than_asked,
+    load_datasets,
+    train_and_validation,
+)
+from mpnode_cli.data.stream import StreamedTrajectories
+from mpnode_cli.models.registry import OPTIONS, build_model, model_class
+from mpnode_cli.paths import check_output_folder
+from mpnode_cli.training import distributed
+from mpnode_cli.training import run as runs
+from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint
+from mpnode_cli.training.evaluate import check_compatible
+from mpnode_cli.training.extrapolation import training_range
+from mpnode_cli.training.optim import Adam
+from mpnode_cli.training.recipe import resolve_config
+from mpnode_cli.training.resume import check_resumable
+
+Progress = Callable[[dict[str, Any]], None]
+
+
+@dataclass
+class LoopState:
+    """The loop's counters, saved in every checkpoint so that a resume continues exactly."""
+
+    epoch: int = 0
+    best_epoch: int = 0
+    best_val: float = math.inf
+    since_best: int = 0
+    bad_run: int = 0
+    skipped: int = 0
+    restores: int = 0
+    seconds: float = 0.0
+    lr_scale: float = 1.0
+
+
+@dataclass
+class Run:
+    """What a training run works with, from `set_up`.
+
+    Attributes:
+        config: resolved: the recipe applied, absolute dataset paths, the model that was
+            built and its options, `run_dir` set (what `config.json` holds).
+        run_dir: the run folder.
+        world: the processes (one without torchrun); rank 0 alone writes and reports.
+        emit: the progress callback (it ignores every event on the other ranks).
+        datas: every dataset, in order (`TrajectoryData`, or `StreamedTrajectories`).
+        names: their names in metrics and summary (`mpnode_cli.data.pooled.dataset_names`).
+        train_sets: each dataset's train split (its first `trajectories`).
+        val_parts: this rank's part of each dataset's validation split.
+        facts: what a checkpoint records of the datasets and their training range.
+        kind, model_config: the model's registry name and its full config.
+        model, normalizer, optimizer: on `device`.
+        shuffle: the loop's generator: batch order and noise, the same on any device.
+        state: the loop's counters.
+        resumed: whether the run continues from its `last.pt`.
+        parent_sha: the SHA-256 of the checkpoint a finetune started from (None for a
+            run trained from scratch).
+    """
+
+    config: TrainConfig
+    run_dir: Path
+    world: distributed.World
+    emit: Progress
+    datas: list[TrajectoryData | StreamedTrajectories]
+    names: list[str]
+    train_sets: list[TrajectoryData | StreamedTrajectories]
+    val_parts: list[TrajectoryData | StreamedTrajectories]
+    facts: dict[str, Any]
+    kind: str
+    model_config: dict[str, Any]
+    model: torch.nn.Module
+    normalizer: Normalizer
+    optimizer: Adam
+    shuffle: torch.Generator
+    device: torch.device
+    state: LoopState
+    resumed: bool
+    parent_sha: str | None
+
+
+@dataclass
+class RunData:
+    """The setup's first stage (`load_data`): the data, and the config resolved for them
+    but for `solver.compile`, which `mpnode_cli.training.loop.resolve_compile` settles by
+    the number of train trajectories."""
+
+    config: TrainConfig
+    world: distributed.World
+    emit: Progress
+    datas: list[TrajectoryData | StreamedTrajectories]
+    train_sets: list[TrajectoryData | StreamedTrajectories]
+    val_sets: list[TrajectoryData | StreamedTrajectories]
+    device: torch.device
+
+
+def load_data(config: TrainConfig, resume: bool, world: distributed.World,
+              emit: Progress) -> RunData:
+    """The datasets and their splits, and the config with their absolute paths (so that a
+    run can be resumed and evaluated from any folder), resolved for the first (a resumed
+    run's config.json is resolved already).
+
+    Raises:
+        ValueError, FileNotFoundError: as `mpnode_cli.training.loop.train` says.
+    """
+    if not resume and world.main:  # the run folder's place must be writable before any work
+        check_output_folder(config.run_dir or runs.default_root())
+    datas = load_datasets(config.datasets, config.stream)
+    paths = [Path(p).resolve() for p in config.datasets]
+    config = config.model_copy(update={"dataset": paths[0] if len(paths) == 1 else paths} | (
+        {"init_checkpoint": Path(config.init_checkpoint).resolve()}
+        if config.init_checkpoint is not None else {}))
+    if not resume:
+        config = resolve_config(config, datas[0])
+    device = _device(config.device)
+    train_sets, val_sets = train_and_validation(datas, config.trajectories)
+    if note := fewer_than_asked(datas, train_sets, config.trajectories):
+        emit({"event": "warning", "text": note})
+    return RunData(config=config, world=world, emit=emit, datas=datas, train_sets=train_sets,
+                   val_sets=val_sets, device=device)
+
+
+def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Path, bool]],
+           finished_ok: bool) -> Run:
+    """Build the model from its starting point, with its normalizer and optimizer; restore
+    a resumed run's state; open the run folder (a new one is appended to `made`, with
+    whether it existed).
+
+    Args:
+        config: `data.config` with `solver.compile` settled.
+
+    Raises:
+        ValueError, FileNotFoundError: as `mpnode_cli.training.loop.train` says.
+    """
+    world, datas, train_sets = data.world, data.datas, data.train_sets
+    last, parent = _starting_point(config, resume, datas, finished_ok)
+    source, renormalize = last or parent, parent is not None and config.renormalize
+    kind, model_config = _architecture(config, source, parent is not None, datas)
+    torch.manual_seed(config.seed)
+    model = _build(kind, model_config)
+    # config.json tells the truth: the architecture is what was built.
+    config = config.model_copy(update={"model": kind,
+                                       "model_options": model.options.model_dump()})
+    # The default name holds the time and whatever suffix makes it new: rank 0 chooses it.
+    run_dir = world.from_main(
+        lambda: Path(config.run_dir or runs.default_run_dir(config.datasets, kind)))
+    config = config.model_copy(update={"run_dir": run_dir})
+    normalizer = _normalizer(config, source, renormalize, train_sets)
+    parent_sha = last.parent_sha256 if last else (
+        file_sha256(config.init_checkpoint) if parent else None)
+
+    if source is not None:
+        model.load_state_dict(source.state_dict)
+    if source is None or renormalize:
+        # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
+        _fit_statistics(model, train_sets, normalizer)
+    model.to(data.device)
+    world.broadcast_module(model)
+    optimizer = Adam(model.parameters(), lr=config.lr)
+    shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
+    state = LoopState() if last is None else _restore(last, optimizer, shuffle)
+    if not world.main:
+        # The only draws from torch's global generator in training are L2S's step noise on
+        # each rank's own slice: other ranks must not repeat rank 0's draws.
+        torch.manual_seed(hash((config.seed, world.rank, state.epoch)))
+    world.from_main(lambda: _open_folder(run_dir, config, None if last is None else state.epoch,
+                                         made))
+    # Each rank validates its part of each split; the error sums are added over ranks.
+    val_parts = [v.select(torch.arange(len(v))[world.shard(len(v))]) for v in data.val_sets]
+    return Run(config=config, run_dir=run_dir, world=world, emit=data.emit, datas=datas,
+               names=dataset_names(config.datasets), train_sets=train_sets,
+               val_parts=val_parts, facts=_facts(datas, config.datasets, train_sets),
+               kind=kind, model_config=model.config, model=model, normalizer=normalizer,
+               optimizer=optimizer, shuffle=shuffle, device=data.device,
+               state=state, resumed=last is not None, parent_sha=parent_sha)
+
+
+def _starting_point(config: TrainConfig, resume: bool, datas: list, finished_ok: bool
+                    ) -> tuple[Checkpoint | None, Checkpoint | None]:
+    """`(last, parent)`: the run's `last.pt` (resume) or the checkpoint a finetune starts
+    from, or neither (fresh weights)."""
+    if resume and config.run_dir is None:
+        raise ValueError("resume needs the run folder (run_dir)")
+    parent = None if resume or config.init_checkpoint is None else load_checkpoint(
+        config.init_checkpoint)
+    last = load_checkpoint(runs.checkpoint_path(config.run_dir, "last")) if resume else None
+    if last is not None:
+        check_resumable(config, last, datas, finished_ok)
+    return last, parent
+
+
+def _architecture(config: TrainConfig, source: Checkpoint | None, finetune: bool,
+                  datas: list) -> tuple[str, dict[str, Any]]:
+    """The model's kind and config: the starting point's (checked against every dataset),
+    or the config's with the sizes of the data."""
+    if source is not None:
+        for each in datas:
+            check_compatible(source.model_kind, source.model_config,
+                             source.dataset["num_nodes"], each,
+                             "finetune" if finetune else "resume", source.dataset.get("system"),
+                             allow_other_system=config.allow_other_system)
+        return source.model_kind, source.model_config
+    data = datas[0]
+    _check_one_size(config.model, datas)
+    return config.model, {"node_dim": data.node_dim, "control_dim": data.control_dim,
+                          "num_nodes": data.num_nodes, **config.model_options}
+
+
+def _build(kind: str, model_config: dict[str, Any]) -> torch.nn.Module:
+    try:
+        return build_model(kind, model_config)
+    except (MemoryError, RuntimeError) as exc:  # torch reports a failed allocation so
+        raise ValueError(f"cannot build model '{kind}' with {model_config}: out of memory "
+                         f"({str(exc).splitlines()[0][:80]})") from None
+
+
+def _normalizer(config: TrainConfig, source: Checkpoint | None, renormalize: bool,
+                train_sets: list) -> Normalizer:
+    """The starting point's normalization, or the z-score of the train splits."""
+    if source is not None and not renormalize:
+        return source.build_normalizer()
+    if config.stream:
+        return train_sets[0].fit_normalizer()  # one pass over the file, in blocks
+    if len(train_sets) == 1:
+        return Normalizer.fit(train_sets[0].states, train_sets[0].controls)
+    # Several datasets: on their train splits pooled.
+    controls = [t.controls for t in train_sets]
+    return Normalizer.fit([t.states for t in train_sets],
+                          None if controls[0] is None else controls)
+
+
+def _restore(last: Checkpoint, optimizer: Adam, shuffle: torch.Generator) -> LoopState:
+    """Where a resumed run stopped: its optimizer, RNG states and counters."""
+    optimizer.load_state_dict(last.optimizer)
+    torch.set_rng_state(last.rng["torch"])
+    shuffle.set_state(last.rng["shuffle"])
+    return LoopState(**last.loop)
+
+
+def _open_folder(run_dir: Path, config: TrainConfig, resumed_epoch: int | None,
+                 made: list[tuple[Path, bool]]) -> None:
+    """Make a new run's folder, or cut a resumed run's metrics back to its `last.pt`; write
+    the config (rank 0's)."""
+    if resumed_epoch is not None:
+        runs.truncate_metrics(run_dir, resumed_epoch)
+    else:
+        made.append((run_dir, not runs.create(run_dir)))
+    runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
+
+
+def _facts(datas: list, paths: list[Path], train_sets: list) -> dict[str, Any]:
+    """What a checkpoint records of the training datasets: the first's at the top, where
+    readers look; every dataset's under `datasets` when there are several; the training
+    range over all of them."""
+    facts = _dataset_facts(datas[0], paths[0])
+    if len(datas) > 1:
+        facts["datasets"] = [_dataset_facts(d, p) for d, p in zip(datas, paths, strict=True)]
+    facts["train_range"] = training_range(*train_sets).to_dict()
+    return facts
+
+
+def _dataset_facts(data, path: Path) -> dict[str, Any]:
+    return {"fingerprint": data.fingerprint, "path": str(path), "system": data.system,
+            "num_nodes": data.num_nodes, "node_dim": data.node_dim,
+            "control_dim": data.control_dim, "state_names": list(data.state_names),
+            "control_names": list(data.control_names), "topology": data.attrs.get("topology")}
+
+
+def _check_one_size(kind: str, datas: list) -> None:
+    """Refuse datasets of several N for a model built for one node count."""
+    sizes = sorted({d.num_nodes for d in datas})
+    if len(sizes) > 1 and kind in OPTIONS and not model_class(kind).transferable:
+        raise ValueError(f"model '{kind}' runs only on graphs of the size it was built for, "
+                         f"but the datasets have N = {', '.join(map(str, sizes))}: train it "
+                         "on datasets of one N, or choose a model of node dynamics (mpnode)")
+
+
+def _fit_statistics(model, train_sets: list, normalizer: Normalizer) -> None:
+    """`model.fit_statistics` on the train split, or on several datasets' (as lists: their
+    N differ; all in memory, as streaming takes one dataset)."""
+    dt = float(train_sets[0].time[1] - train_sets[0].time[0])  # one dt for all datasets
+    if len(train_sets) == 1:
+        model.fit_statistics(_statistics_states(model, train_sets[0], normalizer), dt,
+                             train_sets[0].graph())
+        return
+    model.fit_statistics([normalizer.norm_x(t.states) for t in train_sets], dt,
+                         [t.graph() for t in train_sets])
+
+
+def _statistics_states(model, train_set: TrajectoryData | StreamedTrajectories,
+                       normalizer: Normalizer) -> torch.Tensor | None:
+    """The normalized train states `fit_statistics` gets: in memory, all of them; streamed,
+    read for a model that fits on states (L2S) and None for the others (they need only
+    the graphs), so that a streamed MP-NODE run never holds the train split."""
+    if isinstance(train_set, TrajectoryData):
+        return normalizer.norm_x(train_set.states)
+    if not model.statistics_need_states:
+        return None
+    return normalizer.norm_x(train_set.take(torch.arange(len(train_set))).states)
+
+
+def _device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda asked for, but torch sees no CUDA device")
+    return torch.device(name)
