@@ -36,6 +36,7 @@ from mpnode_cli.data.pooled import (
     train_and_validation,
 )
 from mpnode_cli.data.stream import StreamedTrajectories
+from mpnode_cli.devices import torch_device
 from mpnode_cli.models.registry import OPTIONS, build_model, model_class
 from mpnode_cli.paths import check_output_folder
 from mpnode_cli.training import distributed
@@ -143,7 +144,7 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
         if config.init_checkpoint is not None else {}))
     if not resume:
         config = resolve_config(config, datas[0])
-    device = _device(config.device)
+    device = torch_device(config.device)
     train_sets, val_sets = train_and_validation(datas, config.trajectories)
     if note := fewer_than_asked(datas, train_sets, config.trajectories):
         emit({"event": "warning", "text": note})
@@ -329,8 +330,3 @@ def _statistics_states(model, train_set: TrajectoryData | StreamedTrajectories,
         return None
     return normalizer.norm_x(train_set.take(torch.arange(len(train_set))).states)
 
-
-def _device(name: str) -> torch.device:
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("--device cuda asked for, but torch sees no CUDA device")
-    return torch.device(name)
