@@ -55,8 +55,8 @@ class Pendulum(System):
     ic_range: str
     # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
     sparse: ClassVar[bool] = True
-    # The springs' pull sums over neighbours.
-    recommended: ClassVar[dict[str, object]] = {"model_options": {"aggregate": "sum"}}
+    # The springs' pull sums over neighbours: the recipe's affine sum update fits it and
+    # carries from a chain of 3 to chains of 6 and 12 (docs/training-recipe.md).
     # The paper's 500 trajectories, dt 0.1, 10 s (App. A.1).
     data_defaults: ClassVar[dict[str, float]] = {"trajectories": 500, "t_end": 10.0,
                                                  "dt": 0.1}
