@@ -1,7 +1,8 @@
 """Solve a batch of coupled Lorenz systems with mpnode's Tsit5 and check it against scipy.
 
-Run by `make demo`. Prints a small table: per-sample status, steps, and the error against
-scipy's DOP853 at tight tolerance.
+Run it with `.venv/bin/python examples/solver_demo.py` (after `make demo` or `make test`).
+Prints a small table: per-sample status, steps, and the error against scipy's DOP853 at
+tight tolerance.
 """
 
 from __future__ import annotations

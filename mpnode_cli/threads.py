@@ -4,7 +4,7 @@ torch starts one OpenMP thread per core. It splits an operation across threads o
 32768 elements, and MP-NODE's operations (a 32-wide MLP over a batch of nodes) are mostly
 near that size or below, so a second thread has little to share while OpenMP's spin-waits
 cost CPU; when another process wants the same cores, those waits stall every operation
-(the README's Threads section has the measurements). One thread per process is therefore
+(docs/cli.md, "Threads", has the measurements). One thread per process is therefore
 the default for every verb and every size; with idle cores and large batches, ask for more.
 
 The choice is made here without torch (the CLI decides before it imports anything heavy);
@@ -55,7 +55,7 @@ def parse_count(text: str | int, where: str) -> int:
         raise ValueError(f"{where} must be a whole number ≥ 1, got {str(text)!r}")
     if count > MAX_THREADS:
         raise ValueError(f"{where} must be at most {MAX_THREADS}, got {str(text).strip()!r} "
-                         "(one thread per process is fastest; see the README's Threads)")
+                         "(one thread per process is fastest; see docs/cli.md#threads)")
     return count
 
 

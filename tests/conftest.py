@@ -22,6 +22,20 @@ def child_env(**extra: str) -> dict[str, str]:
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
     return {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1", **extra}
 
+def doc_commands(text: str) -> list[list[str]]:
+    """Every command of a markdown text's ```bash blocks, in order, as shell words: a line
+    and its `\\`-continued lines make one command; `#` comments are dropped."""
+    import re
+    import shlex
+
+    commands = []
+    for block in re.findall(r"```bash\n(.*?)```", text, flags=re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            if words := shlex.split(line, comments=True):
+                commands.append(words)
+    return commands
+
+
 def fhn(t, y, a_graph, p):
     """examples/fitzhugh_nagumo.py's equations, written again from FitzHugh (1961):
     y = [v (N), w (N)], `a_graph` `[N, N]`, `p` its parameters by name."""

@@ -6,14 +6,12 @@ from __future__ import annotations
 
 import importlib.metadata
 import json
-import re
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import fhn_reference
+from conftest import doc_commands, fhn_reference
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -37,13 +35,7 @@ def walkthrough() -> list[list[str]]:
     """The `mpnode ...` commands of the doc's walk-through, in order."""
     text = DOC.read_text()
     section = text.split("<!-- walk-through -->")[1].split("<!-- /walk-through -->")[0]
-    commands = []
-    for block in re.findall(r"```bash\n(.*?)```", section, flags=re.S):
-        for line in block.replace("\\\n", " ").splitlines():
-            line = line.split("#", 1)[0].strip()
-            if line.startswith("mpnode "):
-                commands.append(shlex.split(line)[1:])
-    return commands
+    return [words[1:] for words in doc_commands(section) if words[0] == "mpnode"]
 
 
 def test_the_walkthrough_runs_end_to_end(tmp_path, monkeypatch):
