@@ -186,3 +186,15 @@ def test_a_failed_compile_falls_back_to_the_eager_step(monkeypatch):
     with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler"):
         sol = solve_module.solve(lambda t, y: -y, y0, ts, compile=True)
     assert torch.allclose(sol.ys[0, :, 0], torch.exp(-ts), rtol=1e-6)
+
+
+def test_each_controller_option_names_a_typed_controller():
+    from typing import get_args
+
+    from mpnode_cli.solver.controller import CONTROLLERS, IController, PIController, controller_for
+
+    assert set(get_args(SolverOptions.model_fields["controller"].annotation)) == set(CONTROLLERS)
+    assert controller_for("pi", 5) == PIController(beta1=0.85 / 5, beta2=0.25 / 5)
+    assert controller_for("i", 5) == IController(beta1=1.0 / 5)
+    with pytest.raises(ValueError, match="choose from: pi, i"):
+        controller_for("pid", 5)

@@ -18,7 +18,7 @@ Design points (docs/solver.md):
   scatter (no `nonzero`).
 - One host sync per step: the "anyone still running?" flag and the number of outputs to
   write travel together in one `.tolist()`.
-- The step-size controller (`controller.PIController`) works on detached tensors:
+- The step-size controller (`controller.py`) works on detached tensors:
   gradients flow through the stages and the interpolant, not through the step-size choice
   (a prototype that let r^(−1/5) into autograd produced NaN gradients near r = 0).
 """
@@ -34,7 +34,7 @@ from enum import IntEnum
 
 import torch
 
-from mpnode_cli.solver.controller import PIController
+from mpnode_cli.solver.controller import controller_for
 from mpnode_cli.solver.tableau import ButcherTableau, get_method
 
 RHS = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -139,8 +139,8 @@ def solve(
             on CPU (bench/results/solver.md). Worth it for long or repeated solves; ignored
             with `fixed_dt`.
         controller: adaptive step-size control, "pi" (proportional-integral, the default)
-            or "i" (integral; fewer steps at loose tolerances on smooth solutions): see
-            `controller.PIController`.
+            or "i" (integral; fewer steps at loose tolerances on smooth solutions): a name
+            of `controller.CONTROLLERS`.
         progress: if given, called now and then (at most every `PROGRESS_SECONDS`) with
             the fraction of the time span covered so far, the mean over samples, so that a
             long solve can show that it moves. Each call costs one host sync.
@@ -369,7 +369,7 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
     """The adaptive loop; p is the error estimate's order + 1 (the controller's exponent)."""
     batch, feat = y.shape
     dev, f64 = y.device, torch.float64
-    ctrl = PIController.for_order(p, controller)
+    ctrl = controller_for(controller, p)
     n_out, n_stops = ts.numel(), stops.numel()
     t0 = ts[0]
 
@@ -391,7 +391,7 @@ def _solve_adaptive(fun, tab, p, y, ts, stops, rtol, atol, dt0, max_steps, compi
     out_idx = torch.ones(batch, dtype=torch.long, device=dev)  # next output to fill
     stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
     stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
-    err_prev = torch.full((batch,), ctrl.err_prev_floor, dtype=f64, device=dev)
+    err_prev = torch.full((batch,), ctrl.initial_history(), dtype=f64, device=dev)
     n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
     n_acc = torch.zeros_like(n_steps)
     n_nonfinite = torch.zeros_like(n_steps)  # consecutive rejections for NaN/inf
