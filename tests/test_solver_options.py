@@ -173,16 +173,33 @@ def test_a_failed_compile_falls_back_to_the_eager_step(monkeypatch):
     import torch
 
     solve_module = importlib.import_module("mpnode_cli.solver.solve")
+    from mpnode_cli.solver.compile_cache import CompileCache
 
-    def broken():
+    adaptive = importlib.import_module("mpnode_cli.solver.adaptive")
+
+    def broken(fn, **options):
         def step(*args):
             raise RuntimeError("no C++ compiler\nmore detail")
         return step
 
-    monkeypatch.setattr(solve_module, "_compiled_step", broken)
-    monkeypatch.setattr(solve_module, "_COMPILE_FAILED", False)
+    # A cache as a fresh process has it, whose compiled step fails when first called.
+    monkeypatch.setattr(adaptive, "STEP", CompileCache(adaptive.attempt_step))
+    monkeypatch.setattr(torch, "compile", broken)
     y0 = torch.tensor([[1.0]], dtype=torch.float64)
     ts = torch.linspace(0.0, 1.0, 5, dtype=torch.float64)
     with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler"):
         sol = solve_module.solve(lambda t, y: -y, y0, ts, compile=True)
     assert torch.allclose(sol.ys[0, :, 0], torch.exp(-ts), rtol=1e-6)
+    assert adaptive.STEP.failed  # later solves of this process run eagerly, without a warning
+
+
+def test_each_controller_option_names_a_typed_controller():
+    from typing import get_args
+
+    from mpnode_cli.solver.controller import CONTROLLERS, IController, PIController, controller_for
+
+    assert set(get_args(SolverOptions.model_fields["controller"].annotation)) == set(CONTROLLERS)
+    assert controller_for("pi", 5) == PIController(beta1=0.85 / 5, beta2=0.25 / 5)
+    assert controller_for("i", 5) == IController(beta1=1.0 / 5)
+    with pytest.raises(ValueError, match="choose from: pi, i"):
+        controller_for("pid", 5)

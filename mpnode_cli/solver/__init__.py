@@ -10,8 +10,8 @@ from importlib import import_module
 from typing import Any
 
 _EXPORTS = {
-    "Solution": "solve",
-    "Status": "solve",
+    "Solution": "solution",
+    "Status": "solution",
     "solve": "solve",
     "SolverOptions": "options",
     "ButcherTableau": "tableau",

@@ -32,7 +32,8 @@ class SolverOptions(BaseModel):
         compile: run the adaptive step through `torch.compile`; "auto" lets the verb decide
             (training compiles long runs: `mpnode_cli.training.loop.resolve_compile`), and
             stands for False where nothing decides.
-        controller: adaptive step-size control, "pi" or "i" (`controller.PIController`).
+        controller: adaptive step-size control, "pi" or "i" (a name of
+            `controller.CONTROLLERS`, which builds the typed controller for the method).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)

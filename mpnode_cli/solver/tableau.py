@@ -2,7 +2,7 @@
 
 `METHODS` maps the names that `solve(method=...)` and `SolverOptions.method` accept to the
 tableaus. This module is plain Python (no torch), so the options and the CLI can list the
-methods without importing torch; `mpnode_cli.solver.solve` turns a tableau into tensors.
+methods without importing torch; `runge_kutta.StageTableau` turns a tableau into tensors.
 
 - **tsit5** (default): Ch. Tsitouras, "Runge–Kutta pairs of order 5(4) satisfying only the
   first column simplifying assumption", Computers & Mathematics with Applications 62 (2011)

@@ -1,0 +1,95 @@
+"""Fixed steps: no error control, steps of at most `fixed_dt` that hit every output time
+and every stop exactly (the only way to run a method without an error estimate, e.g. RK4).
+
+The step grid is the same for every sample, so it is a Python list and the loop needs no
+host sync; a sample whose state turns non-finite is frozen and marked `NON_FINITE`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+
+import torch
+
+from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
+from mpnode_cli.solver.solution import Status
+
+
+def fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[float]:
+    """Step end times: every output time and stop, with equal substeps of ≤ fixed_dt between."""
+    marks = torch.unique(torch.cat([ts, stops])).tolist()
+    grid = []
+    for a, b in itertools.pairwise(marks):
+        n = max(1, math.ceil((b - a) / fixed_dt - 1e-9))
+        grid.extend(a + (b - a) * (i / n) for i in range(1, n))
+        grid.append(b)
+    return grid
+
+
+def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
+                stops: torch.Tensor, fixed_dt: float, max_steps: int,
+                report: Callable[[torch.Tensor], None] | None = None):
+    """Integrate with fixed steps.
+
+    Args:
+        fun: the right-hand side on flat states, `fun(t [B], y [B, F]) -> [B, F]`.
+        y: `[B, F]` initial states at `ts[0]`; ts: `[T]` float64 output times;
+        stops: sorted float64 times in (t0, t_end] that steps land on, t_end last.
+        report: called with the time `[B]` after every step.
+
+    Returns:
+        `(ys [B, T, F], status [B], stats)`, as `solve` returns them.
+    """
+    batch = y.shape[0]
+    dev = y.device
+    n_out = ts.numel()
+    out_times = ts.tolist()
+    grid = fixed_grid(ts, stops, fixed_dt)
+    interior_stops = set(stops[:-1].tolist())
+    zero = torch.zeros((), dtype=torch.float64, device=dev)
+    n_extra = 0
+
+    t_prev = out_times[0]
+    t = torch.full((batch,), t_prev, dtype=torch.float64, device=dev)
+    k1 = fun(t, y)
+    stages = Stages(tab.stages, batch, y.shape[1], y,
+                    reuse=not (torch.is_grad_enabled() and k1.requires_grad))
+    running = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
+    status = torch.where(running, Status.SUCCESS, Status.NON_FINITE)
+    n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
+    outs = [y] + [None] * (n_out - 1)
+    nan_row = torch.full_like(y, math.nan)
+    j = 1
+    for step, t_next in enumerate(grid):
+        if step >= max_steps:
+            status = torch.where(running, Status.MAX_STEPS, status)
+            running = torch.zeros_like(running)
+            break
+        h = torch.where(running, t_next - t_prev, zero)
+        t_end = torch.full_like(t, t_next)
+        y_new, _, f_new, _ = rk_step(fun, tab, stages, t, h, y, k1, t_end)
+        ok = running & torch.isfinite(y_new).all(dim=1) & torch.isfinite(f_new).all(dim=1)
+        status = torch.where(running & ~ok, Status.NON_FINITE, status)
+        n_steps += running
+        y = torch.where(ok[:, None], y_new, y)
+        k1 = torch.where(ok[:, None], f_new, k1)
+        running = ok
+        t = t_end
+        t_prev = t_next
+        if t_next in interior_stops:  # f may jump here: FSAL's left limit is not valid
+            k1 = fun(t, y)
+            n_extra += 1
+        if j < n_out and t_next == out_times[j]:
+            # Samples that already failed report NaN from here on, like the adaptive solver.
+            outs[j] = torch.where(running[:, None], y, nan_row)
+            j += 1
+        if report is not None:
+            report(t)
+    outs[j:] = [nan_row] * (n_out - j)
+    ys = torch.stack(outs, dim=1)  # (B, T, F)
+    stats = {"n_steps": n_steps, "n_accepted": n_steps.clone(),
+             "n_rejected": torch.zeros_like(n_steps),
+             "n_f_evals": 1 + (tab.stages - 1) * n_steps + n_extra}
+    return ys, status, stats
