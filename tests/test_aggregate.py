@@ -181,3 +181,23 @@ def test_large_graphs_aggregate_without_a_matrix():
         aggregator(edges, "mean", "dense")
     with pytest.raises(ValueError, match="graph 'sys'"):
         full_graph(edges)
+
+
+@pytest.mark.parametrize("how", AGGREGATES)
+@pytest.mark.parametrize("backend", ["auto", "dense", "scatter"])
+def test_registry_aggregations_equal_the_if_chain(how, backend):
+    import numpy as np
+
+    from mpnode_cli.models.aggregate import registry_aggregator
+
+    for seed in range(5):
+        for nodes in (6, 70):
+            adj = random_graph(3, nodes, 0.3, seed)
+            adj[0, 1] = 0.0
+            graphs, _ = random_edges(3, nodes, 3 * nodes, seed)
+            for graph in (adj, adj.float(), graphs.batch(np.array([2, 0, 1, 1]))):
+                m = torch.randn(len(graph) if isinstance(graph, torch.Tensor) else 4, nodes, 4)
+                for x in (m, m.float()):
+                    old = aggregator(graph, how, backend, 0.7 + seed)(x)
+                    new = registry_aggregator(graph, how, backend, 0.7 + seed)(x)
+                    assert old.dtype == new.dtype and torch.equal(old, new)

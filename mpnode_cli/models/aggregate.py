@@ -37,7 +37,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import get_args
+from typing import ClassVar, get_args
 
 import torch
 
@@ -163,6 +163,202 @@ def pna_scalers(adjacency: Graph, delta: float) -> tuple[torch.Tensor, torch.Ten
     amp = log_d / delta
     att = torch.where(log_d > 0, delta / log_d.clamp_min(1e-12), torch.zeros_like(log_d))
     return amp, att
+
+
+# ----------------------------------------------------------- how it is computed: backends
+
+
+class Strategy:
+    """How an aggregation is computed over one batch of graphs, the graph work done once.
+
+    Attributes:
+        graph: the graphs as given, `[B, N, N]` or an `EdgeBatch` (degree scalers read it).
+    """
+
+    def __init__(self, adjacency: Graph):
+        self.graph = adjacency
+
+    def sum(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """`m [B, N, F] → [B, N, F]`, the sum over each node's in-neighbours."""
+        raise NotImplementedError
+
+    def mean(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        """`m [B, N, F] → [B, N, F]`, the mean over each node's in-neighbours (zero for none)."""
+        raise NotImplementedError
+
+
+class Dense(Strategy):
+    """A batched `[B, N, N] @ [B, N, F]` product: one kernel for small, dense graphs."""
+
+    def __init__(self, adjacency: Graph):
+        super().__init__(adjacency)
+        matrices = dense(adjacency)
+        self.ones = matrices.ne(0).to(matrices.dtype)  # (B, N, N), unweighted
+
+    def sum(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        a = self.ones
+        return lambda m: torch.bmm(a.to(m.dtype), m)
+
+    def mean(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        a = self.ones / self.ones.sum(dim=2, keepdim=True).clamp_min(1.0)  # isolated rows: 0
+        return lambda m: torch.bmm(a.to(m.dtype), m)
+
+
+class Scatter(Strategy):
+    """`index_add_` over the batch's edges: memory O(E), not O(B·N²), for large graphs."""
+
+    def __init__(self, adjacency: Graph):
+        super().__init__(adjacency)
+        self.edges = EdgeIndex.from_adjacency(adjacency)
+
+    def sum(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        edges = self.edges
+        return lambda m: scatter_sum(edges, m)
+
+    def mean(self) -> Callable[[torch.Tensor], torch.Tensor]:
+        edges = self.edges
+        return lambda m: scatter_mean(edges, m)
+
+
+STRATEGIES: dict[str, type[Strategy]] = {"dense": Dense, "scatter": Scatter}
+
+
+def strategy(adjacency: Graph, backend: str = "auto") -> Strategy:
+    """The backend `backend` ("auto", "dense" or "scatter") over the graphs `adjacency`;
+    auto is dense up to `DENSE_MAX_NODES` nodes.
+
+    Raises:
+        ValueError: an unknown backend, or dense for an `EdgeBatch` too large to expand.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend '{backend}' (choose from: {', '.join(BACKENDS)})")
+    if backend == "auto":
+        nodes = adjacency.num_nodes if isinstance(adjacency, EdgeBatch) else adjacency.shape[1]
+        backend = "dense" if nodes <= DENSE_MAX_NODES else "scatter"
+    return STRATEGIES[backend](adjacency)
+
+
+# ---------------------------------------------------------- what is computed: aggregations
+
+
+class Aggregation:
+    """One way of pooling in-neighbours' features (after PyG's
+    `torch_geometric.nn.aggr.Aggregation`), computed by any `Strategy`.
+
+    A subclass names itself (`name`, one of `options.Aggregate`), says how many output
+    features it makes per input feature, whether it reads PNA's degree statistic δ, and
+    binds itself to a strategy: `bind(strategy) → agg(m [B, N, F]) → [B, N, channels(F)]`.
+    """
+
+    name: ClassVar[str]
+    multiplier: ClassVar[int] = 1
+    degree_statistic: ClassVar[bool] = False
+
+    @classmethod
+    def channels(cls, features: int) -> int:
+        """Output features for `features` input features."""
+        return cls.multiplier * features
+
+    @classmethod
+    def fitted(cls, delta: float | None) -> Aggregation:
+        """This aggregation for graphs whose degree statistic is `delta` (read only by
+        those that declare `degree_statistic`)."""
+        return cls()
+
+    def bind(self, strategy: Strategy) -> Callable[[torch.Tensor], torch.Tensor]:
+        raise NotImplementedError
+
+
+class Mean(Aggregation):
+    """The paper's choice (§3.2, "we use the mean as the aggregator"). A node cannot tell
+    how many neighbours it has."""
+
+    name = "mean"
+
+    def bind(self, strategy: Strategy) -> Callable[[torch.Tensor], torch.Tensor]:
+        return strategy.mean()
+
+
+class Sum(Aggregation):
+    """The sum over in-neighbours: a node's response grows with its in-degree, as in systems
+    whose coupling adds up over neighbours (see `docs/training-recipe.md`)."""
+
+    name = "sum"
+
+    def bind(self, strategy: Strategy) -> Callable[[torch.Tensor], torch.Tensor]:
+        return strategy.sum()
+
+
+class PNA(Aggregation):
+    """Principal Neighbourhood Aggregation (Corso et al. 2020, eqs. 4-5) with the mean and
+    the three degree scalers: `[mean, mean · S_amp, mean · S_att]`, `S_amp = log(d + 1) / δ`,
+    `S_att = δ / log(d + 1)` (PyG's `DegreeScalerAggregation` with the identity,
+    amplification and attenuation scalers).
+
+    Args:
+        delta: δ, the training graphs' mean of log(d + 1); fitted once and used unchanged
+            on any other graph (zero-shot, finetune).
+
+    Raises:
+        ValueError: δ missing, not finite or not positive.
+    """
+
+    name = "pna"
+    multiplier = 3
+    degree_statistic = True
+
+    def __init__(self, delta: float | None):
+        if delta is None:
+            raise ValueError("PNA aggregation needs the degree statistic δ")
+        if not math.isfinite(delta) or delta <= 0:
+            raise ValueError(f"PNA needs a positive degree statistic δ, got {delta!r} (fit "
+                             "it on training graphs with at least one edge)")
+        self.delta = delta
+
+    @classmethod
+    def fitted(cls, delta: float | None) -> PNA:
+        return cls(delta)
+
+    def scalers(self, adjacency: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+        """The amplification and attenuation scalers `[B, N, 1]` for `adjacency: [B, N, N]`
+        or an `EdgeBatch`. An isolated node (d = 0) gets 0 for both: its mean is zero
+        anyway, and δ / log(1) would be infinite."""
+        log_d = torch.log1p(in_degree(adjacency)).unsqueeze(-1)  # (B, N, 1)
+        amp = log_d / self.delta
+        att = torch.where(log_d > 0, self.delta / log_d.clamp_min(1e-12),
+                          torch.zeros_like(log_d))
+        return amp, att
+
+    def bind(self, strategy: Strategy) -> Callable[[torch.Tensor], torch.Tensor]:
+        base = strategy.mean()
+        amp, att = self.scalers(strategy.graph)
+
+        def pna(m: torch.Tensor) -> torch.Tensor:
+            mean = base(m)  # (B, N, F)
+            return torch.cat([mean, mean * amp.to(m.dtype), mean * att.to(m.dtype)], dim=-1)
+
+        return pna
+
+
+AGGREGATIONS: dict[str, type[Aggregation]] = {kind.name: kind for kind in (Mean, Sum, PNA)}
+
+
+def aggregation(how: str) -> type[Aggregation]:
+    """The aggregation registered as `how`.
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    if how not in AGGREGATIONS:
+        raise ValueError(f"unknown aggregation '{how}' (choose from: {', '.join(AGGREGATES)})")
+    return AGGREGATIONS[how]
+
+
+def registry_aggregator(adjacency: Graph, how: str = "mean", backend: str = "auto",
+                        delta: float | None = None) -> Callable[[torch.Tensor], torch.Tensor]:
+    kind = aggregation(how)
+    compute = strategy(adjacency, backend)
+    return kind.fitted(delta).bind(compute)
 
 
 def aggregator(adjacency: Graph, how: str = "mean", backend: str = "auto",
