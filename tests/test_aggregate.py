@@ -183,21 +183,16 @@ def test_large_graphs_aggregate_without_a_matrix():
         full_graph(edges)
 
 
-@pytest.mark.parametrize("how", AGGREGATES)
-@pytest.mark.parametrize("backend", ["auto", "dense", "scatter"])
-def test_registry_aggregations_equal_the_if_chain(how, backend):
-    import numpy as np
+def test_the_registries_are_the_declared_choices():
+    """`options.Aggregate` and `options.Backend` are the one declared list of names (the CLI
+    and configs offer them): every name has its class and every class its name."""
+    from typing import get_args
 
-    from mpnode_cli.models.aggregate import registry_aggregator
+    from mpnode_cli.models.aggregate import AGGREGATIONS
+    from mpnode_cli.models.backend import STRATEGIES
+    from mpnode_cli.models.options import Aggregate, Backend
 
-    for seed in range(5):
-        for nodes in (6, 70):
-            adj = random_graph(3, nodes, 0.3, seed)
-            adj[0, 1] = 0.0
-            graphs, _ = random_edges(3, nodes, 3 * nodes, seed)
-            for graph in (adj, adj.float(), graphs.batch(np.array([2, 0, 1, 1]))):
-                m = torch.randn(len(graph) if isinstance(graph, torch.Tensor) else 4, nodes, 4)
-                for x in (m, m.float()):
-                    old = aggregator(graph, how, backend, 0.7 + seed)(x)
-                    new = registry_aggregator(graph, how, backend, 0.7 + seed)(x)
-                    assert old.dtype == new.dtype and torch.equal(old, new)
+    assert tuple(AGGREGATIONS) == get_args(Aggregate)
+    assert all(kind.name == name for name, kind in AGGREGATIONS.items())
+    assert set(STRATEGIES) | {"auto"} == set(get_args(Backend))
+    assert [channels(how, 5) for how in AGGREGATES] == [5, 5, 15]
