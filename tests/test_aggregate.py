@@ -181,3 +181,18 @@ def test_large_graphs_aggregate_without_a_matrix():
         aggregator(edges, "mean", "dense")
     with pytest.raises(ValueError, match="graph 'sys'"):
         full_graph(edges)
+
+
+def test_the_registries_are_the_declared_choices():
+    """`options.Aggregate` and `options.Backend` are the one declared list of names (the CLI
+    and configs offer them): every name has its class and every class its name."""
+    from typing import get_args
+
+    from mpnode_cli.models.aggregate import AGGREGATIONS
+    from mpnode_cli.models.backend import STRATEGIES
+    from mpnode_cli.models.options import Aggregate, Backend
+
+    assert tuple(AGGREGATIONS) == get_args(Aggregate)
+    assert all(kind.name == name for name, kind in AGGREGATIONS.items())
+    assert set(STRATEGIES) | {"auto"} == set(get_args(Backend))
+    assert [channels(how, 5) for how in AGGREGATES] == [5, 5, 15]

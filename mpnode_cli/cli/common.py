@@ -8,10 +8,12 @@ from contextlib import contextmanager
 from typing import Any, TypeVar
 
 import typer
+from pydantic import BaseModel
 
 from mpnode_cli.solver.options import SolverOptions
 
 T = TypeVar("T")
+M = TypeVar("M", bound=BaseModel)
 
 # Jobs whose memory estimate passes these sizes get the estimate printed, and a question
 # (`confirm_size`: generate and simulate).
@@ -55,6 +57,17 @@ def error_message(exc: Exception) -> str:
     from mpnode_cli.config import error_line
 
     return error_line(exc) if isinstance(exc, ValidationError) else str(exc)
+
+
+def config_from(config: type[M], options: dict[str, Any]) -> M:
+    """A verb's `config` from its parameters (`options`: the command's `locals()`, taken
+    before any other local name): those the config declares, where given (None is left
+    out, for the config's default). A refused value is one `Error:` line (exit 2)."""
+    try:
+        return config(**{k: v for k, v in options.items()
+                         if k in config.model_fields and v is not None})
+    except ValueError as exc:
+        fail(error_message(exc))
 
 
 def fail(message: str, code: int = 2) -> None:

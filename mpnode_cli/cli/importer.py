@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console, error_message, fail, warn
+from mpnode_cli.cli.common import console, warn
 
 
 def import_command(
@@ -46,21 +46,15 @@ def import_command(
         False, "--json", help="Print the summary as one JSON object on stdout."),
 ) -> None:
     """Turn your own trajectories and graph into an mpnode dataset (system "custom")."""
+    options = dict(locals())  # the parameters, before any other local name
     import json
 
-    from mpnode_cli.cli.common import split_by_name, with_bar
+    from mpnode_cli.cli.common import config_from, split_by_name, with_bar
     from mpnode_cli.config import ImportConfig
     from mpnode_cli.data.generate import split_warning
     from mpnode_cli.data.importers import import_arrays
 
-    given = {"states": states, "adjacency": adjacency, "edge_list": edge_list,
-             "directed": directed, "dt": dt, "controls": controls, "state_names": state_names,
-             "control_names": control_names, "split": split, "seed": seed, "dtype": dtype,
-             "out": out}
-    try:
-        config = ImportConfig(**{k: v for k, v in given.items() if v is not None})
-    except ValueError as exc:
-        fail(error_message(exc))
+    config = config_from(ImportConfig, options)
     summary = with_bar(f"importing {states.name}",
                        lambda progress: import_arrays(config, overwrite=force, progress=progress),
                        quiet=json_out, stopped="nothing written")

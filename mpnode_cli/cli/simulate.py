@@ -56,20 +56,17 @@ def simulate_command(
     threads: str | None = THREADS,
 ) -> None:
     """Roll a trained model out from your initial states on your graph (no data needed)."""
+    options = dict(locals())  # the parameters, before any other local name
     import json
     from dataclasses import asdict
 
-    from mpnode_cli.cli.common import with_bar
+    from mpnode_cli.cli.common import config_from, with_bar
     from mpnode_cli.config import SimulateConfig
     from mpnode_cli.devices import torch_device
     from mpnode_cli.training.predict import PredictionFailed, simulate
 
-    given = {"checkpoint": checkpoint, "x0": x0, "adjacency": adjacency,
-             "edge_list": edge_list, "directed": directed, "t_end": t_end, "dt": dt,
-             "controls": controls, "out": out, "batch_size": batch_size, "device": device,
-             "dtype": dtype}
+    config = config_from(SimulateConfig, options)
     try:
-        config = SimulateConfig(**{k: v for k, v in given.items() if v is not None})
         torch_device(config.device)
     except ValueError as exc:
         fail(error_message(exc))

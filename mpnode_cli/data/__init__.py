@@ -10,32 +10,13 @@ so import it from `mpnode_cli.data.generate`.
 
 from __future__ import annotations
 
-from importlib import import_module
-from typing import Any
+from mpnode_cli.lazy import lazy_exports
 
-_EXPORTS = {
-    "Dataset": "hdf5",
-    "DatasetFormatError": "hdf5",
-    "read_dataset": "hdf5",
-    "read_header": "hdf5",
-    "write_dataset": "hdf5",
-    "fingerprint": "hdf5",
-    "ImportSummary": "importers",
-    "import_arrays": "importers",
-    "Report": "validate",
-    "check_dataset": "validate",
-    "require_valid": "validate",
-    "GenerateError": "generate",
-    "GenerateSummary": "generate",
-    "resolve_config": "generate",
-    "PRESETS": "presets",
-    "get_preset": "presets",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'mpnode_cli.data' has no attribute '{name}'")
-    return getattr(import_module(f"mpnode_cli.data.{_EXPORTS[name]}"), name)
+__getattr__, __all__ = lazy_exports(__name__, {
+    "hdf5": ["Dataset", "DatasetFormatError", "read_dataset", "read_header", "write_dataset",
+             "fingerprint"],
+    "importers": ["ImportSummary", "import_arrays"],
+    "validate": ["Report", "check_dataset", "require_valid"],
+    "generate": ["GenerateError", "GenerateSummary", "resolve_config"],
+    "presets": ["PRESETS", "get_preset"],
+}, globals())

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from mpnode_cli.data.hdf5 import fingerprint, read_dataset
+from mpnode_cli.data.hdf5 import NodeSizes, fingerprint, read_dataset
 from mpnode_cli.data.validate import require_valid
 from mpnode_cli.graphs import EdgeBatch, Graphs
 
@@ -100,7 +100,7 @@ def _moments(v: torch.Tensor | Sequence[torch.Tensor]) -> tuple[torch.Tensor, to
 
 
 @dataclass(frozen=True)
-class TrajectoryData:
+class TrajectoryData(NodeSizes):
     """Trajectories of one dataset file (or a subset) as tensors.
 
     Attributes:
@@ -152,14 +152,6 @@ class TrajectoryData:
 
     def __len__(self) -> int:
         return self.states.shape[0]
-
-    @property
-    def num_nodes(self) -> int:
-        return self.states.shape[2]
-
-    @property
-    def node_dim(self) -> int:
-        return self.states.shape[3]
 
     @property
     def control_dim(self) -> int:

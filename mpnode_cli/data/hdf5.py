@@ -53,8 +53,25 @@ class DatasetFormatError(ValueError):
     """A file that is not an mpnode dataset this version of mpnode can read."""
 
 
+class NodeSizes:
+    """N and D read off `states [K, T, N, D]` (a numpy array or a tensor): what `Dataset`
+    and `mpnode_cli.data.dataset.TrajectoryData` share."""
+
+    states: Any
+
+    @property
+    def num_nodes(self) -> int:
+        """N."""
+        return self.states.shape[2]
+
+    @property
+    def node_dim(self) -> int:
+        """D."""
+        return self.states.shape[3]
+
+
 @dataclass(frozen=True)
-class Dataset:
+class Dataset(NodeSizes):
     """One dataset file in memory (numpy arrays).
 
     Attributes:
@@ -109,16 +126,6 @@ class Dataset:
     def num_trajectories(self) -> int:
         """K."""
         return self.states.shape[0]
-
-    @property
-    def num_nodes(self) -> int:
-        """N."""
-        return self.states.shape[2]
-
-    @property
-    def node_dim(self) -> int:
-        """D."""
-        return self.states.shape[3]
 
     @property
     def control_dim(self) -> int:

@@ -92,7 +92,7 @@ def evaluate(checkpoint: Path, data: Path, step) -> str:
                      "checkpoint's weights in a model built with messages=False")
     if step.pca:
         notes.append(f"PCA of the messages of {step.trajectories} trajectories: library only "
-                     "(mpnode_cli.experiments.runner)")
+                     "(mpnode_cli.experiments.steps)")
     return line + "".join(f"  # {n}" for n in notes)
 
 

@@ -21,7 +21,8 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import DegreeAwareAggregation, Graph, as_graph, channels
+from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
+from mpnode_cli.models.backend import Graph, as_graph
 from mpnode_cli.models.base import NeuralModel, Rollout, control_stops, zoh_controls
 from mpnode_cli.models.options import GNODEOptions
 from mpnode_cli.solver import solve

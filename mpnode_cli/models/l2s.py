@@ -24,7 +24,8 @@ import torch
 from torch import nn
 
 from mpnode_cli.graphs import EdgeBatch
-from mpnode_cli.models.aggregate import EdgeIndex, Graph, as_graph, full_graph
+from mpnode_cli.models.aggregate import full_graph
+from mpnode_cli.models.backend import EdgeIndex, Graph, as_graph
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout, mlp
 from mpnode_cli.models.options import L2SOptions
 

@@ -40,13 +40,8 @@ from typing import ClassVar
 
 import torch
 
-from mpnode_cli.models.aggregate import (
-    DegreeAwareAggregation,
-    Graph,
-    aggregator,
-    as_graph,
-    channels,
-)
+from mpnode_cli.models.aggregate import DegreeAwareAggregation, aggregator, channels
+from mpnode_cli.models.backend import Graph, as_graph
 from mpnode_cli.models.base import NeuralModel, Rollout, control_stops, mlp, zoh_controls
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.solver import solve

@@ -7,7 +7,8 @@ builds `mpnode train`'s options and their help from these declarations at import
 adds a `Literal` field's choices and the models that take the option).
 
 The choices shared with the torch side are declared once, here, as `Literal` types:
-`mpnode_cli.models.aggregate` takes its `AGGREGATES` and `BACKENDS` from them and
+`mpnode_cli.models.aggregate` takes its `AGGREGATES` and `mpnode_cli.models.backend` its
+`BACKENDS` from them (each registry is tested to match), and
 `mpnode_cli.models.base.ACTIVATIONS` is tested to cover `Activation`.
 """
 

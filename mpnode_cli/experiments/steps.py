@@ -1,0 +1,290 @@
+"""The step verbs: each runs one step of an experiment through the library, in its folder.
+
+A verb takes `(step, options, folder, inputs, status, emit)`: the spec's step, its resolved
+options, the empty (or, for a resumed training, the interrupted) folder it writes in, the
+records of the steps it reads by id, "ran" or "resumed", and the run's progress callback.
+It returns `(result, outputs, commands, figures)`: the numbers the report needs, the files
+(relative to the folder) whose presence says the step is done, the equivalent `mpnode`
+command lines, and the figures' paths. A verb raises ValueError or FileNotFoundError for
+what a user can fix; `schedule.run_step` turns them into `StepFailed`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mpnode_cli.experiments import commands
+from mpnode_cli.experiments.spec import TRAINING
+from mpnode_cli.jsonable import jsonable
+
+Progress = Callable[[dict[str, Any]], None]
+DATA_FILE, RUN_DIR = "data.h5", "run"
+FIGURE_DPI = 80
+
+
+class StepFailed(RuntimeError):
+    """A step could not run (bad data, a refused option, a diverged training)."""
+
+
+@dataclass
+class StepRecord:
+    """One step of a run: what it did (or found done) and its results."""
+
+    id: str
+    verb: str
+    label: str
+    status: str  # "ran", "resumed" or "skipped" (done by an earlier run)
+    folder: str
+    fingerprint: str
+    options: dict[str, Any]
+    seconds: float
+    commands: list[str]
+    result: dict[str, Any]
+    figures: list[str] = field(default_factory=list)
+    reported: dict[str, float] = field(default_factory=dict)
+    reported_in: str | None = None
+
+
+def _generate(step, options, folder: Path, inputs, status, emit):
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import generate
+
+    config = GenerateConfig(**{**options["config"], "out": folder / DATA_FILE})
+    summary = generate(config, overwrite=True,
+                       progress=lambda done, total: emit({"event": "generate", "done": done,
+                                                          "total": total}))
+    train, val, test = summary.split_counts
+    result = {"system": config.system, "nodes": config.nodes, "topology": config.topology,
+              "trajectories": summary.trajectories, "split": [train, val, test],
+              "samples": config.num_steps + 1, "dt": config.dt, "t_end": config.t_end,
+              "seed": config.seed, "graph_seed": config.graph_seed,
+              "seconds": summary.seconds}
+    return result, [DATA_FILE], [commands.generate(step, options, folder / DATA_FILE)], []
+
+
+def _train(step, options, folder: Path, inputs, status, emit):
+    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.training.loop import TrainingDiverged, train
+    from mpnode_cli.training.run import read_config
+
+    run_dir = folder / RUN_DIR
+    data = Path(inputs[step.data].folder) / DATA_FILE
+    fields = {"plots": False, **options["config"], "dataset": data, "run_dir": run_dir,
+              "recipe": options["recipe"]}
+    if step.verb == "finetune":
+        fields["init_checkpoint"] = _best(inputs[step.checkpoint])
+    try:
+        if status == "resumed":
+            # A training that finished before its step record was written trains no more
+            # epochs and writes its summary again.
+            train(read_config(run_dir), resume=True, progress=_forward(emit),
+                  finished_ok=True)
+        else:
+            train(TrainConfig(**fields), progress=_forward(emit))
+    except TrainingDiverged as exc:
+        raise ValueError(f"training diverged: {exc}") from None
+    result = training_result(run_dir, data)
+    return (result, [f"{RUN_DIR}/summary.json", f"{RUN_DIR}/checkpoints/best.pt"],
+            [commands.train(step, options, data, run_dir, fields.get("init_checkpoint"))], [])
+
+
+def _forward(emit: Progress) -> Callable[[dict[str, Any]], None]:
+    return lambda event: emit({"event": "train", "event_data": event})
+
+
+def _best(record: StepRecord) -> Path:
+    return Path(record.folder) / RUN_DIR / "checkpoints" / "best.pt"
+
+
+def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
+    """What the report needs of a finished run: its summary's numbers, the lowest training
+    loss, and the best checkpoint's validation MSE beside the naive predictors."""
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.evaluate import baseline_mse, train_reference
+    from mpnode_cli.training.run import read_config, read_metrics, read_summary
+
+    summary = read_summary(run_dir)
+    config = read_config(run_dir)
+    metrics = read_metrics(run_dir)
+    train_losses = [r["train_loss"] for r in metrics if r.get("train_loss") is not None]
+    best = load_checkpoint(Path(run_dir) / "checkpoints" / "best.pt")
+    dataset = TrajectoryData.load(data)
+    reference, _ = train_reference(best, dataset)
+    val = baseline_mse(reference, dataset.subset("validation"), best.build_normalizer())
+    test = summary.get("test") or {}
+    return {
+        "model": summary["model"], "loss": summary["loss"], "epochs": summary["epochs"],
+        "best_epoch": summary["best_epoch"], "min_val_loss": summary["min_val_loss"],
+        "table2": summary["table2"], "min_train_loss": min(train_losses, default=None),
+        "val": {"mse": summary.get("min_val_mse"), **jsonable(val)},
+        "test": {"mse": test.get("mse"), "failed": test.get("failed"),
+                 **(summary.get("baselines") or {})},
+        "wall_seconds": summary["wall_seconds"],
+        "seconds_per_epoch": summary["seconds_per_epoch"],
+        "parameters": summary["parameters"], "seed": config.seed,
+        "trajectories": len(reference), "recipe": config.recipe,
+        "model_options": config.model_options,
+    }  # fmt: skip
+
+
+def _zeroshot(step, options, folder: Path, inputs, status, emit):
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.evaluate import evaluate_checkpoint
+
+    ckpt = load_checkpoint(_best(inputs[step.checkpoint]))
+    result, figures, paths = {}, [], []
+    for data_id in step.data:
+        path = Path(inputs[data_id].folder) / DATA_FILE
+        paths.append(path)
+        data = TrajectoryData.load(path)
+        row = evaluate_checkpoint(ckpt, data, split=step.split, verb="zeroshot")
+        result[data_id] = _row(row)
+        if step.plot:
+            figures.append(_rollout_figure(ckpt, data, step.split,
+                                           folder / f"{step.id}-{data_id}-rollout.png"))
+    return (result, [Path(f).name for f in figures],
+            [commands.zeroshot(_best(inputs[step.checkpoint]), paths, step.split)], figures)
+
+
+def _evaluate(step, options, folder: Path, inputs, status, emit):
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.evaluate import evaluate_checkpoint
+
+    best = _best(inputs[step.checkpoint])
+    ckpt = load_checkpoint(best)
+    if step.zero_messages:
+        if "messages" not in ckpt.model_config:
+            raise ValueError(f"model '{ckpt.model_kind}' has no messages to zero")
+        # messages=False clamps incoming messages to zero and changes no weight, so the
+        # trained weights load unchanged (MP-NODE's `messages` option).
+        ckpt.model_config = {**ckpt.model_config, "messages": False}
+    path = Path(inputs[step.data].folder) / DATA_FILE
+    data = TrajectoryData.load(path)
+    row = evaluate_checkpoint(ckpt, data, split=step.split)
+    result = {**_row(row), "zero_messages": step.zero_messages}
+    figures = []
+    if step.plot:
+        figures.append(_rollout_figure(ckpt, data, step.split, folder / f"{step.id}-rollout.png"))
+    if step.pca:
+        result["pca"] = _message_pca(ckpt, data, step, folder / f"{step.id}-pca.png")
+        figures.append(str(folder / f"{step.id}-pca.png"))
+    return (result, [Path(f).name for f in figures],
+            [commands.evaluate(best, path, step)], figures)
+
+
+def _message_pca(ckpt, data, step, path: Path) -> dict[str, Any]:
+    """PCA of all nodes' messages over time (the paper's Fig. 12): each sample time of each
+    trajectory is one point of N·M message values."""
+    import torch
+
+    from mpnode_cli.config import stored_solver, train_solver
+    from mpnode_cli.report.plots import plot_components
+    from mpnode_cli.training.evaluate import predict
+
+    subset = data.subset(step.split)
+    n = min(step.trajectories, len(subset))
+    model, normalizer = ckpt.build_model(), ckpt.build_normalizer()
+    pred = predict(model, subset, normalizer, torch.arange(n),
+                   solver=stored_solver(ckpt.train_config, train_solver))
+    if pred.messages is None or pred.messages.shape[-1] == 0:
+        raise ValueError(f"model '{ckpt.model_kind}' has no message states")
+    b, t, nodes, m = pred.messages.shape
+    flat = pred.messages.double().reshape(b * t, nodes * m)  # (B·T, N·M)
+    centred = flat - flat.mean(dim=0)
+    _, s, v = torch.linalg.svd(centred, full_matrices=False)
+    k = min(step.pca, v.shape[0])
+    scores = (centred @ v[:k].T).reshape(b, t, k)  # (B, T, k)
+    explained = (s**2 / (s**2).sum()).tolist()
+    plot_components(pred.time, scores, path, dpi=FIGURE_DPI,
+                    title=f"PCA of {nodes}×{m} messages, {b} trajectories")
+    # How far the components have moved from where each trajectory started, early and
+    # late in the horizon: the paper reads growth as the messages countering drift.
+    moved = (scores - scores[:, :1]).abs().mean(dim=(0, 2))  # (T,)
+    quarter = max(1, t // 4)
+    return {"trajectories": b, "messages": nodes * m, "explained": explained[:k],
+            "spread_first": float(moved[:quarter].mean()),
+            "spread_last": float(moved[-quarter:].mean())}
+
+
+def _compare(step, options, folder: Path, inputs, status, emit):
+    from mpnode_cli.report.plots import plot_bars, plot_curves
+    from mpnode_cli.training.run import read_metrics
+
+    labels = {i: inputs[i].label for i in step.runs}
+    metrics = {i: read_metrics(Path(inputs[i].folder) / RUN_DIR) for i in step.runs}
+    curves = folder / f"{step.id}-loss.png"
+    plot_curves({labels[i]: metrics[i] for i in step.runs}, curves, dpi=FIGURE_DPI)
+    figures = [str(curves)]
+    result = {"runs": {i: {k: inputs[i].result.get(k) for k in
+                           ("best_epoch", "min_val_loss", "table2", "min_train_loss")}
+                       for i in step.runs}}
+    if step.groups:
+        bars = folder / f"{step.id}-bars.png"
+        first = next(iter(step.groups.values()))
+        series = step.series or [labels[i] for i in first]
+        plot_bars({group: {series[j] if j < len(series) else labels[i]:
+                           inputs[i].result.get("table2") for j, i in enumerate(members)}
+                   for group, members in step.groups.items()}, bars, dpi=FIGURE_DPI,
+                  ylabel="best epoch × min validation loss",
+                  title="Table-2 figure (lower is better)")
+        figures.append(str(bars))
+        result["groups"] = step.groups
+    runs = [Path(inputs[i].folder) / RUN_DIR for i in step.runs]
+    return result, [Path(f).name for f in figures], [commands.compare(runs)], figures
+
+
+VERBS = {"generate": _generate, "train": _train, "finetune": _train, "zeroshot": _zeroshot,
+         "evaluate": _evaluate, "compare": _compare}
+
+
+def _row(row: dict[str, Any]) -> dict[str, Any]:
+    """The numbers of an `evaluate_checkpoint` row."""
+    result, base = row["result"], row.get("baselines") or {}
+    return {"dataset": Path(row["dataset"]).parent.name, "split": row["split"],
+            "num_nodes": row["num_nodes"], "topology": row["topology"],
+            "mse": result["mse"], "failed": result["failed"], "huber": result["huber"],
+            "trajectories": result["trajectories"],
+            "hold_x0": base.get("hold_x0"), "time_mean": base.get("time_mean")}
+
+
+def _rollout_figure(ckpt, data, split: str, path: Path) -> str:
+    """The first trajectory of `split`, predicted against true, message norms beneath (the
+    paper's Fig. 2, 3b and 11)."""
+    import torch
+
+    from mpnode_cli.config import stored_solver, train_solver
+    from mpnode_cli.report.plots import plot_rollout
+    from mpnode_cli.training.evaluate import predict
+
+    subset = data.subset(split)
+    pred = predict(ckpt.build_model(), subset, ckpt.build_normalizer(), torch.arange(1),
+                   solver=stored_solver(ckpt.train_config, train_solver))
+    messages = None if pred.messages is None else pred.messages[0]
+    title = f"{data.system}, N={data.num_nodes} ({split}), trajectory 0"
+    return str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
+                            path, title=title, dpi=FIGURE_DPI))
+
+
+def line(record: StepRecord) -> str:
+    """One line of a finished step's main number."""
+    r = record.result
+    if record.verb in TRAINING:
+        return (f"best epoch {r['best_epoch']}/{r['epochs']}, min val loss "
+                f"{_g(r['min_val_loss'])}, test MSE {_g(r['test'].get('mse'))}")
+    if record.verb == "generate":
+        return f"{r['trajectories']} trajectories × {r['samples']} samples"
+    if record.verb == "evaluate":
+        return f"{r['split']} MSE {_g(r['mse'])} (hold x(0) {_g(r['hold_x0'])})"
+    if record.verb == "zeroshot":
+        return ", ".join(f"{k} MSE {_g(v['mse'])}" for k, v in r.items())
+    return f"{len(record.figures)} figures"
+
+
+def _g(value: Any) -> str:
+    return "—" if value is None else f"{value:.4g}"
