@@ -18,7 +18,7 @@ import shutil
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.experiments import runner as experiment_runner
+from mpnode_cli.experiments import schedule as experiment_schedule
 
 LONG = "n" * 300  # over the 255 bytes of one name on Linux and macOS filesystems
 
@@ -28,7 +28,7 @@ def no_steps(monkeypatch):
     def never(*args, **kwargs):
         raise AssertionError("a step ran although the output folders cannot be written")
 
-    monkeypatch.setattr(experiment_runner, "_run_step", never)
+    monkeypatch.setattr(experiment_schedule, "run_step", never)
 
 
 @pytest.mark.parametrize("option", ["--work", "--out"])
