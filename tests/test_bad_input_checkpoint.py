@@ -14,6 +14,7 @@ import shutil
 import numpy as np
 import pytest
 import torch
+from conftest import one_line_error
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -39,14 +40,6 @@ def trained(tmp_path_factory):
 
 def invoke(*args):
     return runner.invoke(app, [str(a) for a in args])
-
-
-def one_line_error(result) -> str:
-    assert result.exit_code == 2, result.output
-    assert isinstance(result.exception, SystemExit) and "Traceback" not in result.output
-    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
-    assert len(lines) == 1, result.output
-    return lines[0]
 
 
 def first_weight(ckpt) -> str:

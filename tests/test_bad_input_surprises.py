@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import one_line_error
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -36,14 +37,6 @@ def invoke(*args):
 def warnings(result) -> list[str]:
     assert result.exit_code == 0, result.output
     return [line for line in result.stderr.splitlines() if line.startswith("Warning:")]
-
-
-def one_line_error(result) -> str:
-    assert result.exit_code == 2, result.output
-    assert isinstance(result.exception, SystemExit) and "Traceback" not in result.output
-    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
-    assert len(lines) == 1, result.output
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import os
 import shutil
 
 import pytest
+from conftest import one_line_error
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -50,14 +51,6 @@ def merged(built, tmp_path):
     folder = tmp_path / "data"
     shutil.copytree(built, folder)
     return folder
-
-
-def one_line_error(result) -> str:
-    assert result.exit_code == 2, result.output
-    assert isinstance(result.exception, SystemExit) and "Traceback" not in result.output
-    lines = [line for line in result.output.splitlines() if line.startswith("Error:")]
-    assert len(lines) == 1, result.output
-    return lines[0]
 
 
 def readers(folder):
