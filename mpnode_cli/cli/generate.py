@@ -28,7 +28,7 @@ from mpnode_cli.cli.common import (
 )
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
-from mpnode_cli.config import generate_solver
+from mpnode_cli.config import GenerateConfig, generate_solver
 from mpnode_cli.threads import applied_threads
 
 
@@ -69,37 +69,66 @@ def _parameters() -> str:
                      for cls in SYSTEMS.values())
 
 
+# The declarations that take more than a line, so that the command's signature reads as
+# its list of options.
+_SYSTEM = typer.Argument(
+    None,
+    help=f"{_system_names()}, or your own with --system-file (may come from --preset "
+    "or --config).",
+    autocompletion=_complete_system,
+    show_default=False,
+)
+_SYSTEM_FILE = typer.Option(
+    None, help="A Python file defining your own System subclass "
+    "(docs/custom-systems.md); its options go in as -p NAME=VALUE.")
+_PRESET = typer.Option(
+    None,
+    help="Start from one of the paper's datasets, e.g. lorenz10, gene-ba-8x8.",
+    autocompletion=_complete_preset,
+)
+_CONFIG = typer.Option(
+    None, "--config", help="TOML (or JSON) file of config fields; options override it."
+)
+_GRID = typer.Option(
+    None, metavar="N", help=f"Square grid side: N = grid², for systems whose nodes sit on "
+    f"a grid ({_grid_systems()}); others refuse it (give --nodes).")
+_EDGE_LIST = typer.Option(
+    None, help="Your own graph: text file of 'i j' lines, undirected unless --directed "
+    "(docs/dataset-format.md).")
+_OUT = typer.Option(
+    None, "--out", "-o",
+    help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5); with "
+    "--shard, the name its shards are named after."
+)
+_SHARD = typer.Option(
+    None, metavar="i/n",
+    help="Write only shard i of n (0 ≤ i < n) to <out stem>.shard-000i-of-000n.h5, for "
+    "n processes or machines; mpnode merge joins the n files into the one file "
+    "generate would write. Shards hold whole solver chunks (n ≤ trajectories / "
+    "chunk-size).")
+_PARAM = typer.Option(
+    None,
+    "--param",
+    "-p",
+    metavar="NAME=VALUE",
+    help=f"System parameter or option NAME=VALUE, e.g. -p K=0.5 (repeatable). "
+    f"Parameters (default): {_parameters()}.",
+)
+
+
 def generate_command(
-    system: str | None = typer.Argument(
-        None,
-        help=f"{_system_names()}, or your own with --system-file (may come from --preset "
-        "or --config).",
-        autocompletion=_complete_system,
-        show_default=False,
-    ),
-    system_file: Path | None = typer.Option(
-        None, help="A Python file defining your own System subclass "
-        "(docs/custom-systems.md); its options go in as -p NAME=VALUE."),
-    preset: str | None = typer.Option(
-        None,
-        help="Start from one of the paper's datasets, e.g. lorenz10, gene-ba-8x8.",
-        autocompletion=_complete_preset,
-    ),
-    config_file: Path | None = typer.Option(
-        None, "--config", help="TOML (or JSON) file of config fields; options override it."
-    ),
+    system: str | None = _SYSTEM,
+    system_file: Path | None = _SYSTEM_FILE,
+    preset: str | None = _PRESET,
+    config_file: Path | None = _CONFIG,
     nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
-    grid: str | None = typer.Option(
-        None, metavar="N", help=f"Square grid side: N = grid², for systems whose nodes sit on "
-        f"a grid ({_grid_systems()}); others refuse it (give --nodes)."),
+    grid: str | None = _GRID,
     topology: str | None = typer.Option(
         None, help=f"One of the system's topologies ({_topologies()})."),
     graphs: str | None = typer.Option(
         None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
     graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
-    edge_list: Path | None = typer.Option(
-        None, help="Your own graph: text file of 'i j' lines, undirected unless --directed "
-        "(docs/dataset-format.md)."),
+    edge_list: Path | None = _EDGE_LIST,
     directed: bool = typer.Option(
         False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
     trajectories: str | None = typer.Option(None, metavar="N", help="Number of trajectories K."),
@@ -114,17 +143,8 @@ def generate_command(
     atol: float | None = solver_option("atol", generate_solver()),
     fixed_dt: float | None = solver_option("fixed_dt", generate_solver()),
     dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
-    out: Path | None = typer.Option(
-        None, "--out", "-o",
-        help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5); with "
-        "--shard, the name its shards are named after."
-    ),
-    shard: str | None = typer.Option(
-        None, metavar="i/n",
-        help="Write only shard i of n (0 ≤ i < n) to <out stem>.shard-000i-of-000n.h5, for "
-        "n processes or machines; mpnode merge joins the n files into the one file "
-        "generate would write. Shards hold whole solver chunks (n ≤ trajectories / "
-        "chunk-size)."),
+    out: Path | None = _OUT,
+    shard: str | None = _SHARD,
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
     yes: bool = typer.Option(
@@ -134,64 +154,78 @@ def generate_command(
     chunk_size: str | None = typer.Option(
         None, metavar="N", help="Trajectories per solver batch (default 1024)."
     ),
-    param: list[str] | None = typer.Option(
-        None,
-        "--param",
-        "-p",
-        metavar="NAME=VALUE",
-        help=f"System parameter or option NAME=VALUE, e.g. -p K=0.5 (repeatable). "
-        f"Parameters (default): {_parameters()}.",
-    ),
+    param: list[str] | None = _PARAM,
     threads: str | None = THREADS,
     **system_options: Any,
 ) -> None:
     """Simulate ground truth on graphs and write an HDF5 dataset."""
-    from mpnode_cli.config import GenerateConfig, read_config_file, upgrade_solver_fields
-    from mpnode_cli.data.presets import get_preset, merge_layers
-
-    options = {
+    given = {
         "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
         "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
         "chunk_size": chunk_size, "directed": directed or None, "system_file": system_file,
         "shard": shard,
     }  # fmt: skip
-    options = {key: value for key, value in options.items() if value is not None}
-    try:
-        for key in ("nodes", "grid", "graphs", "trajectories", "chunk_size"):
-            if key in options:
-                options[key] = _whole(options[key], "--" + key.replace("_", "-"))
-    except ValueError as exc:
-        _usage_error(str(exc))
     solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
-    solver = {key: value for key, value in solver.items() if value is not None}
-    if solver:  # the config's `solver` table, merged over a config file's
-        options["solver"] = solver
     try:
-        params = _parse_params(param or [])
-        params.update({k: v for k, v in system_options.items() if v is not None})
-        if params:
-            options["params"] = params
-        own = None
-        if system_file is not None:  # first, so that its presets are known
-            from mpnode_cli.systems.registry import load_system_file
-
-            own = load_system_file(system_file).name
-        layers = [
-            (f"preset {preset}", get_preset(preset) if preset else {}),
-            (f"config {config_file}",
-             upgrade_solver_fields(read_config_file(config_file)) if config_file else {}),
-            ("command line", options),
-        ]
-        fields = merge_layers(layers)
-        if "system" not in fields and own is not None:
-            fields["system"] = own
-        if "system" not in fields:
-            raise ValueError(f"give a SYSTEM ({_system_names()}) or --preset NAME")
-        config = GenerateConfig(**fields)
+        options = _command_line(given, solver, param or [], system_options)
+        config = _layered_config(preset, config_file, system_file, options)
     except ValueError as exc:
         _usage_error(_message(exc))
     _run(config, force, yes, json_out)
+
+
+def _command_line(given: dict[str, Any], solver: dict[str, Any], param: list[str],
+                  system_options: dict[str, Any]) -> dict[str, Any]:
+    """The command line's layer of config fields: the options given (counts as whole
+    numbers), the solver's as the config's `solver` table and the system's as `params`.
+
+    Raises:
+        ValueError: a count that is not a whole number, or a --param that is not NAME=VALUE.
+    """
+    options = {key: value for key, value in given.items() if value is not None}
+    for key in ("nodes", "grid", "graphs", "trajectories", "chunk_size"):
+        if key in options:
+            options[key] = _whole(options[key], "--" + key.replace("_", "-"))
+    solver = {key: value for key, value in solver.items() if value is not None}
+    if solver:  # the config's `solver` table, merged over a config file's
+        options["solver"] = solver
+    params = _parse_params(param)
+    params.update({k: v for k, v in system_options.items() if v is not None})
+    if params:
+        options["params"] = params
+    return options
+
+
+def _layered_config(preset: str | None, config_file: Path | None, system_file: Path | None,
+                    options: dict[str, Any]) -> GenerateConfig:
+    """The preset, the config file and the command line's `options` (later wins) as a
+    `GenerateConfig`; a system file's system is the one generated when none is named.
+
+    Raises:
+        ValueError: a system file, preset or config file that does not load, no system,
+            or fields the config refuses.
+    """
+    from mpnode_cli.config import read_config_file, upgrade_solver_fields
+    from mpnode_cli.data.presets import get_preset, merge_layers
+
+    own = None
+    if system_file is not None:  # first, so that its presets are known
+        from mpnode_cli.systems.registry import load_system_file
+
+        own = load_system_file(system_file).name
+    layers = [
+        (f"preset {preset}", get_preset(preset) if preset else {}),
+        (f"config {config_file}",
+         upgrade_solver_fields(read_config_file(config_file)) if config_file else {}),
+        ("command line", options),
+    ]
+    fields = merge_layers(layers)
+    if "system" not in fields and own is not None:
+        fields["system"] = own
+    if "system" not in fields:
+        raise ValueError(f"give a SYSTEM ({_system_names()}) or --preset NAME")
+    return GenerateConfig(**fields)
 
 
 def _system_option_parameters() -> list[inspect.Parameter]:

@@ -27,8 +27,9 @@ import functools
 import json
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,6 +46,11 @@ from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edge
 from mpnode_cli.progress import Progress
 from mpnode_cli.systems.contract import CheckedSystem, named
 from mpnode_cli.systems.registry import grid_systems, load_system_file, system_class
+
+if TYPE_CHECKING:
+    import torch
+
+    from mpnode_cli.systems.base import Simulation
 
 # Redraw rounds before giving up on trajectories that keep failing. A trajectory fails
 # independently with probability p per draw (p ≈ 0.2 for the pendulum's wide box), so 50
@@ -276,13 +282,94 @@ def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
     """`generate` once its output is reserved: solve, redraw, write."""
     import torch
 
-    from mpnode_cli.data.hdf5 import Dataset, write_dataset
-
     system = build_system(config)
-    g = config.graphs
+    graphs, params = _graphs_and_params(system, config)
+    draws = _draw_trajectories(system, config, graphs)
+    ts = torch.arange(config.num_steps + 1, dtype=torch.float64) * config.dt  # [T]
+    solved = _solve_and_redraw(system, config, ts, graphs, params, draws, progress)
+    return _write(system, config, out, ts, graphs, params, draws, solved, start)
 
-    # 1. Graphs and their parameters: `[G, N, N]` uint8 matrices up to
-    # DENSE_GRAPH_MAX_NODES nodes, edge lists above (memory O(E), not O(N²)).
+
+@dataclass
+class _Draws:
+    """The trajectories a file holds (a shard's: its own), before they are solved.
+
+    Attributes:
+        lo, hi: their range in the whole dataset (all K, or a shard's).
+        graph_index: `[K]` int32, each trajectory's graph.
+        y0: `[K, N, D]` initial states; redraws overwrite rows.
+        inputs: name → `[K, ...]` per-trajectory inputs (`System.sample`); redraws
+            overwrite rows.
+        first_chunks: the first round's solver chunks (`_chunks`), numbered in the file.
+        rng: the generator redraws come from.
+    """
+
+    lo: int
+    hi: int
+    graph_index: np.ndarray
+    y0: np.ndarray
+    inputs: dict[str, np.ndarray]
+    first_chunks: list[tuple[np.ndarray, int | None]]
+    rng: np.random.Generator
+
+
+@dataclass
+class _Solved:
+    """What the solves gave, per trajectory (`[K, ...]`, each one's last solve), and the
+    counts over all rounds.
+
+    Attributes:
+        states: `[K, T, N, D]` float64.
+        status: `[K]` int8 solver status. n_f_evals: `[K]` int64.
+        sim_rejected: `[K]` bool, what the system's simulation rejected.
+        controls: `[K, T, N, U]`, allocated by the first chunk with some, or None.
+        hidden: name → `[K, T, ...]`.
+        rejected, failed: trajectories redrawn because the system rejected them or the
+            solver failed. total_f_evals: right-hand-side evaluations of every solve.
+        solve_seconds: time spent solving.
+    """
+
+    states: np.ndarray
+    status: np.ndarray
+    n_f_evals: np.ndarray
+    sim_rejected: np.ndarray
+    controls: np.ndarray | None = None
+    hidden: dict[str, np.ndarray] = field(default_factory=dict)
+    rejected: int = 0
+    failed: int = 0
+    total_f_evals: int = 0
+    solve_seconds: float = 0.0
+
+    @classmethod
+    def empty(cls, k: int, shape: tuple[int, ...]) -> _Solved:
+        """Nothing solved yet, for k trajectories of `shape` `[T, N, D]` each."""
+        return cls(np.empty((k, *shape)), np.zeros(k, dtype=np.int8),
+                   np.zeros(k, dtype=np.int64), np.zeros(k, dtype=bool))
+
+    def store(self, chunk: np.ndarray, sim: Simulation) -> None:
+        """Keep a chunk's `Simulation` in the rows `chunk`."""
+        k = len(self.states)
+        self.states[chunk] = sim.states.numpy()
+        self.status[chunk] = sim.status.numpy()
+        self.n_f_evals[chunk] = sim.n_f_evals.numpy()
+        if sim.controls is not None:
+            if self.controls is None:
+                self.controls = np.empty((k, *sim.controls.shape[1:]))
+            self.controls[chunk] = sim.controls.numpy()
+        for name, value in sim.hidden.items():
+            self.hidden.setdefault(name, np.empty((k, *value.shape[1:])))[chunk] = value.numpy()
+        if sim.rejected is not None:
+            self.sim_rejected[chunk] = sim.rejected.numpy()
+
+
+def _graphs_and_params(system: CheckedSystem, config: GenerateConfig
+                       ) -> tuple[Graphs, dict[str, np.ndarray]]:
+    """Step 1: the G graphs and each one's parameters (name → `[G, ...]`).
+
+    The graphs are `[G, N, N]` uint8 matrices up to DENSE_GRAPH_MAX_NODES nodes, edge lists
+    above (memory O(E), not O(N²)).
+    """
+    g = config.graphs
     built = [_graph(system, config, i) for i in range(g)]
     graphs = (Graphs.from_adjacency(np.stack(built)) if isinstance(built[0], np.ndarray)
               else Graphs.from_edge_lists(config.nodes, built))
@@ -290,10 +377,13 @@ def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
         system.graph_params(graphs.graph(i), np.random.default_rng([config.graph_seed, i]))
         for i in range(g)
     ]
-    params = {name: np.stack([p[name] for p in per_graph]) for name in per_graph[0]}
+    return graphs, {name: np.stack([p[name] for p in per_graph]) for name in per_graph[0]}
 
-    # 2. Trajectories in contiguous blocks per graph, sizes differing by at most one.
-    total_k = config.trajectories
+
+def _draw_trajectories(system: CheckedSystem, config: GenerateConfig, graphs: Graphs) -> _Draws:
+    """Step 2: trajectories in contiguous blocks per graph, sizes differing by at most one,
+    and their initial states; a shard keeps its own."""
+    total_k, g = config.trajectories, config.graphs
     graph_index = (np.arange(total_k) * g // total_k).astype(np.int32)  # [K]
     rng = np.random.default_rng(config.seed)
     draws = [system.sample(graphs.graph(i), int((graph_index == i).sum()), rng)
@@ -309,84 +399,95 @@ def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
         rng = np.random.default_rng(redraw_seed(config.seed, *config.shard))
         graph_index, y0 = graph_index[lo:hi], y0[lo:hi]  # [K_s], [K_s, N, D]
         inputs = {name: value[lo:hi] for name, value in inputs.items()}
-    k = hi - lo
+    return _Draws(lo, hi, graph_index, y0, inputs, first_chunks, rng)
 
-    # 3.–4. Solve, then redraw what failed or was rejected, until nothing is left.
-    ts = torch.arange(config.num_steps + 1, dtype=torch.float64) * config.dt  # [T]
-    states = np.empty((k, ts.numel(), *y0.shape[1:]))  # [K, T, N, D] float64
-    controls: np.ndarray | None = None  # [K, T, N, U], allocated by the first chunk with some
-    hidden: dict[str, np.ndarray] = {}  # name → [K, T, ...]
-    sim_rejected = np.zeros(k, dtype=bool)
-    status = np.zeros(k, dtype=np.int8)
-    n_f_evals = np.zeros(k, dtype=np.int64)
+
+def _solve_and_redraw(system: CheckedSystem, config: GenerateConfig, ts: torch.Tensor,
+                      graphs: Graphs,
+                      params: dict[str, np.ndarray], draws: _Draws,
+                      progress: Progress | None) -> _Solved:
+    """Steps 3–4: solve, then redraw what failed or was rejected, until nothing is left.
+
+    Raises:
+        GenerateError: nothing ever succeeds, or trajectories still fail after
+            `MAX_REDRAW_ROUNDS` redraws.
+    """
+    k = draws.hi - draws.lo
+    solved = _Solved.empty(k, (ts.numel(), *draws.y0.shape[1:]))
     pending, total, done = np.arange(k), k, 0
-    rejected = failed = total_f_evals = 0
     solved_any = False
-    solve_seconds = 0.0
     if progress is not None:
         progress(0, total)
     for round_ in range(MAX_REDRAW_ROUNDS + 1):
-        chunks = first_chunks if round_ == 0 else _chunks(pending, graph_index,
-                                                          config.chunk_size)
-        for chunk, gi in chunks:
-            tic = time.perf_counter()
-            # `[1, ...]` when the chunk shares one graph, else one copy per trajectory.
-            which = slice(gi, gi + 1) if gi is not None else graph_index[chunk]
-            chunk_params = {name: value[which] for name, value in params.items()}
-            chunk_inputs = {name: value[chunk] for name, value in inputs.items()}
-            within = None if progress is None else functools.partial(
-                _within_chunk, progress, done, len(chunk), total)
-            sim = _solve_chunk(system, config, ts, graphs,
-                               np.atleast_1d(which if gi is None else gi),
-                               chunk_params, y0[chunk], chunk_inputs, within)
-            solve_seconds += time.perf_counter() - tic
-            states[chunk] = sim.states.numpy()
-            status[chunk] = sim.status.numpy()
-            n_f_evals[chunk] = sim.n_f_evals.numpy()
-            if sim.controls is not None:
-                if controls is None:
-                    controls = np.empty((k, *sim.controls.shape[1:]))
-                controls[chunk] = sim.controls.numpy()
-            for name, value in sim.hidden.items():
-                hidden.setdefault(name, np.empty((k, *value.shape[1:])))[chunk] = value.numpy()
-            if sim.rejected is not None:
-                sim_rejected[chunk] = sim.rejected.numpy()
-            done += len(chunk)
-            if progress is not None:
-                progress(done, total)
-        total_f_evals += int(n_f_evals[pending].sum())
+        chunks = (draws.first_chunks if round_ == 0
+                  else _chunks(pending, draws.graph_index, config.chunk_size))
+        done = _solve_round(system, config, ts, graphs, params, draws, chunks, solved,
+                            progress, done, total)
+        solved.total_f_evals += int(solved.n_f_evals[pending].sum())
 
-        bad_status = status[pending] != 0
-        bad_reject = (system.reject(states[pending]) | sim_rejected[pending]) & ~bad_status
+        bad_status = solved.status[pending] != 0
+        bad_reject = ((system.reject(solved.states[pending]) | solved.sim_rejected[pending])
+                      & ~bad_status)  # fmt: skip
         solved_any |= not bad_status.all()
         # Redrawing cannot help when nothing ever succeeds: say why instead of looping.
         if not solved_any and (len(pending) >= 10 or round_ == 2):
-            raise GenerateError(_failure_message(status[pending], "every trajectory failed"))
-        failed += int(bad_status.sum())
-        rejected += int(bad_reject.sum())
+            raise GenerateError(_failure_message(solved.status[pending],
+                                                 "every trajectory failed"))
+        solved.failed += int(bad_status.sum())
+        solved.rejected += int(bad_reject.sum())
         pending = pending[bad_status | bad_reject]
         if len(pending) == 0:
             break
         if round_ == MAX_REDRAW_ROUNDS:
             raise GenerateError(
                 _failure_message(
-                    status[pending],
+                    solved.status[pending],
                     f"{len(pending)} trajectories still failed after {MAX_REDRAW_ROUNDS} redraws",
                 )
             )
-        for i in np.unique(graph_index[pending]):
-            redo = pending[graph_index[pending] == i]
-            y0[redo], redo_inputs = system.sample(graphs.graph(i), len(redo), rng)
+        for i in np.unique(draws.graph_index[pending]):
+            redo = pending[draws.graph_index[pending] == i]
+            draws.y0[redo], redo_inputs = system.sample(graphs.graph(i), len(redo), draws.rng)
             for name, value in redo_inputs.items():
-                inputs[name][redo] = value
+                draws.inputs[name][redo] = value
         total += len(pending)
+    return solved
 
-    # 5. Split by trajectory and write.
-    split = split_trajectories(total_k, config.split, config.seed)[lo:hi]
+
+def _solve_round(system: CheckedSystem, config: GenerateConfig, ts: torch.Tensor, graphs: Graphs,
+                 params: dict[str, np.ndarray], draws: _Draws, chunks, solved: _Solved,
+                 progress: Progress | None, done: int, total: int) -> int:
+    """Solve one round's chunks into `solved`; the progress count `done` after them."""
+    for chunk, gi in chunks:
+        tic = time.perf_counter()
+        # `[1, ...]` when the chunk shares one graph, else one copy per trajectory.
+        which = slice(gi, gi + 1) if gi is not None else draws.graph_index[chunk]
+        chunk_params = {name: value[which] for name, value in params.items()}
+        chunk_inputs = {name: value[chunk] for name, value in draws.inputs.items()}
+        within = None if progress is None else functools.partial(
+            _within_chunk, progress, done, len(chunk), total)
+        sim = _solve_chunk(system, config, ts, graphs, np.atleast_1d(which if gi is None else gi),
+                           chunk_params, draws.y0[chunk], chunk_inputs, within)
+        solved.solve_seconds += time.perf_counter() - tic
+        solved.store(chunk, sim)
+        done += len(chunk)
+        if progress is not None:
+            progress(done, total)
+    return done
+
+
+def _write(system: CheckedSystem, config: GenerateConfig, out: Path, ts: torch.Tensor,
+           graphs: Graphs,
+           params: dict[str, np.ndarray], draws: _Draws, solved: _Solved,
+           start: float) -> GenerateSummary:
+    """Step 5: split by trajectory and write the file; what `generate` did."""
+    from mpnode_cli.data.hdf5 import Dataset, write_dataset
+
+    split = split_trajectories(config.trajectories, config.split, config.seed)[draws.lo:draws.hi]
     sharding = {}
     if config.shard is not None:
-        sharding[SHARD_ATTR] = shard_attribute(total_k, config.chunk_size, config.seed,
-                                                *config.shard)
+        sharding[SHARD_ATTR] = shard_attribute(config.trajectories, config.chunk_size,
+                                                config.seed, *config.shard)
     dataset = Dataset(
         system=system.name,
         dt=config.dt,
@@ -396,29 +497,29 @@ def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
         # A single file's config has no `shard` field: it reads as it did before shards.
         config=config.model_dump(mode="json", exclude=set() if config.shard else {"shard"}),
         time=ts.numpy(),
-        states=states.astype(config.dtype),
-        controls=None if controls is None else controls.astype(config.dtype),
-        hidden={name: value.astype(config.dtype) for name, value in hidden.items()},
+        states=solved.states.astype(config.dtype),
+        controls=None if solved.controls is None else solved.controls.astype(config.dtype),
+        hidden={name: value.astype(config.dtype) for name, value in solved.hidden.items()},
         graphs=graphs,
-        graph_index=graph_index,
+        graph_index=draws.graph_index,
         split=split,
         params=params,
         scalar_params=system.scalar_params(),
-        solver_status=status,
-        solver_n_f_evals=n_f_evals.astype(np.int32),
-        extra_attrs={"n_rejected": rejected, "n_failed": failed,
+        solver_status=solved.status,
+        solver_n_f_evals=solved.n_f_evals.astype(np.int32),
+        extra_attrs={"n_rejected": solved.rejected, "n_failed": solved.failed,
                      "recipe": json.dumps(system.recipe(), sort_keys=True), **sharding},
     )
     write_dataset(out, dataset, overwrite=True)  # over the reservation `generate` made
     counts = np.bincount(split, minlength=3)
     return GenerateSummary(
         path=out,
-        trajectories=k,
+        trajectories=draws.hi - draws.lo,
         split_counts=(int(counts[0]), int(counts[1]), int(counts[2])),
-        rejected=rejected,
-        failed=failed,
-        n_f_evals=total_f_evals,
-        solve_seconds=solve_seconds,
+        rejected=solved.rejected,
+        failed=solved.failed,
+        n_f_evals=solved.total_f_evals,
+        solve_seconds=solved.solve_seconds,
         seconds=time.perf_counter() - start,
     )
 

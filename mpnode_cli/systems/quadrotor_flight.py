@@ -183,7 +183,7 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
     p = QuadParams(params)
     batch, n = y0.shape[:2]
     ref = plan(inputs, float(ts[-1]), n, p.cable)
-    controller = Controller(ref, p)
+    pilot = _Pilot(Controller(ref, p), p, n, batch, y0.dtype)
     load0 = torch.cat((inputs["start"], torch.zeros_like(inputs["start"])), dim=1)
     y = torch.cat((y0.reshape(batch, -1), load0, torch.zeros(batch, n, dtype=y0.dtype)), 1)
     # The hover's rotor forces, as if held before t = 0 (what the first tension reading sees).
@@ -196,84 +196,131 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
     load_ref = torch.stack([ref.load(t.expand(batch))[0] for t in ts], dim=1)  # [B, T, 3]
     status = torch.zeros(batch, dtype=torch.long)
     n_f = torch.zeros(batch, dtype=torch.long)
-    worst = {key: torch.full((batch,), math.inf, dtype=y0.dtype)
-             for key in ("obstacle", "room", "separation")}  # fmt: skip
-    cable_error = torch.zeros(batch, dtype=y0.dtype)
-    n_saturated = torch.zeros(batch, dtype=torch.long)
-    n_updates = 0
-
-    def update(t: float, y: torch.Tensor, w_prev: torch.Tensor):
-        """Check the state and compute new rotor forces at a control update."""
-        nonlocal cable_error, n_saturated, n_updates
-        quads, load_now, _ = split_state(y, n)
-        f_prev, _ = rotor_wrench(quads[..., 3:7], w_prev, p)
-        tension, u = cable_tensions(quads, load_now, f_prev, p)
-        length = torch.linalg.vector_norm(quads[..., 0:3] - load_now[:, None, 0:3], dim=-1)
-        cable_error = torch.maximum(cable_error, (length - p.cable).abs().amax(1))
-        for key, value in clearances(quads[..., 0:3], load_now[:, 0:3]).items():
-            worst[key] = torch.minimum(worst[key], value)
-        w_new, saturated = controller(t, quads, tension, u)
-        n_saturated = n_saturated + saturated.any(1)
-        n_updates += 1
-        return w_new
-
     for k in range(n_out):
-        quads, load_now, tension_integral = split_state(y, n)
-        states[:, k], load[:, k] = quads, load_now
+        states[:, k], load[:, k], _ = split_state(y, n)
         if progress is not None:
             progress(k / max(n_out - 1, 1))
         if k == n_out - 1:
             break
-        t0, t1 = float(ts[k]), float(ts[k + 1])
-        holds = max(1, math.ceil((t1 - t0) / CONTROL_DT - 1e-9))
-        w_sum = torch.zeros_like(w)
-        integral0 = tension_integral.clone()
-        for j in range(holds):
-            ta, tb = t0 + (t1 - t0) * j / holds, t0 + (t1 - t0) * (j + 1) / holds
-            w = update(ta, y, w)
-            w_sum += w * (tb - ta)
-            y = _renormalize(y, n)
-            w_hold = w
-            sol = solve(lambda t, yy, w_hold=w_hold: swarm_rhs(yy, w_hold, n, p), y,
-                        torch.tensor([ta, tb], dtype=torch.float64), **solver.solve_kwargs(),
-                        dt0=tb - ta)  # fmt: skip
-            n_f += sol.stats["n_f_evals"]
-            failed = (sol.status != Status.SUCCESS) & (status == Status.SUCCESS)
-            status = torch.where(failed, sol.status, status)
-            # A failed flight is frozen at its last finite state (and reported NaN), so that
-            # its NaN cannot reach the batched linear solves of the others.
-            y = torch.where((status == Status.SUCCESS)[:, None], sol.ys[:, -1], y)
-        _, _, tension_integral = split_state(y, n)
-        controls[:, k, :, :4] = w_sum / (t1 - t0)
-        controls[:, k, :, 4] = (tension_integral - integral0) / (t1 - t0)
-
-    # The last sample: the commands computed there and the tension they produce.
-    w = update(float(ts[-1]), y, w)
-    quads, load_now, _ = split_state(y, n)
-    f_last, _ = rotor_wrench(quads[..., 3:7], w, p)
-    controls[:, -1, :, :4] = w
-    controls[:, -1, :, 4] = cable_tensions(quads, load_now, f_last, p)[0]
+        y, w, status, controls[:, k] = _fly_interval(pilot, y, w, float(ts[k]),
+                                                     float(ts[k + 1]), status, n_f, solver)
+    controls[:, -1] = pilot.last_controls(float(ts[-1]), y, w)
 
     ok = status == Status.SUCCESS
     for array in (states, controls, load):
         array[~ok] = math.nan
     goal_error = torch.linalg.vector_norm(load[:, -1, 0:3] - inputs["goal"], dim=1)
-    diagnostics = {
-        "cable_error": cable_error,
-        **worst,
-        "goal_error": goal_error,
-        "saturation": n_saturated.to(y0.dtype) / n_updates,
-    }
-    rejected = ~(
-        (cable_error < MAX_CABLE_ERROR)
-        & (worst["obstacle"] >= 0) & (worst["room"] >= 0) & (worst["separation"] >= 0)
-        & (goal_error <= GOAL_TOLERANCE)
-        & (diagnostics["saturation"] < MAX_SATURATION)
-    )  # NaN anywhere fails every comparison, so it is rejected too
+    diagnostics = pilot.diagnostics(goal_error)
     return Simulation(
         states=states, status=status, n_f_evals=n_f, controls=controls,
-        hidden={"load": load, "load_reference": load_ref}, rejected=rejected & ok,
-        diagnostics=diagnostics,
+        hidden={"load": load, "load_reference": load_ref},
+        rejected=_rejected(diagnostics) & ok, diagnostics=diagnostics,
+    )  # fmt: skip
+
+
+class _Pilot:
+    """The digital controller, and the checks made at each of its updates: the worst cable
+    length error and clearances seen so far, and how many updates saturated a rotor.
+
+    Args:
+        controller: the flights' controller. p: the parameters.
+        n: N. batch: B. dtype: the checks' float dtype.
+    """
+
+    def __init__(self, controller: Controller, p: QuadParams, n: int, batch: int,
+                 dtype: torch.dtype) -> None:
+        self.controller, self.p, self.n, self.dtype = controller, p, n, dtype
+        self.cable_error = torch.zeros(batch, dtype=dtype)
+        self.worst = {key: torch.full((batch,), math.inf, dtype=dtype)
+                      for key in ("obstacle", "room", "separation")}  # fmt: skip
+        self.n_saturated = torch.zeros(batch, dtype=torch.long)
+        self.n_updates = 0
+
+    def update(self, t: float, y: torch.Tensor, w_prev: torch.Tensor) -> torch.Tensor:
+        """Check the state `y [B, F]` and compute new rotor forces `[B, N, 4]` at a control
+        update, from the forces `w_prev` held until now (the cables' tension reading)."""
+        p = self.p
+        quads, load_now, _ = split_state(y, self.n)
+        f_prev, _ = rotor_wrench(quads[..., 3:7], w_prev, p)
+        tension, u = cable_tensions(quads, load_now, f_prev, p)
+        length = torch.linalg.vector_norm(quads[..., 0:3] - load_now[:, None, 0:3], dim=-1)
+        self.cable_error = torch.maximum(self.cable_error, (length - p.cable).abs().amax(1))
+        for key, value in clearances(quads[..., 0:3], load_now[:, 0:3]).items():
+            self.worst[key] = torch.minimum(self.worst[key], value)
+        w_new, saturated = self.controller(t, quads, tension, u)
+        self.n_saturated = self.n_saturated + saturated.any(1)
+        self.n_updates += 1
+        return w_new
+
+    def last_controls(self, t: float, y: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        """The last sample's controls `[B, N, 5]`: the commands computed there (an update,
+        checked as the others) and the tension they produce."""
+        w = self.update(t, y, w)
+        quads, load_now, _ = split_state(y, self.n)
+        f_last, _ = rotor_wrench(quads[..., 3:7], w, self.p)
+        tension = cable_tensions(quads, load_now, f_last, self.p)[0]
+        return torch.cat((w, tension[..., None]), dim=-1)
+
+    def diagnostics(self, goal_error: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The checks, `[B]` each, with the load's distance from its goal at the end."""
+        return {
+            "cable_error": self.cable_error,
+            **self.worst,
+            "goal_error": goal_error,
+            "saturation": self.n_saturated.to(self.dtype) / self.n_updates,
+        }
+
+
+def _fly_interval(pilot: _Pilot, y: torch.Tensor, w: torch.Tensor, t0: float, t1: float,
+                  status: torch.Tensor, n_f: torch.Tensor, solver: SolverOptions
+                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Fly from one output time `t0` to the next, `t1`, in equal control holds of at most
+    `CONTROL_DT`, each integrated with the rotor forces held.
+
+    Args:
+        pilot: the controller and its checks. y: the state `[B, F]` at t0. w: the rotor
+            forces `[B, N, 4]` held until t0. status: `[B]` the flights' solver status so
+            far. n_f: `[B]` right-hand-side evaluations, added to in place.
+        solver: how each hold is integrated.
+
+    Returns:
+        The state and rotor forces at t1, the status, and the interval's controls
+        `[B, N, 5]` (mean rotor forces and mean cable tension).
+    """
+    n, p = pilot.n, pilot.p
+    _, _, integral0 = split_state(y, n)
+    integral0 = integral0.clone()
+    holds = max(1, math.ceil((t1 - t0) / CONTROL_DT - 1e-9))
+    w_sum = torch.zeros_like(w)
+    for j in range(holds):
+        ta, tb = t0 + (t1 - t0) * j / holds, t0 + (t1 - t0) * (j + 1) / holds
+        w = pilot.update(ta, y, w)
+        w_sum += w * (tb - ta)
+        y = _renormalize(y, n)
+        w_hold = w
+        sol = solve(lambda t, yy, w_hold=w_hold: swarm_rhs(yy, w_hold, n, p), y,
+                    torch.tensor([ta, tb], dtype=torch.float64), **solver.solve_kwargs(),
+                    dt0=tb - ta)  # fmt: skip
+        n_f += sol.stats["n_f_evals"]
+        failed = (sol.status != Status.SUCCESS) & (status == Status.SUCCESS)
+        status = torch.where(failed, sol.status, status)
+        # A failed flight is frozen at its last finite state (and reported NaN), so that
+        # its NaN cannot reach the batched linear solves of the others.
+        y = torch.where((status == Status.SUCCESS)[:, None], sol.ys[:, -1], y)
+    _, _, integral1 = split_state(y, n)
+    mean_tension = (integral1 - integral0) / (t1 - t0)
+    return y, w, status, torch.cat((w_sum / (t1 - t0), mean_tension[..., None]), dim=-1)
+
+
+def _rejected(diagnostics: dict[str, torch.Tensor]) -> torch.Tensor:
+    """`[B]` the flights that fail a check (NaN anywhere fails every comparison, so it is
+    rejected too)."""
+    d = diagnostics
+    return ~(
+        (d["cable_error"] < MAX_CABLE_ERROR)
+        & (d["obstacle"] >= 0) & (d["room"] >= 0) & (d["separation"] >= 0)
+        & (d["goal_error"] <= GOAL_TOLERANCE)
+        & (d["saturation"] < MAX_SATURATION)
     )  # fmt: skip
 
 
