@@ -344,7 +344,7 @@ def test_plots_say_which_trajectory_and_nodes(data, run, tmp_path, monkeypatch):
 # --json on info, check, generate and train: one object on stdout, the file's own facts.
 def test_json_summaries(data, tmp_path):
     info = json.loads(invoke("info", data["lorenz"], "--json").output)
-    assert (info["system"], info["nodes"], info["node_dim"], info["trajectories"]) == (
+    assert (info["system"], info["num_nodes"], info["node_dim"], info["trajectories"]) == (
         "lorenz", 3, 3, 12)
     out = tmp_path / "d.h5"
     result = invoke("generate", "lorenz", "--nodes", 3, "--trajectories", 5, "--t-end", 0.2,

@@ -125,7 +125,7 @@ def test_a_generated_dataset_is_valid_and_summarized(good):
     report = json.loads(invoke("check", good, "--json").output)
     assert report["valid"] and report["problems"] == []
     facts = report["summary"]
-    assert (facts["trajectories"], facts["samples"], facts["nodes"], facts["node_dim"]) == (
+    assert (facts["trajectories"], facts["samples"], facts["num_nodes"], facts["node_dim"]) == (
         K, T, N, 3)
     with h5py.File(good) as f:  # the split counts are the file's
         assert list(facts["split"].values()) == np.bincount(f["split"][()], minlength=3).tolist()

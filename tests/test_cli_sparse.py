@@ -57,7 +57,7 @@ def test_the_file_holds_edges_and_reads_everywhere(trained):
     report = json.loads(invoke("check", data, "--json").output)
     assert report["valid"] and report["summary"]["edges"] == int(a.sum())
     info = json.loads(invoke("info", data, "--json").output)
-    assert info["nodes"] == N and not info["directed"]
+    assert info["num_nodes"] == N and not info["directed"]
     assert info["edges_mean"] == a.sum() / 2
 
 

@@ -327,7 +327,7 @@ def _print_json(config: Any, summary: Any) -> None:
     import json
 
     typer.echo(json.dumps({
-        "path": str(summary.path), "system": config.system, "nodes": config.nodes,
+        "path": str(summary.path), "system": config.system, "num_nodes": config.nodes,
         "topology": config.topology, "graphs": config.graphs,
         "trajectories": summary.trajectories, "split": split_by_name(summary.split_counts),
         "samples": config.num_steps + 1, "dt": config.dt, "t_end": config.t_end,

@@ -65,7 +65,7 @@ def import_command(
         typer.echo(json.dumps({
             "path": str(summary.path), "trajectories": summary.trajectories,
             "split": split_by_name(summary.split_counts), "samples": summary.samples,
-            "nodes": summary.nodes, "node_dim": summary.node_dim,
+            "num_nodes": summary.nodes, "node_dim": summary.node_dim,
             "control_dim": summary.control_dim, "graphs": summary.graphs,
             "fingerprint": summary.fingerprint}))
         return

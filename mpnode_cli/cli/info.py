@@ -88,7 +88,7 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
     edges = graphs.num_edges / (1 if directed else 2)
     facts = {
         "format": f"{attrs['format']} v{attrs['format_version']}",
-        "system": attrs["system"], "nodes": n, "node_dim": d,
+        "system": attrs["system"], "num_nodes": n, "node_dim": d,
         "state_names": attrs["state_names"], "control_names": attrs["control_names"],
         "trajectories": k, "split": {"train": train, "validation": val, "test": test},
         "samples": t, "dt": attrs["dt"], "t_end": attrs["dt"] * (t - 1),
@@ -131,7 +131,7 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
     rows = [
         ("format", facts["format"]),
         ("system", facts["system"]),
-        ("nodes × state", f"{facts['nodes']} × {facts['node_dim']} "
+        ("nodes × state", f"{facts['num_nodes']} × {facts['node_dim']} "
                           f"({', '.join(facts['state_names'])})"),
         ("controls", ", ".join(facts["control_names"]) or "none"),
         ("trajectories", f"{facts['trajectories']} ({split['train']} train / "

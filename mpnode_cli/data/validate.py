@@ -137,7 +137,7 @@ class _Checker:
         system = attrs.get("system")
         self.summary.update({"system": system if isinstance(system, str) else None,
                              "trajectories": k, "samples": t,
-                             "nodes": n, "node_dim": d})
+                             "num_nodes": n, "node_dim": d})
         if k < 1 or t < 2 or n < 1 or d < 1:
             self.problem(f"states has shape {states.shape}: a dataset needs at least one "
                          "trajectory, two samples, one node and one state")
