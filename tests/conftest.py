@@ -202,3 +202,30 @@ def guarded_cli(*commands: list, memory: int = 3 * 2**30, timeout: float = 120,
                           timeout=timeout)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return [SimpleNamespace(**r) for r in json.loads(proc.stdout.splitlines()[-1])]
+
+
+@pytest.fixture
+def entry_point(monkeypatch):
+    """`entry_point(name, target, folder)`: make `target` ("module:Class", importable from
+    `folder`) the one installed mpnode system entry point called `name`, for this test.
+    The registry's cache and the imported module are cleared afterwards."""
+    import importlib.metadata
+    import sys
+
+    from mpnode_cli.systems import registry
+
+    modules: list[str] = []
+
+    def install(name: str, target: str, folder: Path) -> None:
+        monkeypatch.syspath_prepend(str(folder))
+        point = importlib.metadata.EntryPoint(name, target, registry.ENTRY_POINT_GROUP)
+        monkeypatch.setattr(importlib.metadata, "entry_points",
+                            lambda group=None: [point] if group == registry.ENTRY_POINT_GROUP
+                            else [])
+        registry.entry_point_systems.cache_clear()
+        modules.append(target.split(":")[0])
+
+    yield install
+    registry.entry_point_systems.cache_clear()
+    for module in modules:
+        sys.modules.pop(module, None)

@@ -117,25 +117,10 @@ def test_a_plugins_declarations_are_checked_as_it_loads(tmp_path, old, new, word
     assert f"--system-file {path}: the system FitzHughNagumo {words}" in line, line
 
 
-def test_an_entry_point_that_exits_as_it_loads_is_one_line(tmp_path, monkeypatch):
-    import importlib.metadata
-    import sys
-
-    from mpnode_cli.systems import registry
-
+def test_an_entry_point_that_exits_as_it_loads_is_one_line(tmp_path, entry_point):
     (tmp_path / "exits_on_import.py").write_text("import sys\nsys.exit(0)\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    point = importlib.metadata.EntryPoint("mine", "exits_on_import:Mine",
-                                          registry.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(importlib.metadata, "entry_points",
-                        lambda group=None: [point] if group == registry.ENTRY_POINT_GROUP
-                        else [])
-    registry.entry_point_systems.cache_clear()
-    try:
-        line = one_line_error(invoke("generate", "mine", "--out", tmp_path / "x.h5"))
-        assert "entry point 'mine' (exits_on_import:Mine) does not load: it called " \
-               "sys.exit(0)" in line, line
-    finally:
-        registry.entry_point_systems.cache_clear()
-        sys.modules.pop("exits_on_import", None)
+    entry_point("mine", "exits_on_import:Mine", tmp_path)
+    line = one_line_error(invoke("generate", "mine", "--out", tmp_path / "x.h5"))
+    assert "entry point 'mine' (exits_on_import:Mine) does not load: it called " \
+           "sys.exit(0)" in line, line
     assert not (tmp_path / "x.h5").exists()

@@ -4,9 +4,7 @@ plug-in is one line and exit 2."""
 
 from __future__ import annotations
 
-import importlib.metadata
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +14,6 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.systems import registry
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "fitzhugh_nagumo.py"
@@ -69,26 +66,16 @@ def test_generated_data_agree_with_scipy(tmp_path):
         np.testing.assert_allclose(ds.states[k], fhn_reference(ds, k), atol=1e-6)
 
 
-def test_an_entry_point_is_found_by_name(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(EXAMPLE.parent))
-    point = importlib.metadata.EntryPoint("fhn", "fitzhugh_nagumo:FitzHughNagumo",
-                                          registry.ENTRY_POINT_GROUP)
-    monkeypatch.setattr(importlib.metadata, "entry_points",
-                        lambda group=None: [point] if group == registry.ENTRY_POINT_GROUP
-                        else [])
-    registry.entry_point_systems.cache_clear()
-    try:
-        out = tmp_path / "p.h5"
-        result = invoke("generate", "--preset", "fhn-chain8", "--trajectories", 8,
-                        "--t-end", 2, "--out", out)
-        assert result.exit_code == 0, result.output
-        ds = read_dataset(out)
-        assert (ds.system, ds.num_nodes, ds.config["topology"]) == ("fhn", 8, "chain")
-        check = invoke("check", out)
-        assert check.exit_code == 0, check.output
-    finally:
-        registry.entry_point_systems.cache_clear()
-        sys.modules.pop("fitzhugh_nagumo", None)
+def test_an_entry_point_is_found_by_name(tmp_path, entry_point):
+    entry_point("fhn", "fitzhugh_nagumo:FitzHughNagumo", EXAMPLE.parent)
+    out = tmp_path / "p.h5"
+    result = invoke("generate", "--preset", "fhn-chain8", "--trajectories", 8,
+                    "--t-end", 2, "--out", out)
+    assert result.exit_code == 0, result.output
+    ds = read_dataset(out)
+    assert (ds.system, ds.num_nodes, ds.config["topology"]) == ("fhn", 8, "chain")
+    check = invoke("check", out)
+    assert check.exit_code == 0, check.output
 
 
 @pytest.mark.parametrize(("source", "message"), [
