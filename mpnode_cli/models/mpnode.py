@@ -97,24 +97,29 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             u: `u(t [B]) → [B, N, U]` (zero-order hold), or None when U = 0.
         """
         aggregate = self.aggregator(adjacency, self.backend)
+        d, m_dim = self.node_dim, self.message_dim
+        if self.update == "mlp":
+            def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+                x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
+                if not self.messages:
+                    m = torch.zeros_like(m)
+                parts = [x, u(t).to(z.dtype)] if u is not None else [x]
+                return self.net(torch.cat([*parts, aggregate(m)], dim=-1))
+
+            return f
         # The affine update drives the messages by their neighbours' *mean*: a sum there
         # would make the messages' own feedback gain grow with the in-degree, and a node
         # with more neighbours than any in training would see an unstable message ODE.
         average = aggregate if self.aggregate == "mean" else aggregator(
             self._graph(adjacency), "mean", self.backend)
-        d = self.node_dim
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
-            if not self.messages:
-                m = torch.zeros_like(m)
-            parts = [x, u(t).to(z.dtype)] if u is not None else [x]
-            if self.update == "mlp":
-                return self.net(torch.cat([*parts, aggregate(m)], dim=-1))
-            own = torch.cat(parts, dim=-1) if u is not None else x
-            sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
-            if not self.messages:
-                sent = torch.zeros_like(sent)
+            own = torch.cat([x, u(t).to(z.dtype)], dim=-1) if u is not None else x
+            if self.messages:
+                sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
+            else:
+                sent = own.new_zeros(*own.shape[:-1], m_dim)
             return self._affine(self.net(own), aggregate(sent), average(sent))
 
         return f
