@@ -157,20 +157,12 @@ def generate(args, bench: Bench) -> None:
 
 def in_degrees(path: Path) -> tuple[int, int]:
     """The smallest and largest in-degree over every node of every graph in a dataset."""
-    import h5py
     import numpy as np
 
-    with h5py.File(path, "r") as f:
-        edges, counts = f["graph/edges"][()], f["graph/num_edges"][()]
-        nodes = int(f["states"].shape[2])
-    lo, hi, start = None, None, 0
-    for count in counts:
-        receivers = edges[1, start:start + int(count)]
-        start += int(count)
-        degree = np.bincount(receivers, minlength=nodes)
-        lo = int(degree.min()) if lo is None else min(lo, int(degree.min()))
-        hi = int(degree.max()) if hi is None else max(hi, int(degree.max()))
-    return lo, hi
+    from mpnode_cli.data.dataset import TrajectoryData
+
+    degree = np.asarray(TrajectoryData.load(path).graphs.in_degree())  # (G, N)
+    return int(degree.min()), int(degree.max())
 
 
 def run_job(args, bench: Bench, variant: str, seed: int) -> dict[str, Any]:
