@@ -16,6 +16,7 @@ block ends.
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -65,6 +66,19 @@ def raise_if_interrupted() -> None:
         raise Interrupted(_received)
 
 
+def _quiet_unraisable(previous):
+    """A `sys.unraisablehook` that drops our own `Interrupted`: raised in a callback whose
+    exceptions Python only prints (a weakref callback of torch's compiler, a `__del__`),
+    it would print a traceback on stderr, although `raise_if_interrupted` raises it again
+    at the next safe point. Every other unraisable exception goes to `previous`."""
+
+    def hook(unraisable) -> None:
+        if not isinstance(unraisable.exc_value, Interrupted):
+            previous(unraisable)
+
+    return hook
+
+
 @contextmanager
 def interrupt_on_signals() -> Iterator[None]:
     """Within the block, SIGINT and SIGTERM both raise `Interrupted`.
@@ -77,11 +91,13 @@ def interrupt_on_signals() -> Iterator[None]:
         return
     old = {signum: signal.signal(signum, _raise) for signum in _SIGNALS}
     outer, _received = _received, None
+    old_hook, sys.unraisablehook = sys.unraisablehook, _quiet_unraisable(sys.unraisablehook)
     try:
         yield
     finally:
         for signum, handler in old.items():
             signal.signal(signum, handler)
+        sys.unraisablehook = old_hook
         _received = outer
 
 

@@ -180,6 +180,37 @@ def test_a_swallowed_interrupt_is_raised_again_at_the_next_check():
     raise_if_interrupted()  # outside the block: nothing pending
 
 
+def test_an_interrupt_in_a_callback_python_only_prints_is_quiet_and_raised_later(monkeypatch):
+    """A signal that lands in a weakref callback (torch's compiler keeps such callbacks)
+    raises `Interrupted` where Python can only print it: it does not reach the
+    unraisable-exception hook (which prints it on stderr by default), and the next check
+    raises it; any other exception there still reaches the hook."""
+    import gc
+    import weakref
+
+    from mpnode_cli.signals import Interrupted, interrupt_on_signals, raise_if_interrupted
+
+    reported = []
+    monkeypatch.setattr(sys, "unraisablehook", lambda u: reported.append(type(u.exc_value)))
+
+    class Thing:
+        pass
+
+    def dropped(callback) -> None:
+        thing = Thing()
+        ref = weakref.ref(thing, callback)  # noqa: F841 (kept alive until `thing` goes)
+        del thing
+        gc.collect()
+
+    with interrupt_on_signals():
+        dropped(lambda _: os.kill(os.getpid(), signal.SIGTERM) or time.sleep(5))
+        assert reported == []
+        with pytest.raises(Interrupted):
+            raise_if_interrupted()
+        dropped(lambda _: 1 / 0)
+        assert reported == [ZeroDivisionError]
+
+
 @pytest.mark.parametrize("signum", SIGNALS, ids=lambda s: signal.Signals(s).name)
 def test_a_signal_while_an_epoch_is_saved_leaves_its_files_in_step(dataset, tmp_path,
                                                                     monkeypatch, signum):
