@@ -371,6 +371,15 @@ class TrainConfig(BaseModel):
         "The last epoch to train (on resume the total, not the extra)."))
     seed: int = Field(0, ge=0, le=SEED_MAX, description=(
         "Seed of initialization, shuffling and noise."))
+    seeds: int = Field(1, ge=1, le=64, description=(
+        "Members of an ensemble, trained at once as one batched model: member k has seed "
+        "seed + k (its own initialization, batch order and noise), its own lr schedule, "
+        "clipping, best epoch and early stop, and all of them are integrated in one solve. "
+        "The checkpoints hold every member; evaluate, zeroshot and compare report mean ± std "
+        "over them, and simulate writes their spread."))
+    stop_patience: int | None = Field(None, ge=1, description=(
+        "Early stop: a member stops training after this many epochs without a better "
+        "validation loss, and the run stops when all have (none: train every epoch)."))
     device: Literal["cpu", "cuda"] = Field("cpu", description="Where to train.")
     run_dir: Path | None = Field(None, description=(
         "The run folder (default runs/<dataset>-<model>-<time>)."))
@@ -418,6 +427,18 @@ class TrainConfig(BaseModel):
         if isinstance(value, list) and not value:
             raise ValueError("give at least one dataset")
         return value[0] if isinstance(value, list) and len(value) == 1 else value
+
+    @model_validator(mode="after")
+    def _check_members(self) -> TrainConfig:
+        if self.seeds > 1 and self.seed + self.seeds - 1 > SEED_MAX:
+            raise ValueError(f"seeds: the members' seeds seed … seed + {self.seeds - 1} "
+                             f"pass {SEED_MAX}; give a smaller seed")
+        if self.seeds > 1 and isinstance(self.dataset, list):
+            # Each member draws its own batch order, and with several datasets a step
+            # would hold batches of different graph sizes, which one solve cannot stack.
+            raise ValueError("seeds: an ensemble trains on one dataset; train one run per "
+                             "seed on several datasets, or give one dataset")
+        return self
 
     @property
     def datasets(self) -> list[Path]:

@@ -1,4 +1,4 @@
-"""Checkpoint files, format "mpnode-checkpoint" version 5: everything to rebuild a model.
+"""Checkpoint files, format "mpnode-checkpoint" version 6: everything to rebuild a model.
 
 A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
 dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
@@ -21,7 +21,8 @@ Fields of the dict:
     epoch: epochs completed.
     optimizer: `optimizer.state_dict()`.
     rng: `torch` (the global CPU RNG state) and `shuffle` (the loop's generator), uint8.
-    loop: the loop's own state (best validation loss, epoch counters, lr history).
+    loop: the loop's own state (best validation loss, epoch counters, lr history); an
+        ensemble's holds each member's under `members`.
     parent_sha256: sha256 of the checkpoint a finetune started from, else None.
     metrics: the best epoch's validation metrics (and test metrics once known).
 
@@ -39,6 +40,11 @@ complaint but evaluate it with its default solver, not the one it was trained wi
 Version 5 added the step-size `controller` to the `solver` table; a version 4 file's table
 gets "pi", the controller every solve used then (`config.pin_stored_solver`). An older
 mpnode would ignore the new key and integrate differently, hence the new version.
+Version 6 added ensembles (`mpnode train --seeds S`, `mpnode_cli.models.ensemble`): their
+`model_config` holds `members` S, their `state_dict` each member's weights under
+`members.k.`, their optimizer one parameter group per member and their `loop` a `members`
+list of each member's counters. A version 5 file is a model of one member and reads as it
+is; an older mpnode would refuse the ensemble's `members` option, hence the new version.
 `dataset["train_range"]` came later without a new version: a file without it only goes
 without the extrapolation warning, and an older mpnode that ignores it computes the same.
 
@@ -64,7 +70,7 @@ if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 5
+FORMAT_VERSION = 6
 
 
 class CheckpointFormatError(ValueError):
@@ -381,11 +387,13 @@ def _resume_state(ckpt: Checkpoint, params: list[torch.Tensor]) -> list[str]:
     parameters by index, as `torch.optim.Adam`), both RNG states and the loop's counters."""
     state = ckpt.optimizer
     try:
-        (group,) = state["param_groups"]
-        indices = [int(i) for i in group["params"]]
+        groups = list(state["param_groups"])  # one, or one per ensemble member
+        indices = [int(i) for group in groups for i in group["params"]]
         # Which parameter each moment belongs to; lr, eps and betas must be numbers.
         moments = {indices.index(int(i)): s for i, s in state["state"].items()}
-        _ = [float(group["lr"]), float(group["eps"]), *map(float, group["betas"])]
+        _ = [[float(g["lr"]), float(g["eps"]), *map(float, g["betas"])] for g in groups]
+        if not groups:
+            raise ValueError
     except (KeyError, TypeError, ValueError):
         return ["the optimizer state is not Adam's (param_groups, state by parameter)"]
     if len(indices) != len(params):
@@ -409,10 +417,23 @@ def _resume_state(ckpt: Checkpoint, params: list[torch.Tensor]) -> list[str]:
                 value.shape != size):
             problems.append(f"the RNG state '{name}' must be a CPU generator's (uint8 "
                             f"{list(size)})")
-    if not isinstance(ckpt.loop, dict) or not all(
-            isinstance(v, int | float) for v in ckpt.loop.values()):
-        problems.append("the loop state must be a dictionary of numbers")
+    if not _numbers(ckpt.loop, members=True):
+        problems.append("the loop state must be a dictionary of numbers (an ensemble's: "
+                        "with a list of them, one per member)")
     return problems
+
+
+def _numbers(loop: Any, members: bool = False) -> bool:
+    """Whether `loop` is a dict of numbers; `members`: it may hold a list of such dicts."""
+    if not isinstance(loop, dict):
+        return False
+    for key, value in loop.items():
+        if members and key == "members":
+            if not isinstance(value, list) or not all(_numbers(m) for m in value):
+                return False
+        elif not isinstance(value, int | float):
+            return False
+    return True
 
 
 def _train_config(train_config: Any) -> list[str]:

@@ -11,14 +11,13 @@ rolls back to, and what Ctrl-C or SIGTERM leaves behind.
 from __future__ import annotations
 
 import copy
-from dataclasses import asdict
 from typing import Any
 
 import torch
 
 from mpnode_cli.signals import deferred_signals, signal_name
 from mpnode_cli.training import run as runs
-from mpnode_cli.training.checkpoint import Checkpoint, save_checkpoint
+from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from mpnode_cli.training.setup import Run
 
 
@@ -29,26 +28,41 @@ class Checkpointer:
     def __init__(self, run: Run):
         self.run = run
         self.snapshot = self._copy()
+        # An ensemble's best.pt holds each member's best weights, which may be of different
+        # epochs: they are kept here (a resumed run's from its best.pt).
+        self.best_weights: dict[str, torch.Tensor] | None = None
+        if len(run.shuffles) > 1:
+            best = runs.checkpoint_path(run.run_dir, "best")
+            self.best_weights = (load_checkpoint(best).state_dict
+                                 if run.resumed and best.exists()
+                                 else copy.deepcopy(run.model.state_dict()))
 
     def checkpoint(self, metrics: dict[str, Any] | None = None) -> Checkpoint:
         """The run as it is now (its tensors shared with the model and optimizer)."""
         run = self.run
+        rng = {"torch": torch.get_rng_state(), "shuffle": run.shuffle.get_state()}
+        if len(run.shuffles) > 1:
+            rng["member_shuffles"] = torch.stack([g.get_state() for g in run.shuffles])
         return Checkpoint(
             model_kind=run.kind, model_config=run.model_config,
             state_dict=run.model.state_dict(), normalizer=run.normalizer.to_dict(),
             train_config=run.config.model_dump(mode="json"), dataset=run.facts,
-            epoch=run.state.epoch, optimizer=run.optimizer.state_dict(),
-            rng={"torch": torch.get_rng_state(), "shuffle": run.shuffle.get_state()},
-            loop=asdict(run.state), parent_sha256=run.parent_sha, metrics=metrics or {},
+            epoch=run.state.epoch, optimizer=run.optimizer.state_dict(), rng=rng,
+            loop=run.state.to_dict(), parent_sha256=run.parent_sha, metrics=metrics or {},
         )  # fmt: skip
 
-    def save_epoch(self, row: dict[str, Any], *, best: bool) -> None:
+    def save_epoch(self, row: dict[str, Any], *, best: bool,
+                   improved: list[int] | None = None) -> None:
         """Take the snapshot of the epoch just done, and write its files: `best.pt` if it
         improved (`best`), its metrics `row`, then `last.pt`.
 
         Signals are held for the whole of it, the snapshot included, so an interrupt comes
         after all three writes or before any; the interrupt handler (`save_interrupted`)
         then saves the snapshot it has.
+
+        Args:
+            improved: an ensemble's members whose validation loss is their best so far
+                (their weights replace theirs in `best.pt`).
         """
         run = self.run
         with deferred_signals():
@@ -56,7 +70,8 @@ class Checkpointer:
             if not run.world.main:
                 return
             if best:
-                save_checkpoint(runs.checkpoint_path(run.run_dir, "best"), self.checkpoint(row))
+                save_checkpoint(runs.checkpoint_path(run.run_dir, "best"),
+                                self._best(row, improved or []))
             runs.append_metrics(run.run_dir, row)
             save_checkpoint(runs.checkpoint_path(run.run_dir, "last"), self.snapshot)
 
@@ -71,6 +86,20 @@ class Checkpointer:
                 runs.write_interrupted(self.run.run_dir, self.snapshot.epoch, signal_name(exc))
         except KeyboardInterrupt:
             pass  # it came during the save, which finished: stop, as both signals asked
+
+    def _best(self, row: dict[str, Any], improved: list[int]) -> Checkpoint:
+        """The checkpoint `best.pt` takes: the run as it is now; for an ensemble, with
+        each member's best weights (the `improved` members' current ones)."""
+        ckpt = self.checkpoint(row)
+        if self.best_weights is None:
+            return ckpt
+        for k in improved:
+            prefix = f"members.{k}."
+            for name, value in ckpt.state_dict.items():
+                if name.startswith(prefix):
+                    self.best_weights[name] = value.detach().clone()
+        ckpt.state_dict = dict(self.best_weights)
+        return ckpt
 
     def _copy(self) -> Checkpoint:
         """A deep copy: the optimizer and model update their tensors in place."""

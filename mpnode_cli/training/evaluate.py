@@ -27,6 +27,7 @@ from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
 from mpnode_cli.jsonable import jsonable
 from mpnode_cli.models.base import NeuralModel
+from mpnode_cli.models.ensemble import spread_error_correlation
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
 from mpnode_cli.solver.options import SolverOptions
@@ -50,6 +51,13 @@ class EvalResult:
             nodes and features.
         n_f_evals: right-hand-side evaluations, summed over batches (max within a batch).
         seconds: wall time of the rollouts.
+        members: an ensemble's: each member's own result (the fields above are then the
+            members' mean prediction's). None for a single model.
+        spread: an ensemble's mean spread, the members' standard deviation over every
+            predicted value (normalized units). None for a single model.
+        spread_error_corr: an ensemble's Pearson correlation over trajectories between
+            the spread and the mean prediction's RMSE (normalized): how well the spread
+            ranks where the model is wrong. None for a single model.
     """
 
     trajectories: int
@@ -60,6 +68,9 @@ class EvalResult:
     mse_vs_time: list[float]
     n_f_evals: int
     seconds: float
+    members: list[EvalResult] | None = None
+    spread: float | None = None
+    spread_error_corr: float | None = None
 
     def loss(self, name: str) -> float:
         """The error a training loss name selects ("huber" or "mse"); inf if any failed."""
@@ -68,8 +79,22 @@ class EvalResult:
         return {"huber": self.huber, "mse": self.mse}[name]
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-able, with non-finite numbers as None."""
-        return jsonable(asdict(self))
+        """JSON-able, with non-finite numbers as None; an ensemble's with `members_mean`
+        and `members_std`, each member's MSE and RMSE over the members."""
+        out = jsonable(asdict(self))
+        if self.members:
+            out |= jsonable(member_stats(self.members))
+        return out
+
+
+def member_stats(members: Sequence[EvalResult]) -> dict[str, Any]:
+    """An ensemble's members' errors as mean ± std (population) over the members:
+    `{"members_mean": {"mse", "rmse"}, "members_std": {"mse", "rmse"}}`."""
+    mse = torch.tensor([m.mse for m in members], dtype=torch.float64)
+    rmse = torch.tensor([m.rmse for m in members], dtype=torch.float64)
+    return {"members_mean": {"mse": float(mse.mean()), "rmse": rmse.mean(0).tolist()},
+            "members_std": {"mse": float(mse.std(correction=0)),
+                            "rmse": rmse.std(0, correction=0).tolist()}}
 
 
 @dataclass
@@ -79,6 +104,7 @@ class Prediction:
     Attributes:
         time: `[T]` float64. true, pred: `[B, T, N, D]`. messages: `[B, T, N, M]` or None.
         status: `[B]` solver status per trajectory.
+        spread: `[B, T, N, D]` an ensemble's members' std (physical units), or None.
     """
 
     time: torch.Tensor
@@ -86,6 +112,52 @@ class Prediction:
     pred: torch.Tensor
     messages: torch.Tensor | None
     status: torch.Tensor
+    spread: torch.Tensor | None = None
+
+
+class _Sums:
+    """The error sums of one predictor over the batches, and the `EvalResult` they give."""
+
+    def __init__(self, t: int, d: int):
+        self.sq_time = torch.zeros(t, dtype=torch.float64)  # Σ squared error per sample time
+        self.sq_phys = torch.zeros(d, dtype=torch.float64)  # Σ squared physical error per state
+        self.huber, self.ok, self.failed = 0.0, 0, 0
+
+    def add(self, pred: torch.Tensor, x: torch.Tensor, good: torch.Tensor,
+            normalizer: Normalizer) -> None:
+        """One batch: `pred, x: [B, T, N, D]` normalized, `good: [B]` bool (CPU)."""
+        self.failed += int((~good).sum())
+        if not good.any():
+            return
+        pred, x = pred[good.to(pred.device)], x[good.to(x.device)]
+        self.ok += len(pred)
+        self.sq_time += (pred - x).pow(2).double().sum(dim=(0, 2, 3)).cpu()
+        self.huber += float(huber_loss(pred, x).double()) * len(pred)
+        phys_err = normalizer.denorm_x(pred) - normalizer.denorm_x(x)
+        self.sq_phys += phys_err[:, 1:].pow(2).double().sum(dim=(0, 1, 2)).cpu()
+
+    def combined(self, combine: Callable[[torch.Tensor], torch.Tensor] | None) -> None:
+        """Add the sums of every process's part (`combine`: an all-reduce)."""
+        if combine is None:
+            return
+        t = self.sq_time.numel()
+        sums = combine(torch.cat([torch.tensor([self.ok, self.failed, self.huber],
+                                               dtype=torch.float64), self.sq_time,
+                                  self.sq_phys]))
+        self.ok, self.failed = int(sums[0]), int(sums[1])
+        self.huber, self.sq_time, self.sq_phys = float(sums[2]), sums[3:3 + t], sums[3 + t:]
+
+    def result(self, k: int, n: int, n_f_evals: int, seconds: float) -> EvalResult:
+        """The errors over K trajectories of N nodes."""
+        ok, t, d = self.ok, self.sq_time.numel(), self.sq_phys.numel()
+        per_time = self.sq_time / max(ok * n * d, 1) if ok else torch.full((t,), math.nan)
+        predicted = max(ok * (t - 1) * n, 1)
+        return EvalResult(
+            trajectories=k, failed=self.failed,
+            mse=float(self.sq_time[1:].sum() / (predicted * d)) if ok and t > 1 else math.nan,
+            huber=self.huber / ok if ok else math.nan,
+            rmse=(self.sq_phys / predicted).sqrt().tolist() if ok else [math.nan] * d,
+            mse_vs_time=per_time.tolist(), n_f_evals=n_f_evals, seconds=seconds)
 
 
 def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
@@ -97,7 +169,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
-        model: the model, already on `device`.
+        model: the model, already on `device`; an ensemble (`mpnode_cli.models.ensemble`)
+            is scored on its members' mean, with each member's errors and the spread.
         data: the trajectories (one split, or all); physical units; in memory or read
             batch by batch (`StreamedTrajectories`).
         normalizer: the training normalization (the model works in its units).
@@ -117,12 +190,10 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     k, t, d = len(data), data.time.numel(), data.node_dim
     batch_size = data.graphs.rollout_batch(batch_size)
     ts = data.time.to(device)
-    sq_time = torch.zeros(t, dtype=torch.float64)  # Σ squared error per sample time
-    sq_phys = torch.zeros(d, dtype=torch.float64)  # Σ squared physical error per state
-    huber_sum, ok, failed, n_f_evals = 0.0, 0, 0, 0
+    sums, members, spreads, errors = _Sums(t, d), None, [], []
+    n_f_evals, done = 0, 0
     was_training = model.training
     model.eval()
-    done = 0
     with torch.no_grad(), prefetched(data, torch.arange(k).split(batch_size)) as batches:
         for batch in batches:
             x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
@@ -132,32 +203,32 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
             if progress is not None:
                 progress(done, k)
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
-            failed += int((~good).sum())
-            if not good.any():
+            sums.add(out.states, x, good, normalizer)
+            if getattr(out, "members", None) is None:
                 continue
-            pred, x = out.states[good.to(device)], x[good.to(device)]
-            ok += len(pred)
-            sq_time += (pred - x).pow(2).double().sum(dim=(0, 2, 3)).cpu()
-            huber_sum += float(huber_loss(pred, x).double()) * len(pred)
-            phys_err = normalizer.denorm_x(pred) - normalizer.denorm_x(x)
-            sq_phys += phys_err[:, 1:].pow(2).double().sum(dim=(0, 1, 2)).cpu()
+            members = members or [_Sums(t, d) for _ in out.members]
+            for sum_k, pred_k, status_k in zip(members, out.members, out.member_status,
+                                               strict=True):
+                ok_k = (status_k == 0).cpu() & torch.isfinite(pred_k).flatten(1).all(1).cpu()
+                sum_k.add(pred_k, x, ok_k, normalizer)
+            spreads.append(out.spread[:, 1:].flatten(1).mean(1)[good.to(x.device)].cpu())
+            errors.append((out.states - x)[:, 1:].pow(2).flatten(1).mean(1).sqrt()[
+                good.to(x.device)].cpu())
     model.train(was_training)
+    sums.combined(combine)
+    seconds, n = time.perf_counter() - start, data.num_nodes
     if combine is not None:
-        sums = combine(torch.cat([torch.tensor([k, ok, failed, huber_sum, n_f_evals],
-                                               dtype=torch.float64), sq_time, sq_phys]))
-        k, ok, failed, n_f_evals = (int(v) for v in sums[[0, 1, 2, 4]].tolist())
-        huber_sum, sq_time, sq_phys = float(sums[3]), sums[5:5 + t], sums[5 + t:]
-    n = data.num_nodes
-    per_time = sq_time / max(ok * n * d, 1) if ok else torch.full((t,), math.nan)
-    predicted = max(ok * (t - 1) * n, 1)
-    return EvalResult(
-        trajectories=k, failed=failed,
-        mse=float(sq_time[1:].sum() / (predicted * d)) if ok and t > 1 else math.nan,
-        huber=huber_sum / ok if ok else math.nan,
-        rmse=(sq_phys / predicted).sqrt().tolist() if ok else [math.nan] * d,
-        mse_vs_time=per_time.tolist(), n_f_evals=n_f_evals,
-        seconds=time.perf_counter() - start,
-    )  # fmt: skip
+        k, n_f_evals = (int(v) for v in combine(torch.tensor([k, n_f_evals],
+                                                             dtype=torch.float64)).tolist())
+    result = sums.result(k, n, n_f_evals, seconds)
+    if members is not None:
+        for sum_k in members:
+            sum_k.combined(combine)
+        result.members = [m.result(k, n, n_f_evals, seconds) for m in members]
+        spread, error = torch.cat(spreads), torch.cat(errors)
+        result.spread = float(spread.mean()) if spread.numel() else math.nan
+        result.spread_error_corr = spread_error_correlation(spread, error)
+    return result
 
 
 def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:

@@ -54,6 +54,7 @@ import math
 import os
 import shutil
 import time
+from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -137,32 +138,39 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     config = resolve_compile(data.config, sum(len(t) for t in data.train_sets))
     run = set_up(config, data, resume, made, finished_ok)
     config, state = run.config, run.state
-    # 2.–3. The lr policy, and the checkpointer with its first snapshot: the starting point.
-    schedule = LRSchedule(config, run.optimizer, state)
+    # 2.–3. The lr policy (each member's, for an ensemble), and the checkpointer with its
+    # first snapshot: the starting point.
+    schedules = ([LRSchedule(config, run.optimizer, state)] if len(run.shuffles) == 1 else
+                 [LRSchedule(config, run.optimizer, m, group=k)
+                  for k, m in enumerate(state.members)])
     saver = Checkpointer(run)
     if not run.resumed:
-        schedule.start()
+        for schedule in schedules:
+            schedule.start()
     emit({"event": "start", "run_dir": str(run.run_dir), "first_epoch": state.epoch + 1,
           "epochs": config.epochs,
           "batches": sum(math.ceil(len(t) / config.batch_size) for t in run.train_sets),
           "parameters": _count(run.model), "solver": _describe_solver(config),
-          "processes": world.size, "backend": world.backend, "stream": config.stream})
+          "processes": world.size, "backend": world.backend, "stream": config.stream,
+          "members": len(run.shuffles)})
 
     # 4. Epochs, each trained, validated and saved; epoch 0 validates the starting weights.
     try:
         if state.epoch == 0 and not runs.checkpoint_path(run.run_dir, "best").exists():
             runs.truncate_metrics(run.run_dir, -1)  # again, if interrupted before
             val, each = _validate(run)
-            row = _record(run, schedule, 0, val, each, None, val.seconds)
-            saver.save_epoch(row, best=True)
+            row = _record(run, schedules, 0, val, each, None, val.seconds)
+            saver.save_epoch(row, best=True, improved=list(range(len(schedules))))
             emit({"event": "epoch", **row})
         for epoch in range(state.epoch + 1, config.epochs + 1):
+            if not run.active():
+                break  # every member stopped early (`stop_patience`)
             start = time.perf_counter()
-            steps = _train_epoch(run, schedule, saver, epoch)
+            steps = _train_epoch(run, schedules, saver, epoch)
             val, each = _validate(run)
             state.epoch = epoch
-            row = _record(run, schedule, epoch, val, each, steps, time.perf_counter() - start)
-            saver.save_epoch(row, best=row["improved"])
+            row = _record(run, schedules, epoch, val, each, steps, time.perf_counter() - start)
+            saver.save_epoch(row, best=row["improved"], improved=row.get("improved_members"))
             emit({"event": "epoch", **row})
     except KeyboardInterrupt as exc:
         saver.save_interrupted(exc)
@@ -174,58 +182,109 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     return _finish(run)
 
 
-def _train_epoch(run: Run, schedule: LRSchedule, saver: Checkpointer,
+def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
                  epoch: int) -> dict[str, Any]:
     """One pass over the shuffled train split (of each dataset: every batch is one
-    dataset's, `mpnode_cli.data.pooled.epoch_batches`); returns the epoch's step
-    statistics (`horizon`: the longest dataset's)."""
+    dataset's, `mpnode_cli.data.pooled.epoch_batches`); an ensemble's members each take
+    their own order, batch b of every member in one step. Returns the epoch's step
+    statistics (`horizon`: the longest dataset's; an ensemble's each member's too)."""
     start = time.perf_counter()
-    config, world, state, loss_fn = run.config, run.world, run.state, LOSSES[run.config.loss]
+    config, world, loss_fn = run.config, run.world, LOSSES[run.config.loss]
     horizons = [_horizon(config, epoch, t.time.numel()) for t in run.train_sets]
     times = [t.time[:h].to(run.device) for t, h in zip(run.train_sets, horizons, strict=True)]
-    loss_sum, count, grad_norms, evals_per_batch, skipped = 0.0, 0, [], [], []
-    batches = epoch_batches([len(t) for t in run.train_sets], config.batch_size,
-                            config.even_batches, run.shuffle)
-    # This rank's slice of each global batch (all of it), read ahead when streamed.
-    parts = [(i, idx[world.shard(len(idx))]) for i, idx in batches]
-    with taken(run.train_sets, parts) as batches_taken:
-        for b, ((i, idx), batch) in enumerate(zip(batches, batches_taken, strict=True),
-                                              start=1):
-            x, u = _inputs(run, batch, len(idx), horizons[i])
-            loss, grad_norm, evals, reason = _step(run.model, run.optimizer, x, times[i],
-                                                   batch.graph(run.device), u, loss_fn,
-                                                   config, world, len(batch) / len(idx))
+    active = run.active()
+    plans = [epoch_batches([len(t) for t in run.train_sets], config.batch_size,
+                           config.even_batches, run.shuffles[k]) for k in active]
+    tallies = {k: _Tally() for k in active}
+    evals_per_batch = []
+    with ExitStack() as stack:
+        # This rank's slice of each global batch (all of it), read ahead when streamed.
+        streams = [stack.enter_context(taken(run.train_sets, [
+            (i, idx[world.shard(len(idx))]) for i, idx in plan])) for plan in plans]
+        for b, batches in enumerate(zip(*streams, strict=True), start=1):
+            i, size = plans[0][b - 1][0], len(plans[0][b - 1][1])
+            inputs = [_inputs(run, batch, size, horizons[i], run.shuffles[k])
+                      for k, batch in zip(active, batches, strict=True)]
+            results = _step_members(run.model, run.members, run.optimizer, inputs, times[i],
+                                    [x.graph(run.device) for x in batches], loss_fn, config,
+                                    world, active, len(batches[0]) / size)
             raise_if_interrupted()  # a signal a library swallowed inside the step
-            evals_per_batch.append(evals)
-            if reason is None:
-                loss_sum, count = loss_sum + loss * len(idx), count + len(idx)
-                grad_norms.append(grad_norm)
-                state.bad_run = 0
+            evals_per_batch.append(max(r[2] for r in results))
+            for k, (loss, grad_norm, _, reason) in zip(active, results, strict=True):
+                tallies[k].add(loss, grad_norm, size, reason, f"batch {b}")
+                _after_step(run, schedules, saver, epoch, b, k, reason)
+            losses = [r[0] for r in results if r[3] is None]
+            if losses:
                 run.emit({"event": "batch", "epoch": epoch, "batch": b,
-                          "batches": len(batches), "loss": loss})
-                continue
-            skipped.append(f"batch {b}: {reason}")
-            state.skipped, state.bad_run = state.skipped + 1, state.bad_run + 1
-            run.emit({"event": "skip", "epoch": epoch, "batch": b, "reason": reason})
-            if state.bad_run >= config.max_bad_steps:
-                _roll_back(run, schedule, saver.snapshot, epoch, reason)
+                          "batches": len(plans[0]), "loss": sum(losses) / len(losses)})
     # A batch's RHS evaluations are its slowest trajectory's, wherever that was solved.
     n_f_evals = int(world.max(torch.tensor(evals_per_batch, dtype=torch.long)).sum())
-    return {"train_loss": loss_sum / count if count else math.nan, "horizon": max(horizons),
-            "grad_norm": sum(grad_norms) / len(grad_norms) if grad_norms else math.nan,
-            "rhs_evals": n_f_evals, "skipped": len(skipped), "skip_reasons": skipped,
-            "train_seconds": time.perf_counter() - start}
+    rows = {k: t.row() for k, t in tallies.items()}
+    first = rows[active[0]]
+    out = {**first, "horizon": max(horizons), "rhs_evals": n_f_evals,
+           "train_seconds": time.perf_counter() - start}
+    if len(run.shuffles) > 1:
+        out |= {"train_loss": _mean([r["train_loss"] for r in rows.values()]),
+                "grad_norm": _mean([r["grad_norm"] for r in rows.values()]),
+                "skipped": sum(r["skipped"] for r in rows.values()),
+                "skip_reasons": [f"member {k}, {reason}" for k, r in rows.items()
+                                 for reason in r["skip_reasons"]],
+                "by_member": rows}
+    return out
 
 
-def _inputs(run: Run, batch, size: int, horizon: int
+class _Tally:
+    """One model's (or member's) losses, gradient norms and skips over an epoch."""
+
+    def __init__(self):
+        self.loss_sum, self.count, self.grad_norms, self.skipped = 0.0, 0, [], []
+
+    def add(self, loss: float, grad_norm: float, size: int, reason: str | None,
+            where: str) -> None:
+        if reason is None:
+            self.loss_sum, self.count = self.loss_sum + loss * size, self.count + size
+            self.grad_norms.append(grad_norm)
+        else:
+            self.skipped.append(f"{where}: {reason}")
+
+    def row(self) -> dict[str, Any]:
+        g = self.grad_norms
+        return {"train_loss": self.loss_sum / self.count if self.count else math.nan,
+                "grad_norm": sum(g) / len(g) if g else math.nan,
+                "skipped": len(self.skipped), "skip_reasons": self.skipped}
+
+
+def _after_step(run: Run, schedules: list[LRSchedule], saver: Checkpointer, epoch: int,
+                b: int, k: int, reason: str | None) -> None:
+    """Member k's counters after batch b: a good step ends a run of bad ones; a bad one is
+    reported, and enough in a row roll the member back."""
+    member, state = run.state.members[k], run.state
+    if reason is None:
+        member.bad_run = 0
+        return
+    state.skipped, member.bad_run = state.skipped + 1, member.bad_run + 1
+    several = len(run.shuffles) > 1
+    run.emit({"event": "skip", "epoch": epoch, "batch": b,
+              "reason": f"member {k}: {reason}" if several else reason})
+    if member.bad_run >= run.config.max_bad_steps:
+        _roll_back(run, schedules[k], saver.snapshot, epoch, reason, k if several else None)
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return sum(finite) / len(finite) if finite else math.nan
+
+
+def _inputs(run: Run, batch, size: int, horizon: int, generator: torch.Generator
             ) -> tuple[torch.Tensor, torch.Tensor | None]:
     """This rank's part of a global batch of `size` trajectories, normalized, noised and on
     the device, over its first `horizon` samples: `x: [B_r, H, N, D]`, `u: [B_r, H, N, U]`
     (None without controls)."""
     x = run.normalizer.norm_x(batch.states[:, :horizon])  # (B_r, H, N, D)
-    # Noise is drawn on the CPU from the loop's generator for the whole global batch, so it
-    # is the same on any device, after a resume and with any number of processes.
-    noise = torch.randn((size, *x.shape[1:]), generator=run.shuffle)[run.world.shard(size)]
+    # Noise is drawn on the CPU from the loop's generator (the member's) for the whole
+    # global batch, so it is the same on any device, after a resume and with any number
+    # of processes.
+    noise = torch.randn((size, *x.shape[1:]), generator=generator)[run.world.shard(size)]
     x = (x + run.config.noise * noise).to(run.device)
     u = None if batch.controls is None else run.normalizer.norm_u(
         batch.controls[:, :horizon]).to(run.device)
@@ -233,63 +292,124 @@ def _inputs(run: Run, batch, size: int, horizon: int
 
 
 def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
-               reason: str) -> None:
+               reason: str, member: int | None = None) -> None:
     """After `max_bad_steps` bad batches in a row: back to the last completed epoch's
-    weights and moments (`snapshot`), on at half the lr.
+    weights and moments (`snapshot`), on at half the lr; an ensemble's `member` alone.
 
     Raises:
-        TrainingDiverged: half the lr is below `min_lr`.
+        TrainingDiverged: half the lr is below `min_lr` (an ensemble's member then stops
+            at its best weights instead, and the others go on).
     """
     lr = schedule.retry_lr()
+    if lr is None and member is not None:
+        run.state.members[member].stopped = epoch
+        run.emit({"event": "warning", "text": f"member {member} kept failing down to lr "
+                  f"{schedule.lr:.3g} ({reason}); it stops at its best epoch"})
+        return
     if lr is None:
         raise TrainingDiverged(
             f"{run.state.bad_run} bad steps in a row at lr {schedule.lr:.3g} ({reason}); "
             "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
-    run.model.load_state_dict(snapshot.state_dict)
-    run.optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
+    if member is None:
+        run.model.load_state_dict(snapshot.state_dict)
+        run.optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
+    else:
+        prefix = f"members.{member}."
+        run.members[member].load_state_dict({name[len(prefix):]: value for name, value in
+                                             snapshot.state_dict.items()
+                                             if name.startswith(prefix)})
+        run.optimizer.load_group_state(snapshot.optimizer, member)
     schedule.restart(lr)
-    run.state.bad_run, run.state.restores = 0, run.state.restores + 1
-    run.emit({"event": "restore", "epoch": epoch, "lr": lr})
+    schedule.state.bad_run, run.state.restores = 0, run.state.restores + 1
+    run.emit({"event": "restore", "epoch": epoch, "lr": lr}
+             | ({"member": member} if member is not None else {}))
 
 
 def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig,
           world: distributed.World, share: float = 1.0):
-    """One update from this rank's `x: [B_r, H, N, D]`, the fraction `share` = B_r / B of
-    the global batch (all of it in one process).
+    """One update of a single model from this rank's `x: [B_r, H, N, D]`, the fraction
+    `share` = B_r / B of the global batch (all of it in one process).
 
     Returns (the global batch's loss, grad norm, this rank's RHS evals, skip reason).
     """
+    (result,) = _step_members(model, [model], optimizer, [(x, u)], ts, [adjacency], loss_fn,
+                              config, world, [0], share)
+    return result
+
+
+def _step_members(model, members: list, optimizer, inputs: list, ts: torch.Tensor,
+                  graphs: list, loss_fn, config: TrainConfig, world: distributed.World,
+                  active: list[int], share: float = 1.0
+                  ) -> list[tuple[float, float, int, str | None]]:
+    """One update of each active member (of `members`; `model` is the single model or
+    their `Ensemble`) from its own `(x: [B_r, H, N, D], u)` in `inputs` and its graphs, the
+    fraction `share` = B_r / B of the global batch. A member's bad batch (failed solves,
+    non-finite loss or gradient) leaves its weights and moments as they are; the others
+    update.
+
+    Returns, per active member: (the global batch's loss, grad norm, this rank's RHS
+    evals, skip reason).
+    """
     optimizer.zero_grad(set_to_none=True)
-    loss, evals, status = None, 0, torch.zeros(0, dtype=torch.long)
-    if len(x):  # a rank's slice is empty when the batch has fewer trajectories than ranks
-        batch = model.training_loss(x, ts, adjacency, u, loss_fn, solver=config.solver)
-        loss, evals, status = batch.loss, batch.n_f_evals, batch.status
+    batches = (_losses(model, inputs, ts, graphs, loss_fn, active, config.solver)
+               if len(inputs[0][0]) else None)
     # Summed over ranks, so that every rank takes the same decision: failed solves per
     # status, non-finite losses, and the batch's mean loss (each rank's weighted by share).
-    verdict = torch.zeros(len(Status) + 2, dtype=torch.float64)
-    value = None if loss is None else loss.item()
-    if value is not None and not math.isfinite(value):
-        verdict[-2] = 1
-    elif value is not None:
-        verdict[-1] = value * share
-    elif len(x):
-        verdict[:len(Status)] = torch.bincount(status.cpu(), minlength=len(Status))
+    verdict = torch.zeros(len(active), len(Status) + 2, dtype=torch.float64)
+    for j, batch in enumerate(batches or []):
+        value = None if batch.loss is None else batch.loss.item()
+        if value is not None and not math.isfinite(value):
+            verdict[j, -2] = 1
+        elif value is not None:
+            verdict[j, -1] = value * share
+        else:
+            verdict[j, :len(Status)] = torch.bincount(batch.status.cpu(), minlength=len(Status))
     verdict = world.sum(verdict)
+    reasons = [_skip_reason(v) for v in verdict]
+    good = [b.loss for b, r in zip(batches or [], reasons, strict=False)
+            if r is None and b.loss is not None]
+    if good:
+        sum(good).backward()
+    for j, k in enumerate(active):
+        if reasons[j] is not None:  # a stacked solve gives a skipped member zeros: none
+            members[k].zero_grad(set_to_none=True)
+    world.sum_gradients(list(model.parameters()), share)  # the global batch's gradient
+    out = []
+    for j, k in enumerate(active):
+        evals = batches[j].n_f_evals if batches else 0
+        if reasons[j] is not None:
+            out.append((math.nan, math.nan, evals, reasons[j]))
+            continue
+        norm = float(torch.nn.utils.clip_grad_norm_(members[k].parameters(), config.clip))
+        if not math.isfinite(norm):
+            members[k].zero_grad(set_to_none=True)
+            out.append((math.nan, norm, evals, "non-finite gradient"))
+            continue
+        out.append((float(verdict[j, -1]), norm, evals, None))
+    optimizer.step()
+    return out
+
+
+def _losses(model, inputs: list, ts: torch.Tensor, graphs: list, loss_fn, active: list[int],
+            solver) -> list:
+    """Each active member's `BatchLoss` on its own batch (an ensemble's in one solve)."""
+    if len(inputs) == 1 and not hasattr(model, "training_losses"):
+        (x, u), = inputs
+        return [model.training_loss(x, ts, graphs[0], u, loss_fn, solver=solver)]
+    xs = torch.stack([x for x, _ in inputs])  # (S', B_r, H, N, D)
+    us = None if inputs[0][1] is None else torch.stack([u for _, u in inputs])
+    return model.training_losses(xs, ts, graphs, us, loss_fn, active, solver=solver)
+
+
+def _skip_reason(verdict: torch.Tensor) -> str | None:
+    """Why a member's step is skipped, from its summed verdict; None: it is good."""
     failed = int(verdict[1:len(Status)].sum())
     if failed:
         worst = Status(int(verdict[:len(Status)].nonzero().max())).name
-        return math.nan, math.nan, evals, f"solver {worst} on {failed} trajectories"
+        return f"solver {worst} on {failed} trajectories"
     if verdict[-2] > 0:
-        return math.nan, math.nan, evals, "non-finite loss"
-    if loss is not None:
-        loss.backward()
-    world.sum_gradients(list(model.parameters()), share)  # the global batch's gradient
-    norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.clip))
-    if not math.isfinite(norm):
-        optimizer.zero_grad(set_to_none=True)
-        return math.nan, norm, evals, "non-finite gradient"
-    optimizer.step()
-    return float(verdict[-1]), norm, evals, None
+        return "non-finite loss"
+    return None
 
 
 def _validate(run: Run) -> tuple[EvalResult, list[EvalResult]]:
@@ -302,23 +422,53 @@ def _validate(run: Run) -> tuple[EvalResult, list[EvalResult]]:
     return pooled(each, [d.num_nodes for d in run.datas]), each
 
 
-def _record(run: Run, schedule: LRSchedule, epoch: int, val: EvalResult,
+def _record(run: Run, schedules: list[LRSchedule], epoch: int, val: EvalResult,
             each: list[EvalResult], steps: dict | None, seconds: float) -> dict[str, Any]:
-    """Update the best epoch from the validation result and set the next epoch's lr; return
-    the metrics row (`lr`: the one this epoch ran at)."""
+    """Update each member's best epoch from the validation result, set its next epoch's lr
+    and stop it early where `stop_patience` says; return the metrics row (`lr`: the one
+    this epoch ran at; an ensemble's: the members' mean, each member's under `members`)."""
     config, state = run.config, run.state
-    val_loss = val.loss(config.loss)
-    improved = val_loss < state.best_val
-    lr = schedule.lr
-    if improved:
-        state.best_val, state.best_epoch = val_loss, epoch
-    schedule.end_epoch(epoch, improved)
+    results = val.members or [val]
+    lrs, improved = [s.lr for s in schedules], []
+    for k, (member, schedule, result) in enumerate(zip(state.members, schedules, results,
+                                                       strict=True)):
+        if member.stopped:
+            continue
+        loss = result.loss(config.loss)
+        if loss < member.best_val:
+            member.best_val, member.best_epoch = loss, epoch
+            improved.append(k)
+        schedule.end_epoch(epoch, k in improved)
+        if config.stop_patience and epoch - member.best_epoch >= config.stop_patience:
+            member.stopped = epoch
     state.seconds += seconds
     steps = steps or {"train_loss": None, "horizon": None, "grad_norm": None,
                       "rhs_evals": 0, "skipped": 0, "skip_reasons": [], "train_seconds": 0.0}
-    return {"epoch": epoch, **steps, "val_loss": val_loss, "val_mse": val.mse,
-            "val_failed": val.failed, "val_rhs_evals": val.n_f_evals, "lr": lr,
-            "seconds": seconds, "improved": improved} | _by_dataset(run.names, each, config)
+    by_member = steps.pop("by_member", {})
+    row = {"epoch": epoch, **steps, "val_loss": val.loss(config.loss), "val_mse": val.mse,
+           "val_failed": val.failed, "val_rhs_evals": val.n_f_evals, "lr": lrs[0],
+           "seconds": seconds, "improved": bool(improved)} | _by_dataset(run.names, each,
+                                                                          config)
+    if len(results) > 1:
+        row |= _member_rows(run, val, lrs, improved, by_member)
+    return row
+
+
+def _member_rows(run: Run, val: EvalResult, lrs: list[float], improved: list[int],
+                 by_member: dict[int, dict]) -> dict[str, Any]:
+    """An ensemble's metrics: the members' mean ± std (population) of the validation loss
+    and MSE, the members' mean prediction's MSE, each member's row, and who improved."""
+    config, results = run.config, val.members
+    losses = torch.tensor([r.loss(config.loss) for r in results], dtype=torch.float64)
+    mses = torch.tensor([r.mse for r in results], dtype=torch.float64)
+    members = [{"member": k, "seed": config.seed + k, "val_loss": float(losses[k]),
+                "val_mse": float(mses[k]), "lr": lrs[k], "improved": k in improved,
+                "best_epoch": m.best_epoch, "stopped": m.stopped, **by_member.get(k, {})}
+               for k, m in enumerate(run.state.members)]
+    return {"val_loss": float(losses.mean()), "val_loss_std": float(losses.std(correction=0)),
+            "val_mse": float(mses.mean()), "val_mse_std": float(mses.std(correction=0)),
+            "ensemble_val_mse": val.mse, "lr": sum(lrs) / len(lrs), "members": members,
+            "improved_members": improved}
 
 
 def _by_dataset(names: list[str], each: list[EvalResult], config: TrainConfig
@@ -344,13 +494,16 @@ def _finish(run: Run) -> runs.TrainSummary:
         test = evaluate_datasets(best, run.datas, run.names, split="test", verb="test",
                                  batch_size=config.val_batch_size, device=run.device,
                                  plot_dir=run.run_dir / "plots" if config.plots else None)
+    members = state.members
+    best_epoch = max(m.best_epoch for m in members)
+    min_val = sum(m.best_val for m in members) / len(members)
     summary = runs.TrainSummary(
         run_dir=str(run.run_dir), model=run.kind, model_config=run.model_config,
         parameters=_count(run.model), dataset=str(config.datasets[0]),
         dataset_fingerprint=data.fingerprint, system=data.system,
         num_nodes=data.num_nodes, loss=config.loss, epochs=state.epoch,
-        best_epoch=state.best_epoch, min_val_loss=state.best_val,
-        min_val_mse=best.metrics.get("val_mse"), table2=state.best_epoch * state.best_val,
+        best_epoch=best_epoch, min_val_loss=min_val,
+        min_val_mse=best.metrics.get("val_mse"), table2=best_epoch * min_val,
         test=test and test["result"], wall_seconds=state.seconds,
         baselines=test and test["baselines"],
         seconds_per_epoch=runs.seconds_per_epoch(run.run_dir), skipped_batches=state.skipped,
@@ -358,9 +511,21 @@ def _finish(run: Run) -> runs.TrainSummary:
         init_checkpoint=None if config.init_checkpoint is None else str(config.init_checkpoint),
         parent_sha256=run.parent_sha, world_size=run.world.size,
         by_dataset=_summary_by_dataset(run.names, run.facts, best, test),
+        stopped_early=state.epoch if state.epoch < config.epochs else None,
+        members=_summary_members(run, test) if len(members) > 1 else None,
     )  # fmt: skip
     runs.write_json(run.run_dir / runs.SUMMARY, asdict(summary))
     return summary
+
+
+def _summary_members(run: Run, test: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """summary.json's `members`: each member's seed, best epoch, best validation loss, the
+    epoch it stopped early (0: it did not) and test metrics (None without a test split)."""
+    tested = ((test or {}).get("result") or {}).get("members") or []
+    return [{"member": k, "seed": run.config.seed + k, "best_epoch": m.best_epoch,
+             "min_val_loss": m.best_val, "stopped": m.stopped,
+             "test": tested[k] if k < len(tested) else None}
+            for k, m in enumerate(run.state.members)]
 
 
 def _summary_by_dataset(names: list[str], facts: dict[str, Any], best: Checkpoint,
@@ -390,15 +555,19 @@ def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
     """Settle `solver.compile = "auto"` for a run over `n_train` trajectories.
 
     Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps), its steps are
-    adaptive (compiling does not apply to `fixed_dt`) and a C++ compiler is there for
-    inductor on CPU. Shapes that change (a smaller last batch, the horizon curriculum's
-    growing horizon) cost one more compile, after which torch.compile treats that size as
-    dynamic (`solve`'s automatic dynamic shapes).
+    adaptive (compiling does not apply to `fixed_dt`), it trains one model (not an
+    ensemble) and a C++ compiler is there for inductor on CPU. Shapes that change (a
+    smaller last batch, the horizon curriculum's growing horizon) cost one more compile,
+    after which torch.compile treats that size as dynamic (`solve`'s automatic dynamic
+    shapes).
     """
     if config.solver.compile != "auto":
         return config
     steps = config.epochs * -(-n_train // config.batch_size)
+    # An ensemble runs eager: its members' layers are batched by a torch-function mode
+    # (`mpnode_cli.models.ensemble.StackedLayers`), which the compiled step does not trace.
     decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
+              and config.seeds == 1
               and (config.device != "cpu" or _have_cxx()))
     return config.model_copy(update={"solver": config.solver.model_copy(
         update={"compile": decide})})

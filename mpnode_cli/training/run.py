@@ -40,6 +40,15 @@ class TrainSummary:
     `mpnode_cli.training.evaluate.baseline_mse`). `world_size` is the number of processes
     that trained (torchrun's data parallelism; 1 without it).
 
+    `stopped_early` is the last epoch of a run that early stopping (`stop_patience`) ended
+    before its `epochs`, else None.
+
+    An ensemble (`seeds` S > 1): `test` is the members' mean prediction's, with each
+    member's under `test["members"]` and their mean ± std (`members_mean`, `members_std`,
+    `mpnode_cli.training.evaluate.member_stats`); `members` lists each member's seed, best
+    epoch, best validation loss, early stop and test result; `best_epoch` is the latest of
+    the members' and `min_val_loss` their mean. None for a single model.
+
     A run on several datasets: `dataset`, `dataset_fingerprint` and `num_nodes` are the
     first dataset's; `min_val_loss`, `min_val_mse`, `test` and `baselines` are pooled (means
     over every value of every dataset's split, so each dataset weighs by its number of
@@ -73,6 +82,8 @@ class TrainSummary:
     finished: bool = True
     world_size: int = 1
     by_dataset: dict[str, Any] | None = None
+    stopped_early: int | None = None
+    members: list[dict[str, Any]] | None = None
 
 
 def default_root() -> Path:

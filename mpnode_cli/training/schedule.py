@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from mpnode_cli.config import TrainConfig
     from mpnode_cli.training.optim import Adam
-    from mpnode_cli.training.setup import LoopState
+    from mpnode_cli.training.setup import LoopState, MemberState
 
 
 class LRSchedule:
@@ -33,17 +33,19 @@ class LRSchedule:
         config: the run's config (`schedule`, `lr`, `min_lr`, `patience`, `epochs`).
         optimizer: its `param_groups[...]["lr"]` is the rate; the optimizer state that a
             checkpoint saves holds it.
-        state: the loop's counters; this policy reads and updates `since_best` and
-            `lr_scale`.
+        state: the model's counters (a `LoopState`, or an ensemble member's `MemberState`);
+            this policy reads and updates `since_best` and `lr_scale`.
+        group: the parameter group this policy sets (an ensemble member's); None: all.
     """
 
-    def __init__(self, config: TrainConfig, optimizer: Adam, state: LoopState):
-        self.config, self.optimizer, self.state = config, optimizer, state
+    def __init__(self, config: TrainConfig, optimizer: Adam, state: LoopState | MemberState,
+                 group: int | None = None):
+        self.config, self.optimizer, self.state, self.group = config, optimizer, state, group
 
     @property
     def lr(self) -> float:
         """The current rate: the one this epoch runs at."""
-        return self.optimizer.param_groups[0]["lr"]
+        return self.optimizer.param_groups[self.group or 0]["lr"]
 
     def start(self) -> None:
         """A new run's first epoch (a resumed run's rate is in its restored optimizer)."""
@@ -89,5 +91,6 @@ class LRSchedule:
         return config.min_lr + 0.5 * (config.lr - config.min_lr) * (1 + math.cos(math.pi * frac))
 
     def _set(self, lr: float) -> None:
-        for group in self.optimizer.param_groups:
+        groups = self.optimizer.param_groups
+        for group in groups if self.group is None else [groups[self.group]]:
             group["lr"] = lr

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -52,18 +52,70 @@ Progress = Callable[[dict[str, Any]], None]
 
 
 @dataclass
-class LoopState:
-    """The loop's counters, saved in every checkpoint so that a resume continues exactly."""
+class MemberState:
+    """One model's own counters (an ensemble has one per member).
 
-    epoch: int = 0
+    Attributes:
+        best_epoch, best_val: its best validation loss so far, and the epoch of it.
+        since_best: epochs without gain since the best or the last lr halving (plateau).
+        bad_run: skipped batches in a row. lr_scale: cosine's scale after rollbacks.
+        stopped: the epoch after which early stopping froze it (0: still training).
+    """
+
     best_epoch: int = 0
     best_val: float = math.inf
     since_best: int = 0
     bad_run: int = 0
+    lr_scale: float = 1.0
+    stopped: int = 0
+
+
+# MemberState's fields that a one-model checkpoint keeps at the top of its `loop` (the
+# layout every earlier version wrote).
+_OWN = ("best_epoch", "best_val", "since_best", "bad_run", "lr_scale")
+
+
+@dataclass
+class LoopState:
+    """The loop's counters, saved in every checkpoint so that a resume continues exactly.
+
+    `epoch`, `skipped`, `restores` and `seconds` are the run's; the rest is each member's
+    (`members`, one for a single model). A single model's counters read and write through
+    this object's attributes of the same names (`state.best_val` is `members[0].best_val`).
+    """
+
+    epoch: int = 0
     skipped: int = 0
     restores: int = 0
     seconds: float = 0.0
-    lr_scale: float = 1.0
+    members: list[MemberState] = field(default_factory=lambda: [MemberState()])
+
+    def __getattr__(self, name: str):
+        if name in MemberState.__dataclass_fields__:
+            return self.members[0].__dict__[name]
+        raise AttributeError(name)
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in MemberState.__dataclass_fields__:
+            setattr(self.members[0], name, value)
+        else:
+            object.__setattr__(self, name, value)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The checkpoint's `loop`: flat for one model, with `members` for several."""
+        shared = {"epoch": self.epoch, "skipped": self.skipped, "restores": self.restores,
+                  "seconds": self.seconds}
+        if len(self.members) == 1 and not self.members[0].stopped:
+            return shared | {k: getattr(self.members[0], k) for k in _OWN}
+        return shared | {"members": [asdict(m) for m in self.members]}
+
+    @staticmethod
+    def from_dict(loop: dict[str, Any]) -> LoopState:
+        shared = {k: loop[k] for k in ("epoch", "skipped", "restores", "seconds") if k in loop}
+        if "members" in loop:
+            return LoopState(**shared, members=[MemberState(**m) for m in loop["members"]])
+        return LoopState(**shared, members=[MemberState(**{k: loop[k] for k in _OWN
+                                                            if k in loop})])
 
 
 @dataclass
@@ -84,6 +136,7 @@ class Run:
         kind, model_config: the model's registry name and its full config.
         model, normalizer, optimizer: on `device`.
         shuffle: the loop's generator: batch order and noise, the same on any device.
+        shuffles: each member's generator (`shuffle` is the first: a single model's).
         state: the loop's counters.
         resumed: whether the run continues from its `last.pt`.
         parent_sha: the SHA-256 of the checkpoint a finetune started from (None for a
@@ -109,6 +162,16 @@ class Run:
     state: LoopState
     resumed: bool
     parent_sha: str | None
+    shuffles: list[torch.Generator]
+
+    @property
+    def members(self) -> list[torch.nn.Module]:
+        """The models trained: an ensemble's members, or the one model."""
+        return list(self.model.members) if len(self.shuffles) > 1 else [self.model]
+
+    def active(self) -> list[int]:
+        """The members still training (not frozen by early stopping)."""
+        return [k for k, m in enumerate(self.state.members) if not m.stopped]
 
 
 @dataclass
@@ -168,10 +231,10 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
     last, parent = _starting_point(config, resume, datas, finished_ok)
     source, renormalize = last or parent, parent is not None and config.renormalize
     kind, model_config = _architecture(config, source, parent is not None, datas)
-    torch.manual_seed(config.seed)
-    model = _build(kind, model_config)
+    seeds = members_of(config, source, parent is not None)
+    model = _build_members(kind, model_config, config.seed, seeds)
     # config.json tells the truth: the architecture is what was built.
-    config = config.model_copy(update={"model": kind,
+    config = config.model_copy(update={"model": kind, "seeds": seeds,
                                        "model_options": model.options.model_dump()})
     # The default name holds the time and whatever suffix makes it new: rank 0 chooses it.
     run_dir = world.from_main(
@@ -182,15 +245,18 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
         file_sha256(config.init_checkpoint) if parent else None)
 
     if source is not None:
-        model.load_state_dict(source.state_dict)
+        model.load_state_dict(member_weights(source, seeds))
     if source is None or renormalize:
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
         _fit_statistics(model, train_sets, normalizer)
     model.to(data.device)
     world.broadcast_module(model)
-    optimizer = Adam(model.parameters(), lr=config.lr)
-    shuffle = torch.Generator().manual_seed(config.seed)  # batch order and noise
-    state = LoopState() if last is None else _restore(last, optimizer, shuffle)
+    optimizer = Adam(model.parameters() if seeds == 1 else
+                     [{"params": list(m.parameters())} for m in model.members], lr=config.lr)
+    # Batch order and noise, each member's from its own seed.
+    shuffles = [torch.Generator().manual_seed(config.seed + k) for k in range(seeds)]
+    state = (LoopState(members=[MemberState() for _ in range(seeds)]) if last is None
+             else _restore(last, optimizer, shuffles))
     if not world.main:
         # The only draws from torch's global generator in training are L2S's step noise on
         # each rank's own slice: other ranks must not repeat rank 0's draws.
@@ -203,7 +269,8 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
                names=dataset_names(config.datasets), train_sets=train_sets,
                val_parts=val_parts, facts=_facts(datas, config.datasets, train_sets),
                kind=kind, model_config=model.config, model=model, normalizer=normalizer,
-               optimizer=optimizer, shuffle=shuffle, device=data.device,
+               optimizer=optimizer, shuffle=shuffles[0], shuffles=shuffles,
+               device=data.device,
                state=state, resumed=last is not None, parent_sha=parent_sha)
 
 
@@ -261,12 +328,55 @@ def _normalizer(config: TrainConfig, source: Checkpoint | None, renormalize: boo
                           None if controls[0] is None else controls)
 
 
-def _restore(last: Checkpoint, optimizer: Adam, shuffle: torch.Generator) -> LoopState:
+def _restore(last: Checkpoint, optimizer: Adam, shuffles: list[torch.Generator]
+             ) -> LoopState:
     """Where a resumed run stopped: its optimizer, RNG states and counters."""
     optimizer.load_state_dict(last.optimizer)
     torch.set_rng_state(last.rng["torch"])
-    shuffle.set_state(last.rng["shuffle"])
-    return LoopState(**last.loop)
+    states = last.rng.get("member_shuffles", last.rng["shuffle"].unsqueeze(0))
+    for shuffle, saved in zip(shuffles, states, strict=True):
+        shuffle.set_state(saved.clone())
+    return LoopState.from_dict(last.loop)
+
+
+def members_of(config: TrainConfig, source: Checkpoint | None, finetune: bool) -> int:
+    """S, the members the run trains: `seeds`; a resumed run's, or a finetuned ensemble's.
+
+    Raises:
+        ValueError: a finetune of an ensemble of S members asked for another number > 1.
+    """
+    have = int(source.model_config.get("members", 1)) if source is not None else 1
+    if source is None or (finetune and have == 1):
+        return config.seeds  # a single model's finetune: every member starts from it
+    if finetune and config.seeds not in (1, have):
+        raise ValueError(f"the checkpoint is an ensemble of {have} members, each finetuned "
+                         f"from its own: give --seeds {have} (or leave it out), not "
+                         f"{config.seeds}")
+    return have
+
+
+def member_weights(source: Checkpoint, seeds: int) -> dict[str, torch.Tensor]:
+    """The starting weights of a model of `seeds` members: the source's, or a single
+    model's copied into every member (a finetune of one model into an ensemble)."""
+    if seeds == 1 or int(source.model_config.get("members", 1)) == seeds:
+        return source.state_dict
+    return {f"members.{k}.{name}": value.clone() for k in range(seeds)
+            for name, value in source.state_dict.items()}
+
+
+def _build_members(kind: str, model_config: dict[str, Any], seed: int, seeds: int):
+    """The model, built after seeding with `seed`; an `Ensemble` of `seeds` members, member
+    k built after seeding with seed + k, as a run of that seed alone builds it."""
+    config = {k: v for k, v in model_config.items() if k != "members"}
+    members = []
+    for k in range(seeds):
+        torch.manual_seed(seed + k)
+        members.append(_build(kind, config))
+    if seeds == 1:
+        return members[0]
+    from mpnode_cli.models.ensemble import Ensemble
+
+    return Ensemble(members)
 
 
 def _open_folder(run_dir: Path, config: TrainConfig, resumed_epoch: int | None,
