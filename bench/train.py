@@ -63,7 +63,7 @@ RESULTS = Path(__file__).parent / "results" / "train.md"
 
 
 def _peer_rollout(integrate):
-    """An `MPNODE.rollout` that integrates with `integrate(f, z0, ts, rtol, atol) -> (zs, evals)`.
+    """MPNODE's rollout integrating with `integrate(f, z0, ts, rtol, atol) -> (zs, evals)`.
 
     `f(t [B], z [B, N, D+M])` is the model's own vector field; `zs: [B, T, N, D+M]`.
     """
@@ -232,13 +232,15 @@ def bench_step(args) -> dict:
 
 @contextlib.contextmanager
 def integrator(integrate):
-    original = MPNODE.rollout
-    if integrate is not None:
-        MPNODE.rollout = _peer_rollout(integrate)
+    """MPNODE integrating with `integrate` (None: ours, the rollout it inherits)."""
+    if integrate is None:
+        yield
+        return
+    MPNODE.rollout = _peer_rollout(integrate)
     try:
         yield
     finally:
-        MPNODE.rollout = original
+        del MPNODE.rollout  # back to the inherited `NeuralODEModel.rollout`
 
 
 def run_variant(name, dataset, root, args):

@@ -3,10 +3,12 @@
 Training and evaluation call only what `NeuralModel` declares, so a model is used the same
 way whatever it is: built from the data's sizes and its typed options, statistics fitted
 on the train split, a batch's training loss, and a rollout from the data's first states.
+The neural ODEs (MP-NODE, GNN-ODE, NODE) share one rollout, `mpnode_cli.models.ode`.
 """
 
 from __future__ import annotations
 
+import abc
 import itertools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -60,8 +62,8 @@ class BatchLoss:
     n_f_evals: int
 
 
-class NeuralModel(nn.Module):
-    """The contract every model implements.
+class NeuralModel(nn.Module, metaclass=abc.ABCMeta):
+    """The contract every model implements (abstract: a model defines at least `rollout`).
 
     A model is built from the data's sizes and an instance of its `Options`; `config`
     (sizes and options in one flat dict) is what checkpoints store as `model_config`, and
@@ -144,6 +146,21 @@ class NeuralModel(nn.Module):
                 them, one per dataset, when `states` is a list.
         """
 
+    def check_states(self, x0: torch.Tensor) -> None:
+        """Refuse initial states `x0: [B, N, D]` that the model was not built for.
+
+        Raises:
+            ValueError: D is not `node_dim`, or (a model that is not transferable) N is not
+                its `num_nodes`.
+        """
+        if x0.shape[-1] != self.node_dim:
+            raise ValueError(f"states have {x0.shape[-1]} features per node but the model "
+                             f"expects {self.node_dim}")
+        if not self.transferable and x0.shape[-2] != self.num_nodes:
+            raise ValueError(f"model '{self.kind}' is built for {self.num_nodes} nodes and "
+                             f"runs on no other node count, got {x0.shape[-2]}")
+
+    @abc.abstractmethod
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
                 controls: torch.Tensor | None = None, **options: Any) -> Rollout:
         """Predict trajectories from x(t₀).
@@ -157,7 +174,6 @@ class NeuralModel(nn.Module):
                 `return_messages` (models without a solver accept and ignore them); a model
                 with `initial_states` C > 1 also takes `history: [B, C, N, D]`.
         """
-        raise NotImplementedError
 
     def rollout_from_data(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
                           controls: torch.Tensor | None = None, **options: Any) -> Rollout:
@@ -207,47 +223,3 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) ->
             nn.init.xavier_uniform_(module.weight)
             nn.init.zeros_(module.bias)
     return nn.Sequential(*modules)
-
-
-def zoh_controls(controls: torch.Tensor, ts: torch.Tensor):
-    """u(t) for a zero-order hold: `controls[:, k]` acts on `[ts[k], ts[k+1])`.
-
-    Args:
-        controls: `[B, T, N, U]`; ts: `[T]` float64.
-
-    Returns:
-        `u(t: [B]) -> [B, N, U]`.
-    """
-    rows = torch.arange(controls.shape[0], device=controls.device)
-    last = ts.numel() - 2  # the last sample's control is never held over an interval
-
-    def u(t: torch.Tensor) -> torch.Tensor:
-        k = (torch.searchsorted(ts, t.contiguous(), right=True) - 1).clamp(0, max(last, 0))
-        return controls[rows, k]
-
-    return u
-
-
-def control_stops(controls: torch.Tensor | None, ts: torch.Tensor) -> torch.Tensor | None:
-    """The solver's `tstops` for zero-order-hold controls: the sample times where they change.
-
-    A step must not straddle a change of u(t) (the RK stages would mix two inputs), but
-    where the held control stays the same a stop would only cost steps: a constant input
-    (a per-node power injection) then integrates like an autonomous system. One stop list
-    serves the whole batch, so a time is a stop when any trajectory's control changes there.
-
-    Args:
-        controls: `[B, T, N, U]` (as `zoh_controls` holds them), or None.
-        ts: `[T]` sample times, on the controls' device.
-
-    Returns:
-        `[S]` the times `ts[k]`, 0 < k < T − 1, where `controls[:, k] != controls[:, k-1]`
-        for some trajectory, node or component (the last sample's control is never held);
-        None when there are none.
-    """
-    if controls is None or ts.numel() < 3:
-        return None
-    held = controls[:, : ts.numel() - 1]  # (B, T-1, N, U): the controls that act
-    changed = (held[:, 1:] != held[:, :-1]).flatten(2).any(dim=2).any(dim=0)  # (T-2,)
-    stops = ts[1:-1][changed]
-    return stops if stops.numel() else None

@@ -22,14 +22,13 @@ import torch
 from torch import nn
 
 from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
-from mpnode_cli.models.backend import Graph, as_graph
-from mpnode_cli.models.base import NeuralModel, Rollout, control_stops, zoh_controls
+from mpnode_cli.models.backend import Graph
+from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import GNODEOptions
-from mpnode_cli.solver import solve
-from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.solver.runge_kutta import RHS
 
 
-class GNODE(DegreeAwareAggregation, NeuralModel):
+class GNODE(DegreeAwareAggregation, NeuralODEModel):
     """Graph neural ODE with sum aggregation and skip connections.
 
     Args:
@@ -59,8 +58,13 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
             nn.init.zeros_(layer.bias)
         self._register_degree_statistic()
 
-    def vector_field(self, adjacency: Graph, u=None):
-        """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`."""
+    def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
+        """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`, the equations of the module docstring.
+
+        Args:
+            adjacency: `[B, N, N]`, or an `EdgeBatch` (large graphs).
+            u: `u(t [B]) → [B, N, U]` (zero-order hold), or None when U = 0.
+        """
         aggregate = self.aggregator(adjacency)
 
         def f(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -73,18 +77,3 @@ class GNODE(DegreeAwareAggregation, NeuralModel):
             return self.decode(h + h0)
 
         return f
-
-    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
-                controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
-                return_messages: bool = False) -> Rollout:
-        """Integrate from x(t₀); same arguments as `MPNODE.rollout` (no message states)."""
-        if x0.shape[-1] != self.node_dim:
-            raise ValueError(f"states have {x0.shape[-1]} features per node but the model "
-                             f"expects {self.node_dim}")
-        ts = ts.to(device=x0.device, dtype=torch.float64)
-        u = zoh_controls(controls, ts) if self.control_dim else None
-        options = solver.solve_kwargs() if solver is not None else {}
-        sol = solve(self.vector_field(as_graph(adjacency, x0), u), x0, ts, **options,
-                    tstops=control_stops(controls, ts) if u is not None else None)
-        return Rollout(states=sol.ys, messages=None, status=sol.status,
-                       n_f_evals=int(sol.stats["n_f_evals"].max()))

@@ -171,9 +171,7 @@ class L2S(NeuralModel):
                 starts from the data's first C states).
             Solver options are accepted and ignored: this model takes discrete steps.
         """
-        if x0.shape[-1] != self.node_dim:
-            raise ValueError(f"states have {x0.shape[-1]} features per node but the model "
-                             f"expects {self.node_dim}")
+        self.check_states(x0)
         ts = ts.to(torch.float64)
         spacing = ts[1:] - ts[:-1]
         if float(self.step_dt) > 0 and spacing.numel() and not torch.allclose(

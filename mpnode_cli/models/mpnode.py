@@ -41,14 +41,14 @@ from typing import ClassVar
 import torch
 
 from mpnode_cli.models.aggregate import DegreeAwareAggregation, aggregator, channels
-from mpnode_cli.models.backend import Graph, as_graph
-from mpnode_cli.models.base import NeuralModel, Rollout, control_stops, mlp, zoh_controls
+from mpnode_cli.models.backend import Graph
+from mpnode_cli.models.base import mlp
+from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import MPNODEOptions
-from mpnode_cli.solver import solve
-from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.solver.runge_kutta import RHS
 
 
-class MPNODE(DegreeAwareAggregation, NeuralModel):
+class MPNODE(DegreeAwareAggregation, NeuralODEModel):
     """Message-passing neural ODE over a batch of graphs.
 
     Args:
@@ -89,8 +89,9 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
             self.init_net = mlp(d + control_dim, o.hidden, 1, m, o.activation)
         self._register_degree_statistic()
 
-    def vector_field(self, adjacency: Graph, u=None):
-        """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]` for `solve`.
+    def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
+        """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]`, z = [x; m] per node: eqs. (3)–(5)
+        (`update="mlp"`) or the affine update of the module docstring.
 
         Args:
             adjacency: `[B, N, N]`, or an `EdgeBatch` (large graphs).
@@ -140,37 +141,6 @@ class MPNODE(DegreeAwareAggregation, NeuralModel):
         inputs = torch.cat([x0, u0.to(x0.dtype)], dim=-1) if u0 is not None else x0
         return self.init_net(inputs)
 
-    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
-                controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
-                return_messages: bool = False) -> Rollout:
-        """Integrate from x(t₀) over the whole horizon.
-
-        Args:
-            x0: `[B, N, D]` normalized states at `ts[0]`.
-            ts: `[T]` sample times.
-            adjacency: `[B, N, N]`, or an `EdgeBatch` (large graphs).
-            controls: `[B, T, N, U]` normalized, zero-order hold, or None.
-            solver: how to integrate (None: `solve`'s defaults; training passes its
-                config's, `TrainConfig.solver`).
-            return_messages: also return the message states.
-        """
-        if x0.shape[-1] != self.node_dim:
-            raise ValueError(f"states have {x0.shape[-1]} features per node but the model "
-                             f"expects {self.node_dim}")
-        ts = ts.to(device=x0.device, dtype=torch.float64)
-        u = None
-        if self.control_dim:
-            if controls is None or controls.shape[-1] != self.control_dim:
-                raise ValueError(f"the model expects {self.control_dim} controls per node")
-            u = zoh_controls(controls, ts)
-        u0 = controls[:, 0] if u is not None else None
-        z0 = torch.cat([x0, self.initial_messages(x0, u0)], dim=-1)
-        # Steps must not straddle a control switch: stop where the held control changes.
-        tstops = control_stops(controls, ts) if u is not None else None
-        options = solver.solve_kwargs() if solver is not None else {}
-        sol = solve(self.vector_field(as_graph(adjacency, x0), u), z0, ts, **options,
-                    tstops=tstops)
-        d = self.node_dim
-        return Rollout(states=sol.ys[..., :d],
-                       messages=sol.ys[..., d:] if return_messages else None,
-                       status=sol.status, n_f_evals=int(sol.stats["n_f_evals"].max()))
+    def initial_state(self, x0: torch.Tensor, u0: torch.Tensor | None) -> torch.Tensor:
+        """z(t₀) = `[x0, m(t₀)]` `[B, N, D+M]`: the states and `initial_messages`."""
+        return torch.cat([x0, self.initial_messages(x0, u0)], dim=-1)

@@ -14,13 +14,14 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.base import ACTIVATIONS, NeuralModel, Rollout, control_stops, zoh_controls
+from mpnode_cli.models.backend import Graph
+from mpnode_cli.models.base import ACTIVATIONS
+from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import NODEOptions
-from mpnode_cli.solver import solve
-from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.solver.runge_kutta import RHS
 
 
-class NODE(NeuralModel):
+class NODE(NeuralODEModel):
     """Neural ODE on the flattened state `[N·D]` of the whole system.
 
     Args:
@@ -46,25 +47,16 @@ class NODE(NeuralModel):
         modules.append(nn.Linear(width, num_nodes * node_dim))
         self.net = nn.Sequential(*modules)
 
-    def vector_field(self, u=None):
+    def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
+        """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`: the MLP of the flattened `[x, u]`.
+
+        Args:
+            adjacency: ignored (coupling is learned from the concatenated state).
+            u: `u(t [B]) → [B, N, U]` (zero-order hold), or None when U = 0.
+        """
         def f(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
             parts = [x, u(t).to(x.dtype)] if u is not None else [x]
             flat = torch.cat(parts, dim=-1).reshape(x.shape[0], -1)  # (B, N·(D+U))
             return self.net(flat).view_as(x)
 
         return f
-
-    def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
-                controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
-                return_messages: bool = False) -> Rollout:
-        """Integrate from x(t₀); `adjacency` is ignored (only its N is checked)."""
-        if x0.shape[1] != self.num_nodes or x0.shape[-1] != self.node_dim:
-            raise ValueError(f"this monolithic model is built for {self.num_nodes} nodes × "
-                             f"{self.node_dim} features, got {x0.shape[1]} × {x0.shape[-1]}")
-        ts = ts.to(device=x0.device, dtype=torch.float64)
-        u = zoh_controls(controls, ts) if self.control_dim else None
-        options = solver.solve_kwargs() if solver is not None else {}
-        sol = solve(self.vector_field(u), x0, ts, **options,
-                    tstops=control_stops(controls, ts) if u is not None else None)
-        return Rollout(states=sol.ys, messages=None, status=sol.status,
-                       n_f_evals=int(sol.stats["n_f_evals"].max()))
