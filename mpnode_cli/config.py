@@ -381,6 +381,9 @@ class TrainConfig(BaseModel):
         "Early stop: a member stops training after this many epochs without a better "
         "validation loss, and the run stops when all have (none: train every epoch)."))
     device: Literal["cpu", "cuda"] = Field("cpu", description="Where to train.")
+    dtype: Literal["float32", "float64"] = Field("float32", description=(
+        "Precision of the weights and the training rollouts; float64 is slower, for "
+        "checks that compare runs to round-off and for stiff systems."))
     run_dir: Path | None = Field(None, description=(
         "The run folder (default runs/<dataset>-<model>-<time>)."))
     solver: SolverOptions = Field(default_factory=train_solver, description=(

@@ -62,7 +62,8 @@ _PANELS = {
              "val_batch_size", "seed", "seeds"),
     CURRICULUM: ("horizon_curriculum", "curriculum_start", "curriculum_epochs"),
     SOLVER: _SOLVER,
-    RUN: ("run_dir", "resume", "config_file", "device", "threads", "plots", "json_out"),
+    RUN: ("run_dir", "resume", "config_file", "device", "dtype", "threads", "plots",
+          "json_out"),
     MODEL: ("model",),
 }
 

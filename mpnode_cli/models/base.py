@@ -223,3 +223,11 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) ->
             nn.init.xavier_uniform_(module.weight)
             nn.init.zeros_(module.bias)
     return nn.Sequential(*modules)
+
+
+def model_dtype(model: nn.Module | None) -> torch.dtype:
+    """The floating dtype of a model's weights (float32 for no model or no weights)."""
+    for p in model.parameters() if model is not None else []:
+        if p.is_floating_point():
+            return p.dtype
+    return torch.float32

@@ -187,9 +187,10 @@ class Ensemble(nn.Module):
 
     @property
     def stackable(self) -> bool:
-        """Whether the members integrate in one solve: neural ODEs, the models with a
-        vector field, do."""
-        return hasattr(self.members[0], "vector_field")
+        """Whether the members integrate in one solve: neural ODEs do."""
+        from mpnode_cli.models.ode import NeuralODEModel
+
+        return isinstance(self.members[0], NeuralODEModel)
 
     def fit_statistics(self, states, dt: float, adjacency) -> None:
         for member in self.members:

@@ -97,10 +97,14 @@ class Checkpoint:
     path: Path | None = None
 
     def build_model(self) -> NeuralModel:
-        """The model with these weights (on the CPU)."""
+        """The model with these weights (on the CPU), in their precision."""
         from mpnode_cli.models.registry import build_model
 
         model = build_model(self.model_kind, self.model_config)
+        floating = [v for v in self.state_dict.values()
+                    if isinstance(v, torch.Tensor) and v.is_floating_point()]
+        if floating and floating[0].dtype == torch.float64:  # trained in float64
+            model.double()
         model.load_state_dict(self.state_dict)
         return model
 

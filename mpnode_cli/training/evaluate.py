@@ -26,7 +26,7 @@ import torch
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
 from mpnode_cli.jsonable import jsonable
-from mpnode_cli.models.base import NeuralModel
+from mpnode_cli.models.base import NeuralModel, model_dtype
 from mpnode_cli.models.ensemble import spread_error_correlation
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
@@ -196,7 +196,7 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
     model.eval()
     with torch.no_grad(), prefetched(data, torch.arange(k).split(batch_size)) as batches:
         for batch in batches:
-            x, u = _normalized(batch, normalizer, device)  # (B, T, N, D), (B, T, N, U)
+            x, u = _normalized(batch, normalizer, device, model)  # (B,T,N,D), (B,T,N,U)
             out = model.rollout_from_data(x, ts, batch.graph(device), u, solver=solver)
             n_f_evals += out.n_f_evals
             done += len(x)
@@ -296,7 +296,7 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
             device: str | torch.device = "cpu") -> Prediction:
     """Roll out the trajectories at `index` (`[B]`) and return them in physical units."""
     batch = data.take(index)
-    x, u = _normalized(batch, normalizer, device)
+    x, u = _normalized(batch, normalizer, device, model)
     with torch.no_grad():
         out = model.rollout_from_data(x, data.time.to(device), batch.graph(device), u,
                                       solver=solver, return_messages=True)
@@ -619,9 +619,12 @@ def _file_index(data: TrajectoryData, split: str, i: int) -> int:
     return _file_indices(data, split)[i]
 
 
-def _normalized(batch: TrajectoryData, normalizer: Normalizer, device):
-    x = normalizer.norm_x(batch.states.to(device))
-    u = None if batch.controls is None else normalizer.norm_u(batch.controls.to(device))
+def _normalized(batch: TrajectoryData, normalizer: Normalizer, device, model=None):
+    """The batch's states and controls normalized on `device`, in `model`'s precision."""
+    dtype = model_dtype(model)
+    x = normalizer.norm_x(batch.states.to(device)).to(dtype)
+    u = None if batch.controls is None else normalizer.norm_u(
+        batch.controls.to(device)).to(dtype)
     return x, u
 
 

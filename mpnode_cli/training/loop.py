@@ -285,9 +285,10 @@ def _inputs(run: Run, batch, size: int, horizon: int, generator: torch.Generator
     # global batch, so it is the same on any device, after a resume and with any number
     # of processes.
     noise = torch.randn((size, *x.shape[1:]), generator=generator)[run.world.shard(size)]
-    x = (x + run.config.noise * noise).to(run.device)
+    dtype = getattr(torch, run.config.dtype)
+    x = (x + run.config.noise * noise).to(run.device, dtype)
     u = None if batch.controls is None else run.normalizer.norm_u(
-        batch.controls[:, :horizon]).to(run.device)
+        batch.controls[:, :horizon]).to(run.device, dtype)
     return x, u
 
 

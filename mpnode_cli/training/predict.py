@@ -36,6 +36,7 @@ from mpnode_cli.config import stored_solver, train_solver
 from mpnode_cli.data.generate import Estimate, check_memory
 from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
 from mpnode_cli.graphs import Graphs
+from mpnode_cli.models.base import model_dtype
 from mpnode_cli.paths import file_sha256
 from mpnode_cli.progress import Progress
 from mpnode_cli.solver.options import SolverOptions
@@ -99,6 +100,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
         ValueError: sizes that do not fit the model (one line).
     """
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
+    dtype = model_dtype(model)
     x0 = torch.as_tensor(np.asarray(x0), dtype=torch.float32)
     ts = torch.as_tensor(np.asarray(ts), dtype=torch.float64)
     graph_index = np.asarray(graph_index, dtype=np.int64)
@@ -127,8 +129,8 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
     model.eval()
     with torch.no_grad():
         for idx in torch.arange(k).split(graphs.rollout_batch(batch_size)):
-            x = normalizer.norm_x(x0[idx].to(device))  # (B, N, D)
-            ub = None if u is None else normalizer.norm_u(u[idx].to(device))  # (B, T, N, U)
+            x = normalizer.norm_x(x0[idx].to(device)).to(dtype)  # (B, N, D)
+            ub = None if u is None else normalizer.norm_u(u[idx].to(device)).to(dtype)
             out = model.rollout(x, ts.to(device), _batch_graph(graphs, graph_index[idx.numpy()],
                                                                device),
                                 ub, solver=solver, return_messages=True)

@@ -249,7 +249,7 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
     if source is None or renormalize:
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
         _fit_statistics(model, train_sets, normalizer)
-    model.to(data.device)
+    model.to(device=data.device, dtype=getattr(torch, config.dtype))
     world.broadcast_module(model)
     optimizer = Adam(model.parameters() if seeds == 1 else
                      [{"params": list(m.parameters())} for m in model.members], lr=config.lr)
