@@ -216,6 +216,20 @@ def test_two_datasets_on_two_ranks_train_as_in_one_process(gene, tmp_path):
         assert a["val_mse_by_dataset"] == pytest.approx(b["val_mse_by_dataset"], rel=1e-4)
 
 
+def train_ensemble(rank, gene, run_dir):
+    loop.train(small(gene, run_dir, lr=1e-2, seeds=3))
+
+
+def test_an_ensemble_on_two_ranks_trains_as_in_one_process(gene, tmp_path):
+    """Each member's global batch is split over the ranks; the members' losses agree."""
+    spawn_two(train_ensemble, gene, tmp_path / "two")
+    loop.train(small(gene, tmp_path / "one", lr=1e-2, seeds=3))
+    two, one = read_metrics(tmp_path / "two"), read_metrics(tmp_path / "one")
+    for a, b in zip(two, one, strict=True):
+        assert [m["val_loss"] for m in a["members"]] == pytest.approx(
+            [m["val_loss"] for m in b["members"]], rel=1e-4)
+
+
 # ---------------------------------------------------------------- torchrun, end to end
 @pytest.fixture(scope="module")
 def torchrun_run(gene, tmp_path_factory):

@@ -205,9 +205,14 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
             i, size = plans[0][b - 1][0], len(plans[0][b - 1][1])
             inputs = [_inputs(run, batch, size, horizons[i], run.shuffles[k])
                       for k, batch in zip(active, batches, strict=True)]
-            results = _step_members(run.model, run.members, run.optimizer, inputs, times[i],
-                                    [x.graph(run.device) for x in batches], loss_fn, config,
-                                    world, active, len(batches[0]) / size)
+            graphs, share = [x.graph(run.device) for x in batches], len(batches[0]) / size
+            if len(run.shuffles) == 1:  # one model
+                (x, u), = inputs
+                results = [_step(run.model, run.optimizer, x, times[i], graphs[0], u, loss_fn,
+                                 config, world, share)]
+            else:
+                results = _step_members(run.model, run.members, run.optimizer, inputs,
+                                        times[i], graphs, loss_fn, config, world, active, share)
             raise_if_interrupted()  # a signal a library swallowed inside the step
             evals_per_batch.append(max(r[2] for r in results))
             for k, (loss, grad_norm, _, reason) in zip(active, results, strict=True):

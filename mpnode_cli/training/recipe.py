@@ -41,6 +41,9 @@ _MPNODE: dict[str, Any] = {
     "even_batches": True,
     "schedule": "plateau",
     "patience": 50,
+    # Four halvings of the lr without a better validation loss: a long budget then spends
+    # only the epochs it needs (each ensemble member stops on its own).
+    "stop_patience": 200,
     "val_batch_size": 1024,
     # A node update affine in the sum of what the neighbours send, and message states that
     # start from the node's state: the choice that carries a node model to larger graphs
