@@ -70,18 +70,20 @@ def run(data: Path, root: Path, seeds: int, seed: int, epochs: int) -> list[dict
     return read_metrics(run_dir)
 
 
-def epoch_seconds(rows: list[dict]) -> tuple[float, float]:
-    """Median over epochs 2… of the training part and of the whole epoch."""
+def epoch_seconds(rows: list[dict]) -> tuple[float, float, float]:
+    """Median over epochs 2… of the training part and of the whole epoch, and the RHS
+    evaluations of an epoch's training steps (summed over its batches)."""
     later = [r for r in rows if r["epoch"] >= 2]
     return (statistics.median(r["train_seconds"] for r in later),
-            statistics.median(r["seconds"] for r in later))
+            statistics.median(r["seconds"] for r in later),
+            statistics.median(r["rhs_evals"] for r in later))
 
 
 def bench(data: Path, root: Path, args) -> list[dict]:
     """Per S and round: the ensemble's epoch against the mean epoch of its S members' seeds
     trained alone (so S / ratio is the throughput against S separate runs); and the largest
     difference of a member's validation loss to its seed alone."""
-    ratios = {s: {"train": [], "epoch": []} for s in args.sizes}
+    ratios = {s: {"train": [], "epoch": [], "evals": []} for s in args.sizes}
     gap = {s: 0.0 for s in args.sizes}
     for r in range(args.rounds):
         alone = {k: run(data, root, 1, k, args.epochs) for k in range(max(args.sizes))}
@@ -89,7 +91,7 @@ def bench(data: Path, root: Path, args) -> list[dict]:
             rows = run(data, root, s, 0, args.epochs)
             mine = epoch_seconds(rows)
             theirs = [epoch_seconds(alone[k]) for k in range(s)]
-            for i, part in enumerate(("train", "epoch")):
+            for i, part in enumerate(("train", "epoch", "evals")):
                 ratios[s][part].append(mine[i] / statistics.mean(t[i] for t in theirs))
             print(f"round {r + 1} {data.stem} S={s}: train {ratios[s]['train'][-1]:.2f}× "
                   f"a member alone, epoch {ratios[s]['epoch'][-1]:.2f}×", file=sys.stderr)
@@ -97,8 +99,7 @@ def bench(data: Path, root: Path, args) -> list[dict]:
                 for row, solo in zip(rows, alone[k], strict=True):
                     got = row["members"][k]["val_loss"]
                     gap[s] = max(gap[s], abs(got - solo["val_loss"]) / solo["val_loss"])
-    return [{"dataset": data.stem, "S": s, "train": ratios[s]["train"],
-             "epoch": ratios[s]["epoch"], "gap": gap[s] if s > 1 else None}
+    return [{"dataset": data.stem, "S": s, "gap": gap[s] if s > 1 else None} | ratios[s]
             for s in args.sizes]
 
 
@@ -124,18 +125,21 @@ def write_report(rows: list[dict], args, load_before, load_after) -> str:
         "model gains. `train` is "
         "the epoch's optimizer steps, `epoch` adds the validation rollouts. `max rel. gap` "
         "is the largest relative difference between a member's validation loss and its seed "
-        "trained alone, over members and epochs, in float32.",
+        "trained alone, over members and epochs, in float32. `RHS evals ×` is the solver's "
+        "vector-field evaluations in an epoch's steps against the seeds' mean alone: one "
+        "solve steps until its slowest sample is done, so the slowest member sets it.",
         "",
         "| dataset | S | train: × one member | throughput × | epoch: × one member | "
-        "throughput × | max rel. gap to the seed alone |",
-        "|---|---|---|---|---|---|---|",
+        "throughput × | RHS evals × | max rel. gap to the seed alone |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         s, gap = r["S"], "—" if r["gap"] is None else f"{r['gap']:.1e}"
         lines.append(
             f"| {r['dataset']} | {s} | {_ratio(r['train'])} | "
             f"{s / statistics.median(r['train']):.2f} | {_ratio(r['epoch'])} | "
-            f"{s / statistics.median(r['epoch']):.2f} | {gap} |")
+            f"{s / statistics.median(r['epoch']):.2f} | {statistics.median(r['evals']):.2f} "
+            f"| {gap} |")
     return "\n".join(lines) + "\n"
 
 
