@@ -287,6 +287,8 @@ class SimulateConfig(BaseModel):
         device: where the rollouts run.
         dtype: storage dtype of the predictions.
         out: output file (default `predictions/<x0 file stem>.h5`).
+        member: an ensemble checkpoint's member to roll out alone (None: the members'
+            mean, with their spread in `hidden/ensemble_std`).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -303,6 +305,7 @@ class SimulateConfig(BaseModel):
     device: Literal["cpu", "cuda"] = "cpu"
     dtype: Literal["float32", "float64"] = "float32"
     out: Path | None = None
+    member: int | None = None
 
     @model_validator(mode="after")
     def _check(self) -> SimulateConfig:

@@ -218,3 +218,9 @@ def test_a_finetune_of_one_model_starts_every_member_from_it(gene, tmp_path):
     with pytest.raises(ValueError, match="ensemble of 3 members"):
         train(config(gene, tmp_path / "grandchild", epochs=1, seeds=2,
                      init_checkpoint=checkpoint_path(child.run_dir, "best")))
+    other = generate(GenerateConfig(system="gene", grid=2, topology="ba", trajectories=12,
+                                    t_end=2.0, dt=0.1, out=tmp_path / "other.h5")).path
+    with pytest.raises(ValueError, match="trains on one dataset"):
+        train(config([gene, other], tmp_path / "pooled", epochs=1,
+                     init_checkpoint=checkpoint_path(child.run_dir, "best")))
+    assert not (tmp_path / "grandchild").exists() and not (tmp_path / "pooled").exists()

@@ -2,6 +2,11 @@
 
 Exit 0 with a short summary when the file is valid, 2 with one line per problem when it is
 not. `--json` prints the report as one JSON object on stdout instead (either way).
+
+`mpnode check CKPT --member K --out FILE` also writes member K of a valid ensemble
+checkpoint (`train --seeds S`) as a checkpoint of one model
+(`mpnode_cli.training.checkpoint.export_member`), which every verb takes as it takes
+`--member K` with the ensemble.
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console
+from mpnode_cli.cli.common import console, error_message, fail
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -20,20 +25,51 @@ def check_command(
     path: Path = typer.Argument(
         ..., metavar="FILE", help="A dataset (.h5), a checkpoint (.pt) or a run folder."),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+    member: int | None = typer.Option(
+        None, "--member", metavar="K", show_default=False,
+        help="With --out: write member K of an ensemble checkpoint as a checkpoint of its "
+        "own."),
+    out: Path | None = typer.Option(
+        None, "--out", metavar="FILE", show_default=False,
+        help="Where --member's checkpoint goes (.pt)."),
+    force: bool = typer.Option(False, "--force", help="Overwrite an existing --out file."),
 ) -> None:
     """Check a dataset or checkpoint: shapes, indices, attributes, finite values, format."""
+    if (member is None) != (out is None):
+        fail("--member and --out go together: mpnode check CKPT --member K --out FILE "
+             "writes member K of an ensemble as a checkpoint of its own")
     report = _check(path)
+    exported = _export(report, member, out, force) if report.ok and out is not None else None
     if json_out:
-        typer.echo(json.dumps(report.to_dict(), default=str))
+        typer.echo(json.dumps(report.to_dict() | ({"exported": exported} if exported else {}),
+                              default=str))
     elif report.ok:
         console().print(f"{report.path}: valid {report.kind}")
         for key, value in report.summary.items():
             console().print(f"  {key}: {_shown(value)}", highlight=False)
+        if exported:
+            console().print(f"wrote {exported['path']}: member {member} (seed "
+                            f"{exported['seed']}) as a checkpoint of one model",
+                            highlight=False)
     else:
         for problem in report.problems:
             typer.echo(f"Error: {report.path}: {problem}", err=True)
     if not report.ok:
         raise typer.Exit(code=2)
+
+
+def _export(report, member: int, out: Path, force: bool) -> dict:
+    """Write member `member` of the checked checkpoint to `out`: what `--json` adds as
+    `exported` (path, member, seed); a refusal is one line and exit 2."""
+    from mpnode_cli.training.checkpoint import export_member
+
+    if report.kind != "checkpoint":
+        fail(f"--member: {report.path} is a {report.kind}, not an ensemble checkpoint")
+    try:
+        ckpt = export_member(report.path, member, out, overwrite=force)
+    except (FileExistsError, FileNotFoundError, ValueError) as exc:
+        fail(error_message(exc))
+    return {"path": str(out), "member": member, "seed": ckpt.train_config.get("seed")}
 
 
 def _check(path: Path):

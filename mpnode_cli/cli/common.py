@@ -26,6 +26,12 @@ THREADS = typer.Option(
     None, "--threads", metavar="N", show_default=False,
     help="CPU threads torch may use (default 1, or MPNODE_THREADS).")
 
+# `--member K` of the verbs that roll a checkpoint out (evaluate, zeroshot, simulate).
+MEMBER = typer.Option(
+    None, "--member", metavar="K", show_default=False,
+    help="Use member K (0, 1, ..) of an ensemble checkpoint (train --seeds) alone, not the "
+    "members' mean.")
+
 
 def solver_option(name: str, defaults: SolverOptions) -> Any:
     """The CLI option of one `SolverOptions` field: its declared help and the verb's default.

@@ -4,7 +4,9 @@ evaluate: one checkpoint on one dataset split, with optional plots. zeroshot: on
 on datasets of other sizes and topologies, with the training normalization and no training.
 compare: runs side by side from their `summary.json` (or, unfinished, their metrics).
 Every MSE is shown beside two naive predictors (hold x(0) and the train split's time mean;
-`mpnode_cli.training.evaluate.baseline_mse`).
+`mpnode_cli.training.evaluate.baseline_mse`). An ensemble checkpoint (`train --seeds S`) is
+scored on its members' mean, with the members' MSE as mean ± std, their spread and how
+well the spread ranks the error; `--member K` scores one member alone.
 Exit code 2 for anything the user can fix (a missing or invalid file, incompatible sizes,
 another system's data without `--allow-other-system`, an unwritable plot folder).
 """
@@ -17,7 +19,14 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, console, error_message, extrapolation_note, fail
+from mpnode_cli.cli.common import (
+    MEMBER,
+    THREADS,
+    console,
+    error_message,
+    extrapolation_note,
+    fail,
+)
 
 _SPLITS = "train, validation, test or all"
 _CHECKPOINT = typer.Argument(..., help="A checkpoint (.pt), or a run folder (its best.pt).")
@@ -42,6 +51,7 @@ def evaluate_command(
         "under hidden/messages) as an mpnode dataset file."),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing --save-predictions file."),
+    member: int | None = MEMBER,
     threads: str | None = THREADS,
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
@@ -51,7 +61,7 @@ def evaluate_command(
     from mpnode_cli.report.tables import baselines_note, metrics_table
 
     _check_batch_size(batch_size)
-    ckpt = _load_checkpoint(checkpoint)
+    ckpt = _load_checkpoint(checkpoint, member)
     checkpoint = ckpt.path or checkpoint
     where = (plot_dir or _default_plot_dir(checkpoint)) if plot else None
     if where is not None:
@@ -70,9 +80,10 @@ def evaluate_command(
         row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
                         allow_other_system, save_predictions, force=True, quiet=json_out)
     if json_out:
-        typer.echo(json.dumps({"checkpoint": str(checkpoint), **row}, indent=2))
+        typer.echo(json.dumps({"checkpoint": str(checkpoint), **_member(member), **row},
+                              indent=2))
         return
-    title = f"{checkpoint} on {dataset} ({split}, N={row['num_nodes']})"
+    title = f"{_named(checkpoint, member)} on {dataset} ({split}, N={row['num_nodes']})"
     console().print(metrics_table(row["result"], ckpt.dataset["state_names"], title,
                                   row["baselines"]))
     console().print(baselines_note(row["baselines_note"]))
@@ -91,21 +102,22 @@ def zeroshot_command(
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
     allow_other_system: bool = _OTHER_SYSTEM,
+    member: int | None = MEMBER,
     threads: str | None = THREADS,
 ) -> None:
     """Run a trained node network on graphs it never saw, without training."""
     from mpnode_cli.report.tables import baselines_note, zeroshot_table
 
     _check_batch_size(batch_size)
-    ckpt = _load_checkpoint(checkpoint)
+    ckpt = _load_checkpoint(checkpoint, member)
     rows = [_evaluate(ckpt, path, split, "zeroshot", batch_size, device, None,
                       allow_other_system, quiet=json_out) for path in datasets]
     if json_out:
-        typer.echo(json.dumps({"checkpoint": str(checkpoint), "trained_on": ckpt.dataset,
-                               "datasets": rows}, indent=2))
+        typer.echo(json.dumps({"checkpoint": str(checkpoint), **_member(member),
+                               "trained_on": ckpt.dataset, "datasets": rows}, indent=2))
         return
     trained = ckpt.dataset
-    title = (f"zero-shot: {checkpoint} (trained on {trained['system']}, "
+    title = (f"zero-shot: {_named(checkpoint, member)} (trained on {trained['system']}, "
              f"N={trained['num_nodes']}, {trained.get('topology') or '?'})")
     console().print(zeroshot_table(
         [{**row, "dataset": Path(row["dataset"]).name} for row in rows], title))
@@ -133,13 +145,25 @@ def compare_command(
     console().print(compare_table(summaries))
 
 
-def _load_checkpoint(path: Path):
-    from mpnode_cli.training.checkpoint import load_checkpoint
+def _load_checkpoint(path: Path, member: int | None = None):
+    """The checkpoint at `path` (`member`: that member of an ensemble's, alone)."""
+    from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
 
     try:
-        return load_checkpoint(path)
+        ckpt = load_checkpoint(path)
+        return ckpt if member is None else member_checkpoint(ckpt, member)
     except (FileNotFoundError, ValueError) as exc:
         fail(error_message(exc))
+
+
+def _member(member: int | None) -> dict[str, int]:
+    """`--json`'s `member` key: there only with `--member`."""
+    return {} if member is None else {"member": member}
+
+
+def _named(checkpoint: Path, member: int | None) -> str:
+    """A checkpoint as a table's title names it."""
+    return str(checkpoint) if member is None else f"{checkpoint} (member {member})"
 
 
 def _check_batch_size(batch_size: int) -> None:

@@ -188,8 +188,9 @@ def _origin(config: dict[str, Any], attrs: dict[str, Any]) -> str | None:
         except ValueError:
             facts = {}
         sha = str(facts.get("checkpoint_sha256"))[:12]
+        member = f", member {facts['member']}" if "member" in facts else ""
         return (f"predictions of {facts.get('model_kind', '?')} checkpoint "
-                f"{facts.get('checkpoint', '?')} (sha256 {sha}...), not ground truth")
+                f"{facts.get('checkpoint', '?')} (sha256 {sha}...{member}), not ground truth")
     return None
 
 

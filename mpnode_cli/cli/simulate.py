@@ -16,6 +16,7 @@ from pathlib import Path
 import typer
 
 from mpnode_cli.cli.common import (
+    MEMBER,
     THREADS,
     confirm_size,
     console,
@@ -53,6 +54,7 @@ def simulate_command(
         False, "--yes", "-y", help="Go ahead with a big job without asking."),
     json_out: bool = typer.Option(
         False, "--json", help="Print the summary as one JSON object on stdout."),
+    member: int | None = MEMBER,
     threads: str | None = THREADS,
 ) -> None:
     """Roll a trained model out from your initial states on your graph (no data needed)."""
@@ -75,12 +77,18 @@ def simulate_command(
                            config, overwrite=force, progress=progress,
                            confirm=lambda size, job: confirm_size(size, job, yes)),
                        quiet=json_out, stopped="nothing written", failures=(PredictionFailed,))
+    record = asdict(summary)
+    if record["members"] is None:  # a single model's summary, as before ensembles
+        del record["members"]
     if json_out:
-        typer.echo(json.dumps({**asdict(summary), "path": str(summary.path)}))
+        typer.echo(json.dumps({**record, "path": str(summary.path)}))
         return
     console().print(
         f"wrote {summary.path}: {summary.trajectories} predicted trajectories × "
         f"{summary.samples} samples × {summary.nodes} nodes on {summary.graphs} "
         f"graph{'s' * (summary.graphs > 1)} ({summary.seconds:.2f} s, "
         f"{summary.n_f_evals:,} RHS evaluations)", highlight=False)
+    if summary.members:
+        console().print(f"the states are the mean of the ensemble's {summary.members} "
+                        "members; their std is hidden/ensemble_std", highlight=False)
     extrapolation_note(asdict(summary))

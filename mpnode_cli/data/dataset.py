@@ -70,6 +70,11 @@ class Normalizer:
     def denorm_x(self, x: torch.Tensor) -> torch.Tensor:
         return x * self.x_std.to(x) + self.x_mean.to(x)
 
+    def denorm_spread(self, s: torch.Tensor) -> torch.Tensor:
+        """A spread of states (a standard deviation, `[..., D]`) in physical units: scaled
+        by the state std, not shifted by the mean."""
+        return s * self.x_std.to(s)
+
     def norm_u(self, u: torch.Tensor) -> torch.Tensor:
         return (u - self.u_mean.to(u)) / self.u_std.to(u)
 

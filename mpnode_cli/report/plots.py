@@ -22,7 +22,7 @@ DPI = 110
 
 def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: str | Path,
                  *, title: str = "", dpi: int = DPI,
-                 labels: tuple[str, str] = ("true", "predicted")) -> Path:
+                 labels: tuple[str, str] = ("true", "predicted"), spread=None) -> Path:
     """Predicted vs true states per node, message norms beneath (the paper's Fig. 2).
 
     Args:
@@ -36,6 +36,8 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
         dpi: resolution of the PNG.
         labels: the legend's names of `true` and `pred`: what they are (a prediction file
             holds a model's predictions, not the truth).
+        spread: `[T, N, D]` an ensemble's members' std around `pred` (physical units),
+            drawn as a light band of ± 2 std; None: no band.
 
     Returns:
         The path written.
@@ -44,6 +46,7 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
     curves = [(true, labels[0], {"color": "k"})]
     if pred is not None:
         curves.append((_np(pred), labels[1], {"color": "tab:red", "ls": "--"}))
+    band = None if pred is None or spread is None else (_np(pred), 2 * _np(spread))
     nodes, dims = min(true.shape[1], MAX_NODES), true.shape[2]
     shown = (f"all {nodes} nodes" if nodes == true.shape[1]
              else f"nodes 0–{nodes - 1} of {true.shape[1]}")
@@ -58,6 +61,10 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
             ax = axes[d, i]
             for states, label, style in curves:
                 ax.plot(time, states[:, i, d], lw=1.2, label=label, **style)
+            if band is not None:  # beneath the curves (a collection's zorder), listed after
+                mean, width = band[0][:, i, d], band[1][:, i, d]
+                ax.fill_between(time, mean - width, mean + width, color="tab:red", alpha=0.15,
+                                lw=0, label="± 2 std (members)")
             if i == 0:
                 ax.set_ylabel(state_names[d] if d < len(state_names) else f"x{d}")
         if has_msg:

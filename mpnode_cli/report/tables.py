@@ -4,6 +4,12 @@ Every function takes plain dicts (`EvalResult.to_dict()`, `summary.json`), so ta
 drawn from files as well as from live results. Every MSE is shown beside the two naive
 predictors of `mpnode_cli.training.evaluate.baseline_mse` (hold x(0), time mean), each with
 its ratio to the model's MSE: "×20" means the baseline's error is 20 times the model's.
+
+An ensemble's result (`train --seeds S`) is its members' mean prediction's, and its tables
+add the members' own MSE as mean ± std over the members, the spread (the members' std,
+normalized, averaged over every predicted value) and the spread-error correlation (over
+trajectories: how well the spread ranks where the mean prediction is wrong). A single
+model's tables have none of these rows or columns.
 """
 
 from __future__ import annotations
@@ -49,6 +55,33 @@ def versus(baseline: Any, mse: Any) -> str:
     return f"{fmt(baseline)} (×{fmt(baseline / mse, 3)})"
 
 
+def mean_std(mean: Any, std: Any) -> str:
+    """`1.234 ± 0.05`; '—' when the mean is missing."""
+    if fmt(mean) == "—":
+        return "—"
+    return f"{fmt(mean)} ± {fmt(std)}"
+
+
+def members_mse(result: dict[str, Any] | None) -> str:
+    """An ensemble result's members' MSE as mean ± std (`member_stats`), '—' for a single
+    model's."""
+    if not (result or {}).get("members"):
+        return "—"
+    return mean_std((result.get("members_mean") or {}).get("mse"),
+                    (result.get("members_std") or {}).get("mse"))
+
+
+def _ensemble_rows(result: dict[str, Any], prefix: str = "") -> list[tuple[str, str]]:
+    """An ensemble result's rows: the members' MSE, the spread, the spread-error
+    correlation (none for a single model's result)."""
+    members = result.get("members")
+    if not members:
+        return []
+    return [(f"{prefix}members' MSE (mean ± std of {len(members)})", members_mse(result)),
+            (f"{prefix}spread (members' std, normalized)", fmt(result.get("spread"))),
+            (f"{prefix}spread-error correlation", fmt(result.get("spread_error_corr"), 3))]
+
+
 def _dataset_test_row(name: str, record: dict[str, Any]) -> tuple[str, str]:
     """One dataset's test MSE beside its time-mean baseline (a run on several datasets)."""
     mse = (record.get("test") or {}).get("mse")
@@ -71,10 +104,14 @@ def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str
     table.add_column(style="bold")
     table.add_column(justify="right")
     table.add_row("trajectories", f"{result['trajectories']} ({result['failed']} failed)")
-    table.add_row("MSE (normalized)", fmt(result["mse"]))
+    ensemble = _ensemble_rows(result)
+    table.add_row("MSE of the members' mean (normalized)" if ensemble else "MSE (normalized)",
+                  fmt(result["mse"]))
     baselines = baselines or {}
     table.add_row("hold-x(0) MSE (× model)", versus(baselines.get("hold_x0"), result["mse"]))
     table.add_row("time-mean MSE (× model)", versus(baselines.get("time_mean"), result["mse"]))
+    for row in ensemble:
+        table.add_row(*row)
     table.add_row("Huber loss", fmt(result["huber"]))
     for name, rmse in zip(state_names, result["rmse"], strict=False):
         table.add_row(f"RMSE {name}", fmt(rmse))
@@ -91,20 +128,26 @@ def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
     """One row per dataset: where the trained node network ran, and how well.
 
     MSE is normalized, beside the baselines' (with their ratio to it); RMSE is in physical
-    units, averaged over the states (per state in `--json`).
+    units, averaged over the states (per state in `--json`). An ensemble's MSE is its
+    members' mean's, followed by the members' MSE (mean ± std), the spread and the
+    spread-error correlation.
     """
     table = titled(title, box=box.SIMPLE_HEAD)
-    for name in ("dataset", "system", "N", "topology", "K", "failed", "MSE", "hold x(0)",
-                 "time mean", "Huber", "RMSE"):
+    ensemble = any(row["result"].get("members") for row in rows)
+    for name in ("dataset", "system", "N", "topology", "K", "failed", "MSE",
+                 *(("members' MSE", "spread", "spread~error") if ensemble else ()),
+                 "hold x(0)", "time mean", "Huber", "RMSE"):
         table.add_column(name, justify="left" if name in ("dataset", "system", "topology")
                          else "right")
     for row in rows:
         r = row["result"]
         rmse = [v for v in r["rmse"] if v is not None]
         base = row.get("baselines") or {}
+        spread = ((members_mse(r), fmt(r.get("spread")), fmt(r.get("spread_error_corr"), 3))
+                  if ensemble else ())
         table.add_row(row["dataset"], row["system"], str(row["num_nodes"]),
                       fmt(row["topology"]), str(r["trajectories"]), str(r["failed"]),
-                      fmt(r["mse"]), versus(base.get("hold_x0"), r["mse"]),
+                      fmt(r["mse"]), *spread, versus(base.get("hold_x0"), r["mse"]),
                       versus(base.get("time_mean"), r["mse"]), fmt(r["huber"]),
                       fmt(sum(rmse) / len(rmse) if rmse else None))
     return table
@@ -112,18 +155,24 @@ def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
 
 def compare_table(summaries: Sequence[dict[str, Any]]) -> Table:
     """Runs side by side. Table-2 is the paper's figure: best epoch × min validation loss;
-    the test MSE sits beside the naive baselines' on the same split."""
+    the test MSE sits beside the naive baselines' on the same split. An ensemble's test MSE
+    is its members' mean's, followed by its members' test MSE (mean ± std, and S)."""
     table = titled("runs (val: validation loss; MSE normalized)", box=box.SIMPLE_HEAD)
+    ensemble = any(s.get("members") for s in summaries)
     columns = ("run", "model", "params", "epochs", "best", "min val", "Table-2", "test MSE",
-               "hold x(0)", "time mean", "s/epoch")
+               *(("members' test MSE",) if ensemble else ()), "hold x(0)", "time mean",
+               "s/epoch")
     for name in columns:
         table.add_column(name, justify="left" if name in ("run", "model") else "right")
     for s in summaries:
         test, base = s.get("test") or {}, s.get("baselines") or {}
         epochs = fmt(s.get("epochs")) + ("" if s.get("finished", True) else "…")
+        members = s.get("members") or []
+        spread = (members_mse(test) + (f" (S={len(members)})" if members else ""),
+                  ) if ensemble else ()
         table.add_row(Path(s["run_dir"]).name, fmt(s.get("model")), fmt(s.get("parameters")),
                       epochs, fmt(s.get("best_epoch")), fmt(s.get("min_val_loss")),
-                      fmt(s.get("table2")), fmt(test.get("mse")),
+                      fmt(s.get("table2")), fmt(test.get("mse")), *spread,
                       versus(base.get("hold_x0"), test.get("mse")),
                       versus(base.get("time_mean"), test.get("mse")),
                       fmt(s.get("seconds_per_epoch"), 3))
@@ -141,17 +190,23 @@ def train_table(summary: dict[str, Any]) -> Table:
     if several:  # the pooled numbers below, then each dataset's test MSE
         sizes = ", ".join(f"{name} (N={d['num_nodes']})" for name, d in several.items())
         data = f"{sizes} ({summary['system']}; the MSEs are pooled)"
+    members = summary.get("members") or []
     rows = [
         ("model", f"{summary['model']} ({fmt(summary['parameters'])} parameters)"),
+        *([("members", f"{len(members)} (seeds {members[0]['seed']}–{members[-1]['seed']})")]
+          if members else []),
         ("data", data),
         ("epochs", fmt(summary["epochs"])),
         ("best epoch", fmt(summary["best_epoch"])),
-        (f"min validation loss ({summary['loss']})", fmt(summary["min_val_loss"])),
+        (f"min validation loss ({summary['loss']}{'; mean over members' * bool(members)})",
+         fmt(summary["min_val_loss"])),
         ("min validation MSE", fmt(summary["min_val_mse"])),
         ("Table-2 (best epoch × min val loss)", fmt(summary["table2"])),
-        ("test MSE (normalized)", fmt(test.get("mse"))),
+        ("test MSE of the members' mean (normalized)" if members else "test MSE (normalized)",
+         fmt(test.get("mse"))),
         ("test hold-x(0) MSE (× model)", versus(base.get("hold_x0"), test.get("mse"))),
         ("test time-mean MSE (× model)", versus(base.get("time_mean"), test.get("mse"))),
+        *_ensemble_rows(test, "test "),
         ("test Huber", fmt(test.get("huber"))),
         *[_dataset_test_row(name, d) for name, d in several.items()],
         ("seconds per epoch", fmt(summary["seconds_per_epoch"], 3)),

@@ -27,7 +27,7 @@ from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
 from mpnode_cli.jsonable import jsonable
 from mpnode_cli.models.base import NeuralModel, model_dtype
-from mpnode_cli.models.ensemble import spread_error_correlation
+from mpnode_cli.models.ensemble import EnsembleRollout, spread_error_correlation
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
 from mpnode_cli.solver.options import SolverOptions
@@ -294,15 +294,18 @@ def _weighted(values: Sequence[float], weights: Sequence[float]) -> float:
 def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
             index: torch.Tensor, *, solver: SolverOptions | None = None,
             device: str | torch.device = "cpu") -> Prediction:
-    """Roll out the trajectories at `index` (`[B]`) and return them in physical units."""
+    """Roll out the trajectories at `index` (`[B]`) and return them in physical units (an
+    ensemble's: the members' mean, with their spread)."""
     batch = data.take(index)
     x, u = _normalized(batch, normalizer, device, model)
     with torch.no_grad():
         out = model.rollout_from_data(x, data.time.to(device), batch.graph(device), u,
                                       solver=solver, return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
+    spread = (normalizer.denorm_spread(out.spread).cpu()
+              if isinstance(out, EnsembleRollout) else None)
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
-                      messages=messages, status=out.status.cpu())
+                      messages=messages, status=out.status.cpu(), spread=spread)
 
 
 def baseline_mse(train: TrajectoryData | StreamedTrajectories | Sequence[TrajectoryData],
@@ -522,7 +525,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
             str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
                              Path(plot_dir) / f"{stem}-rollout.png",
                              title=f"{data.path.name}: trajectory {index} (the first of the "
-                                   f"{split} split)", labels=labels)),
+                                   f"{split} split)", labels=labels,
+                             spread=None if pred.spread is None else pred.spread[0])),
             str(plot_error_vs_time(data.time, result.mse_vs_time,
                                    Path(plot_dir) / f"{stem}-error.png",
                                    title=f"{data.path.name} ({split}): error vs time")),

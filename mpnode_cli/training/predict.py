@@ -8,7 +8,10 @@ any h5py reader take them as they take data:
 
 - `states` are the predictions in physical units (not ground truth);
 - `hidden/messages [K, T, N, M]` the model's message states (MP-NODE; in the model's own,
-  normalized units);
+  normalized units; an ensemble's: its first member's);
+- an ensemble checkpoint's (`mpnode train --seeds S`): `states` are its members' mean, and
+  `hidden/ensemble_std [K, T, N, D]` their standard deviation (population, over the S
+  members) in physical units;
 - `solver/status` and `solver/n_f_evals` the rollouts' (RHS evaluations: the maximum
   within each trajectory's batch);
 - `system`, `state_names` and `control_names` are those of the checkpoint's training data,
@@ -37,6 +40,7 @@ from mpnode_cli.data.generate import Estimate, check_memory
 from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.models.base import model_dtype
+from mpnode_cli.models.ensemble import EnsembleRollout
 from mpnode_cli.paths import file_sha256
 from mpnode_cli.progress import Progress
 from mpnode_cli.solver.options import SolverOptions
@@ -64,12 +68,15 @@ class Predicted:
         messages: float64 `[K, T, N, M]` message states, or None for a model without them.
         status: int8 `[K]` `mpnode_cli.solver.Status` of each rollout (0: finished).
         n_f_evals: int32 `[K]` vector-field evaluations (the maximum within its batch).
+        spread: float64 `[K, T, N, D]` an ensemble's members' std (physical units; `states`
+            is then their mean), or None for a single model.
     """
 
     states: np.ndarray
     messages: np.ndarray | None
     status: np.ndarray
     n_f_evals: np.ndarray
+    spread: np.ndarray | None = None
 
 
 def rollout_solver(ckpt) -> SolverOptions:
@@ -82,7 +89,8 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
              controls: np.ndarray | None = None, *, batch_size: int = 128,
              device: str | torch.device = "cpu", progress: Progress | None = None
              ) -> Predicted:
-    """Predict trajectories from `x0` with a checkpoint's model.
+    """Predict trajectories from `x0` with a checkpoint's model (an ensemble's: the
+    members' mean, and their spread).
 
     Args:
         ckpt: a `mpnode_cli.training.checkpoint.Checkpoint`.
@@ -123,7 +131,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
                          "states, not one initial state")
     u = None if controls is None else torch.as_tensor(np.asarray(controls), dtype=torch.float32)
     solver = rollout_solver(ckpt)
-    states, messages = [], []
+    states, messages, spreads = [], [], []
     status = np.zeros(k, dtype=np.int8)
     n_f_evals = np.zeros(k, dtype=np.int32)
     model.eval()
@@ -137,13 +145,16 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
             states.append(normalizer.denorm_x(out.states).double().cpu())  # (B, T, N, D)
             if out.messages is not None:
                 messages.append(out.messages.double().cpu())  # (B, T, N, M)
+            if isinstance(out, EnsembleRollout):
+                spreads.append(normalizer.denorm_spread(out.spread).double().cpu())  # (B, T, N, D)
             status[idx.numpy()] = out.status.cpu().numpy()
             n_f_evals[idx.numpy()] = out.n_f_evals
             if progress is not None:
                 progress(int(idx[-1]) + 1, k)
     return Predicted(states=torch.cat(states).numpy(),
                      messages=torch.cat(messages).numpy() if messages else None,
-                     status=status, n_f_evals=n_f_evals)
+                     status=status, n_f_evals=n_f_evals,
+                     spread=torch.cat(spreads).numpy() if spreads else None)
 
 
 def _batch_graph(graphs: Graphs, graph_index: np.ndarray, device):
@@ -198,14 +209,18 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         "checkpoint": str(Path(ckpt.path).resolve()) if ckpt.path else None,
         "checkpoint_sha256": file_sha256(ckpt.path) if ckpt.path else None,
         "checkpoint_epoch": ckpt.epoch,
+        **({} if ckpt.member is None else {"member": ckpt.member}),
         "model_kind": ckpt.model_kind,
         "trained_on": {key: ckpt.dataset.get(key) for key in ("system", "fingerprint", "path",
                                                               "num_nodes")},
         "solver": rollout_solver(ckpt).model_dump(mode="json"),
         "source": source,
-        "units": "states and controls physical; hidden/messages the model's own",
+        "units": "states and controls physical; hidden/messages the model's own"
+                 + ("; hidden/ensemble_std physical" if pred.spread is not None else ""),
     }
     hidden = {} if pred.messages is None else {"messages": pred.messages.astype(dtype)}
+    if pred.spread is not None:
+        hidden["ensemble_std"] = pred.spread.astype(dtype)
     dataset = Dataset(
         system=str(ckpt.dataset.get("system") or "custom"),
         dt=float(time[1] - time[0]),
@@ -234,6 +249,8 @@ class SimulateSummary:
         extrapolation: the graphs against the checkpoint's training range
             (`mpnode_cli.training.extrapolation.Extrapolation.to_dict`), or None for a
             checkpoint without one.
+        members: S of an ensemble whose mean was written (with `hidden/ensemble_std`);
+            None for one model (a single model's checkpoint, or `member`).
     """
 
     path: Path
@@ -244,6 +261,7 @@ class SimulateSummary:
     n_f_evals: int
     seconds: float
     extrapolation: dict[str, Any] | None = None
+    members: int | None = None
 
 
 def simulate(config, *, overwrite: bool = False,
@@ -287,15 +305,18 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
     import time as clock
 
     from mpnode_cli.data.importers import load_controls, load_graph, load_initial_states
-    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
     from mpnode_cli.training.extrapolation import extrapolation
 
     ckpt = load_checkpoint(config.checkpoint)
+    if config.member is not None:
+        ckpt = member_checkpoint(ckpt, config.member)
     x0 = load_initial_states(config.x0)
     k, n, _ = x0.shape
     graphs, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
                                      directed=config.directed)
-    size = simulate_estimate(ckpt, k, config.num_steps + 1, n, config.dtype)
+    size = simulate_estimate(ckpt, k, config.num_steps + 1, n, config.dtype,
+                             batch_size=config.batch_size)
     check_memory(size, "this simulation", "lower --t-end or the number of initial states, "
                  "or raise --dt")
     if confirm is not None:
@@ -321,23 +342,31 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
     return SimulateSummary(path=out, trajectories=k, samples=len(ts), nodes=n,
                            graphs=len(graphs), n_f_evals=int(pred.n_f_evals.sum()),
                            seconds=seconds,
-                           extrapolation=None if beyond is None else beyond.to_dict())
+                           extrapolation=None if beyond is None else beyond.to_dict(),
+                           members=ckpt.members if ckpt.members > 1 else None)
 
 
-def simulate_estimate(ckpt, k: int, t: int, n: int, dtype: str = "float32") -> Estimate:
+def simulate_estimate(ckpt, k: int, t: int, n: int, dtype: str = "float32", *,
+                      batch_size: int = 128) -> Estimate:
     """What rolling a checkpoint's model out for `k` trajectories of `t` samples on `n`
     nodes will take (approximate, on the large side), before anything is allocated.
 
     The states, the messages of a model that has them and the controls of one that takes
     them are held for every trajectory at once (`roll_out` returns them all), so memory
-    grows with K·T·N; the graphs, read already, are not counted.
+    grows with K·T·N; the graphs, read already, are not counted. An ensemble of S members
+    also holds its members' spread for every trajectory, and its other S − 1 members'
+    states and messages for one batch (`batch_size` trajectories) while it is rolled out.
     """
     config = ckpt.model_config
     d, m, u = (int(config.get(key) or 0) for key in ("node_dim", "message_dim", "control_dim"))
-    values = k * t * n * (d + m + u)
+    s = ckpt.members
+    spread = d if s > 1 else 0  # an ensemble's hidden/ensemble_std
+    values = k * t * n * (d + m + u + spread)
+    batch = (s - 1) * min(k, batch_size) * t  # the other members' samples of one batch
     store = 4 if dtype == "float32" else 8
     return Estimate(file_bytes=values * store,
-                    memory_bytes=values * _BYTES_PER_VALUE + k * t * _BYTES_PER_SAMPLE,
+                    memory_bytes=(values + batch * n * (d + m)) * _BYTES_PER_VALUE
+                    + (k * t + batch) * _BYTES_PER_SAMPLE,
                     values=k * t * n * d)
 
 

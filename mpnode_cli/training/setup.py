@@ -346,6 +346,10 @@ def members_of(config: TrainConfig, source: Checkpoint | None, finetune: bool) -
         ValueError: a finetune of an ensemble of S members asked for another number > 1.
     """
     have = int(source.model_config.get("members", 1)) if source is not None else 1
+    if finetune and have > 1 and len(config.datasets) > 1:
+        raise ValueError(f"the checkpoint is an ensemble of {have} members, which trains on "
+                         "one dataset: finetune it on one, or export a member (mpnode check "
+                         "CKPT --member K --out FILE) and finetune that on several")
     if source is None or (finetune and have == 1):
         return config.seeds  # a single model's finetune: every member starts from it
     if finetune and config.seeds not in (1, have):

@@ -40,6 +40,10 @@ def check_checkpoint(path: str | Path) -> Report:
     report.problems += checkpoint_problems(ckpt)
     if report.ok:
         report.summary["parameters"] = sum(p.numel() for p in ckpt.build_model().parameters())
+        if ckpt.members > 1:  # the K that `--member K` takes
+            seed = int(ckpt.train_config.get("seed", 0))
+            report.summary["members"] = (f"{ckpt.members} (members 0–{ckpt.members - 1}, "
+                                         f"seeds {seed}–{seed + ckpt.members - 1})")
     return report
 
 
