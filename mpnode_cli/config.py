@@ -380,6 +380,10 @@ class TrainConfig(BaseModel):
         "clipping, best epoch and early stop, and all of them are integrated in one solve. "
         "The checkpoints hold every member; evaluate, zeroshot and compare report mean ± std "
         "over them, and simulate writes their spread."))
+    time_limit: float | None = Field(None, gt=0, description=(
+        "Stop after the epoch in which the run's time (the sum of its epochs, validation "
+        "included; a resumed run's earlier epochs count) reaches this many seconds: a "
+        "budget of wall time rather than epochs (none: train every epoch)."))
     stop_patience: int | None = Field(None, ge=1, description=(
         "Early stop: a member stops training after this many epochs without a better "
         "validation loss, and the run stops when all have (none: train every epoch)."))

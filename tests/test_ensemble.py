@@ -224,3 +224,4 @@ def test_a_finetune_of_one_model_starts_every_member_from_it(gene, tmp_path):
         train(config([gene, other], tmp_path / "pooled", epochs=1,
                      init_checkpoint=checkpoint_path(child.run_dir, "best")))
     assert not (tmp_path / "grandchild").exists() and not (tmp_path / "pooled").exists()
+

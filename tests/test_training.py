@@ -387,3 +387,15 @@ def test_a_model_of_one_size_refuses_datasets_of_several(gene, gene9, tmp_path):
     with pytest.raises(ValueError, match="N = 4, 9: train it on datasets of one N"):
         train(config([gene, gene9], tmp_path / "node", epochs=1, model="node"))
     assert not (tmp_path / "node").exists()
+
+
+def test_a_time_limit_ends_the_run_after_the_epoch_that_reaches_it(gene, tmp_path):
+    summary = train(config(gene, tmp_path / "run", epochs=50, time_limit=1e-6))
+    assert summary.epochs == 1 and summary.stopped_early == 1
+    rows = read_metrics(tmp_path / "run")
+    assert [r["epoch"] for r in rows] == [0, 1]
+    # Resumed with a budget it has not spent, it goes on.
+    spent = sum(r["seconds"] for r in rows)
+    resumed = train(config(gene, tmp_path / "run", epochs=3, time_limit=spent * 1e3),
+                    resume=True)
+    assert resumed.epochs == 3 and resumed.stopped_early is None

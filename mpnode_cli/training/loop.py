@@ -163,8 +163,9 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
             saver.save_epoch(row, best=True, improved=list(range(len(schedules))))
             emit({"event": "epoch", **row})
         for epoch in range(state.epoch + 1, config.epochs + 1):
-            if not run.active():
-                break  # every member stopped early (`stop_patience`)
+            if not run.active() or (config.time_limit and state.epoch >= 1
+                                    and state.seconds >= config.time_limit):
+                break  # every member stopped early (`stop_patience`), or time is up
             start = time.perf_counter()
             steps = _train_epoch(run, schedules, saver, epoch)
             val, each = _validate(run)

@@ -3,8 +3,8 @@
 A resumed run is the run its folder describes: its `config.json` (the resolved config, every
 field explicit, so no recipe applies again) and its `last.pt` (weights, optimizer, RNG
 states and the loop's counters), so that 2 + 2 epochs train as 4 did. Only what leaves the
-losses as they are may change (`RESUMABLE`): the total of epochs, the device, the plots,
-and streaming (which reads the same batches). Its datasets are found from any folder
+losses as they are may change (`RESUMABLE`): the total of epochs, the time limit, the
+device, the plots, and streaming (which reads the same batches). Its datasets are found from any folder
 (their paths are absolute), and datasets given again are accepted when they hold the same
 data, in the same order (`check_same_data`: by fingerprint).
 """
@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from mpnode_cli.training.checkpoint import Checkpoint
 
 # The rest would make the run something else (streaming reads the same batches).
-RESUMABLE = ("epochs", "device", "plots", "stream")
+RESUMABLE = ("epochs", "time_limit", "device", "plots", "stream")
 
 
 def resumable_options() -> str:
