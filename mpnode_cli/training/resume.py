@@ -4,9 +4,9 @@ A resumed run is the run its folder describes: its `config.json` (the resolved c
 field explicit, so no recipe applies again) and its `last.pt` (weights, optimizer, RNG
 states and the loop's counters), so that 2 + 2 epochs train as 4 did. Only what leaves the
 losses as they are may change (`RESUMABLE`): the total of epochs, the time limit, the
-device, the plots, and streaming (which reads the same batches). Its datasets are found from any folder
-(their paths are absolute), and datasets given again are accepted when they hold the same
-data, in the same order (`check_same_data`: by fingerprint).
+device, the plots, and streaming (which reads the same batches). Its datasets are found
+from any folder (their paths are absolute), and datasets given again are accepted when they
+hold the same data, in the same order (`check_same_data`: by fingerprint).
 """
 
 from __future__ import annotations
