@@ -1,0 +1,242 @@
+"""Recipes at equal wall time: mpnode's default recipe against the paper's, on every system.
+
+For each system's training dataset (a preset) and seed, `mpnode train --recipe mpnode` and
+`mpnode train --recipe paper` train side by side, one process each, one torch thread each,
+started together, so that both see the same machine load. Each stops at the budget:
+
+- `time`: `--time-limit` seconds of its own training (default 600, ten minutes of one core;
+  the epoch that crosses it finishes);
+- `epochs`: the paper's 4000 epochs (mpnode's recipe then stops early where its
+  `--stop-patience` says).
+
+From each run's `metrics.jsonl`, the best validation MSE reached by each time (the curve
+drawn per system in `bench/results/recipes-<system>.png`, both recipes, each seed); from its
+`summary.json`, the test MSE of its best checkpoint beside the naive predictors (hold x(0),
+the train split's time mean). The table gives, per system and recipe, mean ± std over the
+seeds of the validation MSE at the budget and the test MSE, and says which recipe is ahead.
+
+Runs are cached: `--runs`/<budget>/<system>-<recipe>-s<seed>/ keeps its run folder, and a
+run that was cut off resumes (`mpnode train --resume`) where it stopped. Datasets are
+generated once into `--data` (bench/.data, shared with bench/quality.py).
+
+Usage:
+    .venv/bin/python bench/recipes.py --plan                 # what would run, and how long
+    .venv/bin/python bench/recipes.py --systems lorenz3 gene --seeds 0
+    .venv/bin/python bench/recipes.py --budget epochs --systems lorenz3     # hours
+    .venv/bin/python bench/recipes.py --table-only           # rebuild the table from cache
+Writes `bench/results/recipes.md` (and `recipes-epochs.md` for the epoch budget).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+RECIPES = ("mpnode", "paper")
+# Each system's training set, as bench/quality.py trains it.
+SYSTEMS = {"lorenz": "lorenz3", "gene": "gene-ba-4x4", "kuramoto": "kuramoto10-ba",
+           "pendulum": "pendulum", "quadrotor": "quad3"}
+PAPER_EPOCHS = 4000
+
+
+def env() -> dict[str, str]:
+    return {**os.environ, "OMP_NUM_THREADS": "1", "MPNODE_THREADS": "1",
+            "PYTHONPATH": str(ROOT)}
+
+
+def mpnode(*args: str, log: Path) -> subprocess.Popen:
+    log.parent.mkdir(parents=True, exist_ok=True)
+    return subprocess.Popen([sys.executable, "-m", "mpnode_cli", *args], cwd=ROOT, env=env(),
+                            stdout=log.open("a"), stderr=subprocess.STDOUT)
+
+
+def dataset(args, system: str) -> Path:
+    preset = SYSTEMS[system]
+    path = args.data / f"{preset}.h5"
+    if not path.exists():
+        proc = mpnode("generate", "--preset", preset, "--out", str(path),
+                      log=args.runs / "generate.log")
+        if proc.wait():
+            raise SystemExit(f"generating {preset} failed: see {args.runs / 'generate.log'}")
+    return path
+
+
+def run_dir(args, system: str, recipe: str, seed: int) -> Path:
+    return args.runs / args.budget / f"{system}-{recipe}-s{seed}"
+
+
+def start(args, system: str, recipe: str, seed: int) -> subprocess.Popen | None:
+    """Start (or resume) one run; None when it is done."""
+    folder = run_dir(args, system, recipe, seed)
+    if (folder / "summary.json").exists() and json.loads(
+            (folder / "summary.json").read_text()).get("finished", True):
+        return None
+    budget = (["--time-limit", str(args.seconds), "--epochs", str(PAPER_EPOCHS)]
+              if args.budget == "time" else ["--epochs", str(PAPER_EPOCHS)])
+    if (folder / "checkpoints" / "last.pt").exists():
+        return mpnode("train", "--resume", str(folder), *budget, "--no-plots",
+                      log=folder.parent / f"{folder.name}.log")
+    return mpnode("train", str(dataset(args, system)), "--recipe", recipe, "--seed",
+                  str(seed), "--run-dir", str(folder), "--no-plots", *budget,
+                  log=folder.parent / f"{folder.name}.log")
+
+
+def run_all(args) -> None:
+    """Each (system, seed): both recipes at once, one core each."""
+    for system in args.systems:
+        dataset(args, system)
+        for seed in args.seeds:
+            procs = [p for p in (start(args, system, r, seed) for r in RECIPES) if p]
+            for proc in procs:
+                proc.wait()
+            print(f"{system} seed {seed}: done", file=sys.stderr)
+            write_table(args)
+
+
+def curve(folder: Path) -> list[tuple[float, float]]:
+    """(training seconds so far, best validation MSE so far) after each epoch."""
+    out, seconds, best = [], 0.0, math.inf
+    metrics = folder / "metrics.jsonl"
+    if not metrics.exists():
+        return out
+    for line in metrics.read_text().splitlines():
+        row = json.loads(line)
+        seconds += row.get("seconds") or 0.0
+        if row.get("val_mse") is not None:
+            best = min(best, row["val_mse"])
+        out.append((seconds, best))
+    return out
+
+
+def result(args, system: str, recipe: str, seed: int) -> dict | None:
+    folder = run_dir(args, system, recipe, seed)
+    summary = folder / "summary.json"
+    if not summary.exists():
+        return None
+    s = json.loads(summary.read_text())
+    points = curve(folder)
+    return {"val": points[-1][1] if points else math.nan, "seconds": points[-1][0],
+            "epochs": s["epochs"], "test": (s.get("test") or {}).get("mse"),
+            "baselines": s.get("baselines") or {}, "curve": points}
+
+
+def _pm(values: list[float]) -> str:
+    values = [v for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return "—"
+    if len(values) == 1:
+        return f"{values[0]:.3g}"
+    return f"{statistics.mean(values):.3g} ± {statistics.pstdev(values):.2g}"
+
+
+def write_table(args) -> None:
+    lines = [f"# Recipes at equal wall time: mpnode's against the paper's ({args.budget} "
+             "budget)", "",
+             f"Written by `bench/recipes.py` on {time.strftime('%Y-%m-%d')}. "
+             + ("Budget: " + (f"{args.seconds:g} s of training per run (`--time-limit`)"
+                              if args.budget == "time" else f"{PAPER_EPOCHS} epochs")
+                + ", one torch thread; the two recipes of a system and seed trained at the "
+                "same time, one core each, so both saw the same load. MSE in normalized "
+                "units, t₀ excluded; validation: the best reached within the budget; test: "
+                "the best checkpoint's. Mean ± std (population) over the seeds listed."),
+             "",
+             "| system (train set) | recipe | seeds | epochs | validation MSE | test MSE | "
+             "test: time mean / hold x(0) | ahead |",
+             "|---|---|---|---|---|---|---|---|"]
+    for system in args.all_systems:
+        rows = {r: [x for x in (result(args, system, r, s) for s in args.all_seeds) if x]
+                for r in RECIPES}
+        means = {r: statistics.mean(x["val"] for x in v) if v else math.nan
+                 for r, v in rows.items()}
+        ahead = "—"
+        if all(rows.values()):
+            ahead = min(means, key=means.get)
+        for recipe, got in rows.items():
+            if not got:
+                continue
+            base = got[0]["baselines"]
+            lines.append(
+                f"| {system} ({SYSTEMS[system]}) | {recipe} | {len(got)} | "
+                f"{_pm([x['epochs'] for x in got])} | {_pm([x['val'] for x in got])} | "
+                f"{_pm([x['test'] for x in got])} | {_fmt(base.get('time_mean'))} / "
+                f"{_fmt(base.get('hold_x0'))} | {'yes' if ahead == recipe else ''} |")
+        plot(args, system, rows)
+    out = results_file(args)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines) + "\n")
+
+
+def results_file(args) -> Path:
+    """The table's file; the plots go beside it."""
+    return args.out or HERE / "results" / ("recipes.md" if args.budget == "time"
+                                           else "recipes-epochs.md")
+
+
+def _fmt(value) -> str:
+    return "—" if value is None else f"{value:.3g}"
+
+
+def plot(args, system: str, rows: dict[str, list[dict]]) -> None:
+    """Best validation MSE against training seconds, each recipe and seed."""
+    if not any(rows.values()):
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    for recipe, colour in zip(RECIPES, ("tab:blue", "tab:orange"), strict=True):
+        for i, got in enumerate(rows[recipe]):
+            xs, ys = zip(*got["curve"], strict=True)
+            ax.plot(xs, ys, color=colour, alpha=0.8, label=recipe if i == 0 else None)
+    ax.set_yscale("log")
+    ax.set_xlabel("training seconds (one core)")
+    ax.set_ylabel("best validation MSE")
+    ax.set_title(f"{system} ({SYSTEMS[system]}): {args.budget} budget", fontsize=10)
+    ax.legend()
+    fig.tight_layout()
+    suffix = "" if args.budget == "time" else "-epochs"
+    fig.savefig(results_file(args).parent / f"recipes-{system}{suffix}.png", dpi=90)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--systems", nargs="+", default=list(SYSTEMS), choices=SYSTEMS)
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    parser.add_argument("--budget", choices=("time", "epochs"), default="time")
+    parser.add_argument("--seconds", type=float, default=600.0)
+    parser.add_argument("--data", type=Path, default=HERE / ".data")
+    parser.add_argument("--runs", type=Path, default=HERE / ".runs" / "recipes")
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--plan", action="store_true")
+    parser.add_argument("--table-only", action="store_true")
+    args = parser.parse_args(argv)
+    args.all_systems, args.all_seeds = list(SYSTEMS), sorted(set(args.seeds) | {0, 1, 2})
+    if args.plan:
+        pairs = len(args.systems) * len(args.seeds)
+        each = args.seconds if args.budget == "time" else math.nan
+        print(f"{pairs} (system, seed) pairs, two runs each side by side: about "
+              f"{pairs * each / 60:.0f} minutes of wall time on 2 cores"
+              if args.budget == "time" else
+              f"{pairs} pairs of {PAPER_EPOCHS}-epoch runs: hours each (see "
+              "`mpnode experiment list --scale paper`)")
+        return 0
+    if not args.table_only:
+        run_all(args)
+    write_table(args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
