@@ -220,6 +220,63 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
     assert spec.verdict("on.val.mse < 1", results)[2] == "—"
 
 
+
+def test_a_verdict_flags_runs_barely_below_the_time_mean():
+    # 1.006× below the time mean "beats" it but has barely learned; 1.6× has learned.
+    results = {"near": {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.006}},
+               "weak": {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.4}},
+               "good": {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.6}},
+               "flat": {"best_epoch": 9, "test": {"mse": 1.1, "time_mean": 1.0}}}
+    assert spec.barely_learned("near.test.mse < weak.test.mse", results) == ["near", "weak"]
+    assert spec.barely_learned("good.test.mse < flat.test.mse", results) == []
+    assert spec.not_learned("good.test.mse < flat.test.mse", results) == ["flat"]
+    assert spec.verdict("near.test.mse < good.test.mse", results)[2] == (
+        "**no** (near: only 1.01× below the time mean)")
+    assert spec.verdict("good.test.mse < flat.test.mse", results)[2] == (
+        "yes (flat: not below the time mean)")
+
+
+def test_a_verdict_says_when_the_model_is_not_the_papers():
+    """An MP-NODE run with PNA (mpnode's recipe for gene) is not the paper's mean-aggregating
+    model; a claim on an evaluation of it says so too, through its checkpoint."""
+    experiment = spec.Experiment(**{**tomllib.loads(GOOD), "name": "good"})
+    experiment.steps.append(spec.EvaluateStep(id="test", verb="evaluate", checkpoint="run",
+                                              data="data"))
+    run = {"best_epoch": 3, "model": "mpnode", "model_options": {"aggregate": "pna"},
+           "test": {"mse": 0.001, "time_mean": 0.5}}
+    results = {"run": run, "test": {"mse": 0.002}}
+    assert spec.verdict("run.test.mse < 1", results, experiment)[2] == (
+        "yes (PNA aggregation, not the paper's mean)")
+    assert spec.verdict("test.mse < 1", results, experiment)[2] == (
+        "yes (PNA aggregation, not the paper's mean)")
+    mean = {**run, "model_options": {"aggregate": "mean"}}
+    assert spec.verdict("run.test.mse < 1", {"run": mean}, experiment)[2] == "yes"
+
+
+def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
+    """From stored results alone: a claim comparing a run 1.01× below the time mean is
+    listed under the table, and a PNA model is named in its verdict."""
+    results = {"train-gene-ba-4x4": {"best_epoch": 5, "model": "mpnode",
+                                     "model_options": {"aggregate": "pna"},
+                                     "val": {"mse": 0.001},
+                                     "test": {"mse": 0.001, "time_mean": 0.5}},
+               "l2s": {"best_epoch": 5, "model": "l2s", "model_options": {},
+                       "val": {"mse": 0.5}, "test": {"mse": 0.5, "time_mean": 0.505}},
+               "zeroshot": {"gene-er-4x4": {"mse": 0.002}, "gene-ws-4x4": {"mse": 0.003}}}
+    folder = tmp_path / "zeroshot-gene" / "small-mpnode"
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "scale": "small", "recipe": "mpnode",
+        "steps": [{"id": step, "result": result} for step, result in results.items()]}))
+    from mpnode_cli.experiments.report import rebuild_index
+
+    index = rebuild_index(tmp_path).read_text()
+    row = next(line for line in index.splitlines() if "BA test error at or below" in line)
+    assert row.endswith("| — / yes (PNA aggregation, not the paper's mean) |")
+    weak = index.split("## Verdicts that rest on runs that did not learn")[1]
+    assert ("- zeroshot-gene, `--recipe mpnode`: MP-NODE's validation error on BA is below "
+            "L2S's: l2s (1.01× below the time mean).") in weak
+
 HOLD_LOCK = """
 import fcntl, sys
 with open(sys.argv[1], "a") as handle:

@@ -48,7 +48,7 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
             names.append(name)
         step["figures"] = names
     results = {r["id"]: r["result"] for r in data["steps"]}
-    data["claims"] = [_claim(claim, results) for claim in experiment.claims]
+    data["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
     (tmp / RESULTS).write_text(json.dumps(jsonable(data), indent=2, default=str) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
     os.replace(tmp, folder)
@@ -94,7 +94,7 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     for run in _runs(out, experiment.name):
         # Claims judged anew from the spec, so a claim added later is judged on old results.
         results = {s["id"]: s["result"] for s in run["steps"]}
-        run["claims"] = [_claim(claim, results) for claim in experiment.claims]
+        run["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
         lines += _section(run)
     path = out / experiment.name / REPORT
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -251,7 +251,8 @@ def _seeds(steps: list[dict[str, Any]]) -> str:
 
 def rebuild_index(out: Path) -> Path:
     """`out/README.md`: one row per claim of every shipped experiment, with ours under each
-    recipe from the largest scale run (tiny runs are smoke tests and are left out)."""
+    recipe from the largest scale run (tiny runs are smoke tests and are left out), and
+    the verdicts that rest on runs that did not learn or barely learned."""
     lines = [
         "# Reproducing the paper: the index", "",
         "One row per claim of the paper (Gupta, Vemprala & Kapoor, \"Learning Modular "
@@ -259,12 +260,16 @@ def rebuild_index(out: Path) -> Path:
         "comparison on our results, from the largest scale run (`paper`, else `small`) with "
         "the paper's recipe (`--recipe paper`) and with mpnode's default (`--recipe "
         "mpnode`); *holds* says whether the paper's direction holds in each (paper recipe / "
-        "mpnode recipe), and names the training runs it compares whose test error is not "
-        "below the time-mean predictor's: those have not learned, and the comparison says "
-        "little. Each experiment's report has its tables, figures, commands and "
-        "machine; run one with `mpnode experiment run NAME --scale small`.", "",
+        "mpnode recipe). After a verdict, in brackets: the training runs it compares whose "
+        "test error is not below the time-mean predictor's (they have not learned) or less "
+        f"than {spec.BARELY_LEARNED:g}× below it (they barely have), so the comparison says "
+        "little; and a model that is not the paper's (mpnode's recipe aggregates gene and "
+        "Kuramoto messages with PNA, the paper with the mean, §3.2). Each experiment's "
+        "report has its tables, figures, commands and machine; run one with `mpnode "
+        "experiment run NAME --scale small`.", "",
         "| experiment | claim | the paper | where | ours, `--recipe paper` | ours, `--recipe "
         "mpnode` | holds |", "|---|---|---|---|---|---|---|"]
+    weak: list[str] = []
     for name in spec.names():
         experiment = spec.load(name)
         runs = [r for r in _runs(out, name) if r["scale"] != "tiny"]
@@ -280,19 +285,36 @@ def rebuild_index(out: Path) -> Path:
                     verdicts.append("—")
                     continue
                 results = {s["id"]: s["result"] for s in run["steps"]}
-                _, shown, said = spec.verdict(claim.holds, results)
+                _, shown, said = spec.verdict(claim.holds, results, experiment)
                 cells.append(f"{shown} ({run['scale']})")
                 verdicts.append(said)
+                weak += _weak(name, claim, recipe, results)
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
+    if weak:
+        lines += ["", "## Verdicts that rest on runs that did not learn, or barely", "",
+                  f"Runs not below the time-mean predictor, or less than "
+                  f"{spec.BARELY_LEARNED:g}× below it, that a claim compares:", "", *weak]
     path = out / INDEX
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_text(path, "\n".join(lines) + "\n")
     return path
 
 
-def _claim(claim: spec.Claim, results: dict[str, Any]) -> dict[str, Any]:
-    holds, shown, said = spec.verdict(claim.holds, results)
+def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any]) -> list[str]:
+    """A line for the index if `claim`'s verdict under `recipe` rests on runs that did not
+    learn or barely learned."""
+    ratios = spec.learning(claim.holds, results)
+    if not ratios:
+        return []
+    runs = ", ".join(f"{step} ({'not' if ratio <= 1 else f'{ratio:.3g}×'} below the time mean)"
+                     for step, ratio in ratios.items())
+    return [f"- {name}, `--recipe {recipe}`: {claim.claim}: {runs}."]
+
+
+def _claim(claim: spec.Claim, results: dict[str, Any],
+           experiment: spec.Experiment) -> dict[str, Any]:
+    holds, shown, said = spec.verdict(claim.holds, results, experiment)
     return {**claim.model_dump(), "holds_now": holds, "ours": shown, "verdict": said}
 
 
