@@ -8,6 +8,7 @@ changed one, and reruns a step whose folder an interruption left unfinished.
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -28,6 +29,11 @@ from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
 
 runner = CliRunner()
+ROOT = Path(__file__).resolve().parents[1]
+# An absolute path of the machine that wrote a file: a root folder right after a space,
+# quote, backtick or bracket (not inside a URL, a relative path or a word).
+ABSOLUTE_PATH = re.compile(
+    r"(?<![\w.:/~-])/(?:work|tmp|home|root|Users|private|var|mnt|opt|srv|scratch)/")
 # The issue's experiments (the paper's §4 and App. B), each one command.
 PAPER_EXPERIMENTS = {
     "messages-pendulum", "messages-kuramoto", "finetune-lorenz", "finetune-lorenz-high",
@@ -185,6 +191,12 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     assert all(" < " in row or " > " in row for row in rows)
     saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
     assert saved["scale"] == "tiny" and len(saved["claims"]) == len(experiment.claims)
+    # The work folder (under /tmp here) is nowhere in what a report commits.
+    assert saved["work"] == "<work>" and "--work <work>" in saved["command"]
+    assert saved["steps"][0]["folder"] == Path(first.steps[0].folder).name
+    for written in (out / "messages-pendulum").rglob("*"):
+        if written.suffix in (".md", ".json"):
+            assert not ABSOLUTE_PATH.search(written.read_text()), written
 
 
 def test_table2_per_mean_does_not_depend_on_the_normalization():
@@ -276,6 +288,43 @@ def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
     weak = index.split("## Verdicts that rest on runs that did not learn")[1]
     assert ("- zeroshot-gene, `--recipe mpnode`: MP-NODE's validation error on BA is below "
             "L2S's: l2s (1.01× below the time mean).") in weak
+
+
+def test_the_absolute_path_check_tells_paths_from_urls():
+    for text in ("--work /work/x/y", "`/tmp/qruns`", '"/home/me/a"', "(/Users/me/b)"):
+        assert ABSOLUTE_PATH.search(text), text
+    for text in ("https://example.org/home/x", "reports/work/x", "~/tmp/x", "a.b/var/x",
+                 "file:///tmp/x", "<work>/gene", "/workshop/"):
+        assert not ABSOLUTE_PATH.search(text), text
+
+
+def test_recorded_paths_are_relative_or_placeholders(tmp_path, monkeypatch):
+    """What the runner and the benchmarks record of a path: relative as given, relative to
+    the current folder when under it, else a placeholder; commands as run from --work."""
+    from mpnode_cli.experiments.commands import from_work
+    from mpnode_cli.paths import shown_argv, shown_path
+
+    monkeypatch.chdir(tmp_path)
+    assert shown_path(tmp_path / "runs" / "x", "<work>") == "runs/x"
+    assert shown_path("runs/x", "<work>") == "runs/x"
+    assert shown_path("/elsewhere/x", "<work>") == "<work>"
+    assert shown_argv(["--runs", "/elsewhere/q", "--data", str(tmp_path / "d"), "--only",
+                       "a"]) == ["--runs", "<runs>", "--data", "d", "--only", "a"]
+    line = "mpnode train /w/a/data.h5 --run-dir '/w/b c/run' --x ../w/y --out=/w/z"
+    assert from_work(line, Path("/w")) == (
+        "mpnode train a/data.h5 --run-dir 'b c/run' --x ../w/y --out=z")
+
+def test_committed_reports_hold_no_absolute_paths():
+    """Reports and benchmark results are committed: the folders of the machine that ran
+    them (step folders, --work, --out, data and run folders) are written relative to a
+    folder the report names, or as placeholders (`<work>`)."""
+    files = [path for folder in ("reports", "bench/results") for path in (ROOT / folder).rglob("*")
+             if path.suffix in (".md", ".json", ".csv", ".txt", ".toml")]
+    assert files
+    found = {str(path.relative_to(ROOT)): match.group(0) for path in files
+             for match in [ABSOLUTE_PATH.search(path.read_text(errors="replace"))] if match}
+    assert not found, f"absolute paths in committed files: {found}"
+
 
 HOLD_LOCK = """
 import fcntl, sys

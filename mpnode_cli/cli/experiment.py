@@ -98,12 +98,16 @@ def run_command(
 
 
 def _given_paths(out: Path, work: Path) -> list[str]:
-    """`--out`/`--work` for the recorded command, when not the defaults."""
+    """`--out`/`--work` for the recorded command, when not the defaults: relative to the
+    current folder, or `<out>`/`<work>` for a folder outside it (reports are committed,
+    and the folders of the machine that ran them mean nothing elsewhere)."""
+    from mpnode_cli.paths import shown_path
+
     extra = []
     if out != Path("reports"):
-        extra += ["--out", str(out)]
+        extra += ["--out", shown_path(out, "<out>")]
     if work != Path("runs/experiments"):
-        extra += ["--work", str(work)]
+        extra += ["--work", shown_path(work, "<work>")]
     return extra
 
 

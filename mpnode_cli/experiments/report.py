@@ -34,12 +34,16 @@ _RECIPE_ORDER = {"mpnode": 0, "paper": 1}
 
 def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> Path:
     """Save a run's results and figures under `out/<name>/`, rebuild its `report.md` and
-    the index `out/README.md`. Returns the report's path."""
+    the index `out/README.md`. Returns the report's path.
+
+    Reports are committed, so they hold no folder of the machine that ran them: step
+    folders are named relative to the work folder, commands are as run from it, and the
+    work folder itself is shown relative to the current folder, or as `<work>`."""
     folder = Path(out) / experiment.name / f"{record.scale}-{record.recipe}"
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    data = record.to_dict()
+    data = portable(record.to_dict(), Path(record.work))
     for step in data["steps"]:
         names = []
         for figure in step["figures"]:
@@ -55,6 +59,25 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
     path = rebuild_report(experiment, Path(out))
     rebuild_index(Path(out))
     return path
+
+
+def portable(data: dict[str, Any], work: Path) -> dict[str, Any]:
+    """A run's record (`RunRecord.to_dict()`) with its paths relative to the work folder
+    `work`: each step's folder by its path in it, its commands as run from it, and `work`
+    as `shown_path` shows it."""
+    from mpnode_cli.experiments.commands import from_work
+    from mpnode_cli.paths import shown_path
+
+    steps = []
+    for step in data["steps"]:
+        folder = Path(step["folder"])
+        for base in (work, work.resolve()):
+            if folder.is_relative_to(base):
+                folder = folder.relative_to(base)
+                break
+        steps.append({**step, "folder": str(folder),
+                      "commands": [from_work(c, work) for c in step["commands"]]})
+    return {**data, "work": shown_path(work, "<work>"), "steps": steps}
 
 
 def _runs(out: Path, name: str) -> list[dict[str, Any]]:
@@ -138,12 +161,14 @@ def _section(run: dict[str, Any]) -> list[str]:
         for step_id, name in figures:
             lines += [f"**{name.removesuffix('.png')}** (step `{step_id}`)", "",
                       f"![{name}]({sub}/{name})", ""]
+    work = run.get("work", "<work>")
     lines += ["### Steps and the commands that do the same", "",
+              f"Folders and paths are in the work folder (`--work`, here `{work}`).", "",
               "| step | verb | status | seconds | folder |", "|---|---|---|---:|---|"]
     for s in run["steps"]:
         lines.append(f"| {s['id']} | {s['verb']} | {s['status']} | {s['seconds']:.1f} | "
                      f"`{s['folder']}` |")
-    lines += ["", "```bash"]
+    lines += ["", "```bash", f"# from the work folder: cd {work}"]
     lines += [c for s in run["steps"] for c in s["commands"]]
     lines += ["```", ""]
     seeds = _seeds(run["steps"])
