@@ -326,6 +326,40 @@ def test_committed_reports_hold_no_absolute_paths():
     assert not found, f"absolute paths in committed files: {found}"
 
 
+
+def test_loss_curves_are_drawn_in_time_mean_units(tmp_path, monkeypatch):
+    """A finetune's losses are in its parent's normalization: each run's curves are divided
+    by its own time-mean predictor's validation MSE (raw when one has none)."""
+    from mpnode_cli.experiments.steps import plot_losses
+    from mpnode_cli.report import plots
+
+    drawn = {}
+    monkeypatch.setattr(plots, "plot_curves",
+                        lambda runs, path, **kw: drawn.update(runs=runs, **kw) or path)
+    metrics = {"f": [{"epoch": 1, "train_loss": 2.0, "val_mse": 4.0}],
+               "s": [{"epoch": 1, "train_loss": 0.5, "val_mse": None}]}
+    results = {"f": {"val": {"time_mean": 4.0}}, "s": {"val": {"time_mean": 0.5}}}
+    labels = {"f": "finetuned", "s": "scratch"}
+    plot_losses(labels, metrics, results, tmp_path / "loss.png")
+    assert drawn["runs"] == {"finetuned": [{"epoch": 1, "train_loss": 0.5, "val_mse": 1.0}],
+                             "scratch": [{"epoch": 1, "train_loss": 1.0, "val_mse": None}]}
+    assert all("time-mean" in title for title in drawn["titles"])
+    drawn.clear()
+    plot_losses(labels, metrics, {**results, "s": {"val": {}}}, tmp_path / "loss.png")
+    assert drawn["runs"] == {"finetuned": metrics["f"], "scratch": metrics["s"]}
+    assert "titles" not in drawn
+
+
+def test_a_one_group_bar_chart_is_wide_enough_for_its_title(tmp_path):
+    from matplotlib.image import imread
+
+    from mpnode_cli.report.plots import plot_bars
+
+    title = "Table-2 figure (lower is better)"
+    path = plot_bars({"gene 8×8": {"finetuned": 700.0, "scratch": 200.0}}, tmp_path / "b.png",
+                     ylabel="best epoch × min validation loss", title=title, dpi=50)
+    assert imread(path).shape[1] >= (1.0 + 0.085 * len(title)) * 50 - 1
+
 HOLD_LOCK = """
 import fcntl, sys
 with open(sys.argv[1], "a") as handle:

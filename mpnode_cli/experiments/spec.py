@@ -153,12 +153,16 @@ class CompareStep(_Step):
             "scratch-50"]`.
         series: what the runs at each position of a group are, e.g. `["finetuned",
             "scratch"]` (default: the labels of the first group's runs).
+        curves: the loss curves' units: `time-mean` (each run's training loss and
+            validation MSE ÷ its time-mean predictor's validation MSE, so a finetune, which
+            keeps its parent's normalization, and a scratch run share an axis) or `raw`.
     """
 
     verb: Literal["compare"]
     runs: list[str] = Field(min_length=1)
     groups: dict[str, list[str]] = Field(default_factory=dict)
     series: list[str] = Field(default_factory=list)
+    curves: Literal["time-mean", "raw"] = "time-mean"
 
     def inputs(self) -> list[str]:
         return list(self.runs)

@@ -213,30 +213,60 @@ def _message_pca(ckpt, data, step, path: Path) -> dict[str, Any]:
 
 
 def _compare(step, options, folder: Path, inputs, status, emit):
-    from mpnode_cli.report.plots import plot_bars, plot_curves
     from mpnode_cli.training.run import read_metrics
 
     labels = {i: inputs[i].label for i in step.runs}
     metrics = {i: read_metrics(Path(inputs[i].folder) / RUN_DIR) for i in step.runs}
     curves = folder / f"{step.id}-loss.png"
-    plot_curves({labels[i]: metrics[i] for i in step.runs}, curves, dpi=FIGURE_DPI)
+    plot_losses(labels, metrics, {i: inputs[i].result for i in step.runs}, curves,
+                per_mean=step.curves == "time-mean")
     figures = [str(curves)]
     result = {"runs": {i: {k: inputs[i].result.get(k) for k in
                            ("best_epoch", "min_val_loss", "table2", "min_train_loss")}
                        for i in step.runs}}
     if step.groups:
         bars = folder / f"{step.id}-bars.png"
-        first = next(iter(step.groups.values()))
-        series = step.series or [labels[i] for i in first]
-        plot_bars({group: {series[j] if j < len(series) else labels[i]:
-                           inputs[i].result.get("table2") for j, i in enumerate(members)}
-                   for group, members in step.groups.items()}, bars, dpi=FIGURE_DPI,
-                  ylabel="best epoch × min validation loss",
-                  title="Table-2 figure (lower is better)")
+        plot_table2(step, labels, {i: inputs[i].result.get("table2") for i in step.runs},
+                    bars)
         figures.append(str(bars))
         result["groups"] = step.groups
     runs = [Path(inputs[i].folder) / RUN_DIR for i in step.runs]
     return result, [Path(f).name for f in figures], [commands.compare(runs)], figures
+
+
+def plot_losses(labels: dict[str, str], metrics: dict[str, list[dict[str, Any]]],
+                results: dict[str, dict[str, Any]], path: Path, per_mean: bool = True) -> Path:
+    """Training runs' loss curves (run id → label, `metrics.jsonl` rows, results). With
+    `per_mean`, each run's training loss and validation MSE are divided by its own
+    time-mean predictor's validation MSE: a finetune keeps its parent's normalization, so
+    its raw losses are in other units than a scratch run's on the same data. Raw when a
+    run has no time-mean MSE to divide by."""
+    from mpnode_cli.report.plots import plot_curves
+
+    means = {i: (results[i].get("val") or {}).get("time_mean") for i in labels}
+    if per_mean and all(isinstance(m, int | float) and m > 0 for m in means.values()):
+        runs = {labels[i]: [{**row, **{key: row[key] / means[i] for key in
+                                       ("train_loss", "val_mse") if row.get(key) is not None}}
+                            for row in metrics[i]] for i in labels}
+        return plot_curves(runs, path, dpi=FIGURE_DPI, titles=(
+            "training loss ÷ time-mean predictor's val MSE",
+            "validation MSE ÷ time-mean predictor's"))
+    return plot_curves({labels[i]: metrics[i] for i in labels}, path, dpi=FIGURE_DPI)
+
+
+def plot_table2(step, labels: dict[str, str], table2: dict[str, float | None],
+                path: Path) -> Path:
+    """The paper's Table-2 figure of a compare step's groups, a bar per run (run id →
+    label, Table-2 figure)."""
+    from mpnode_cli.report.plots import plot_bars
+
+    first = next(iter(step.groups.values()))
+    series = step.series or [labels[i] for i in first]
+    return plot_bars({group: {series[j] if j < len(series) else labels[i]: table2[i]
+                              for j, i in enumerate(members)}
+                      for group, members in step.groups.items()}, path, dpi=FIGURE_DPI,
+                     ylabel="best epoch × min validation loss",
+                     title="Table-2 figure (lower is better)")
 
 
 VERBS = {"generate": _generate, "train": _train, "finetune": _train, "zeroshot": _zeroshot,
