@@ -360,6 +360,57 @@ def test_a_one_group_bar_chart_is_wide_enough_for_its_title(tmp_path):
                      ylabel="best epoch × min validation loss", title=title, dpi=50)
     assert imread(path).shape[1] >= (1.0 + 0.085 * len(title)) * 50 - 1
 
+
+PCA = """
+title = "t"
+paper = "p"
+[[steps]]
+id = "data"
+verb = "generate"
+system = "lorenz"
+nodes = 3
+trajectories = 16
+t_end = 0.5
+dt = 0.05
+[[steps]]
+id = "run"
+verb = "train"
+data = "data"
+epochs = 2
+[[steps]]
+id = "pca"
+verb = "evaluate"
+checkpoint = "run"
+data = "data"
+split = "all"
+plot = false
+pca = 2
+trajectories = 4
+[[claims]]
+claim = "c"
+paper = "p"
+where = "w"
+holds = "pca.pca.growth > pca.pca.untrained.growth"
+"""
+
+
+def test_the_message_pca_is_judged_against_an_untrained_model(tmp_path):
+    """Messages start at zero, so they spread out in any model: the PCA step takes the same
+    statistic of the same architecture with its initial weights, and the claim compares
+    the trained model's growth with that one's. A step without a PCA keeps its options."""
+    experiment = spec.load(_experiment(tmp_path, PCA))
+    record = run_experiment(experiment, scale="small", recipe="mpnode", work=tmp_path / "w")
+    pca = record.steps[-1].result["pca"]
+    for stats in (pca, pca["untrained"]):
+        assert stats["growth"] == pytest.approx(stats["spread_last"] / stats["spread_first"])
+    assert pca["untrained"]["spread_last"] != pytest.approx(pca["spread_last"])
+    holds, shown = spec.judge(experiment.claims[0].holds,
+                              {s.id: s.result for s in record.steps})
+    assert holds is not None and " > " in shown
+    plain = spec.EvaluateStep(id="e", verb="evaluate", checkpoint="run", data="data")
+    assert "pca_untrained" not in spec.resolve(plain, "small", "mpnode")
+    assert spec.resolve(experiment.steps[-1], "small", "mpnode")["pca_untrained"] is True
+
 HOLD_LOCK = """
 import fcntl, sys
 with open(sys.argv[1], "a") as handle:

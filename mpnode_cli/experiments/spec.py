@@ -127,6 +127,10 @@ class EvaluateStep(_Step):
     Attributes:
         plot: draw the first trajectory with its message norms (Fig. 2).
         pca: principal components of all nodes' messages to draw (0: none).
+        pca_untrained: also take the PCA's spread statistics of an untrained model (the
+            same architecture, fresh weights, the same trajectories): messages start at
+            zero, so they spread out over time in any model, and a trained model's growth
+            means something only beside an untrained one's. Only a PCA step has it.
         trajectories: how many trajectories of the split the PCA uses (the paper: 100).
     """
 
@@ -137,6 +141,7 @@ class EvaluateStep(_Step):
     zero_messages: bool = False
     plot: bool = True
     pca: int = Field(0, ge=0)
+    pca_untrained: bool = True
     trajectories: int = Field(100, ge=1)
 
     def inputs(self) -> list[str]:
@@ -358,6 +363,9 @@ def resolve(step: Any, scale: Scale, recipe: str) -> dict[str, Any]:
         else:
             raise ValueError(f"unknown model '{model}' (choose from: {', '.join(OPTIONS)})")
         return {"config": options, "recipe": recipe}
+    if step.verb == "evaluate" and not options["pca"]:
+        # Without a PCA it means nothing; left out, so such a step's fingerprint stays.
+        options.pop("pca_untrained")
     if scale == "tiny" and step.verb == "evaluate":
         options["trajectories"] = min(options["trajectories"], 4)
     return options
