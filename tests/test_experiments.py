@@ -132,6 +132,42 @@ def test_cli_lists_the_experiments():
     assert all(name in result.output for name in PAPER_EXPERIMENTS)
 
 
+def _measured_run(out: Path, name: str, folder: str, steps: dict[str, dict]) -> None:
+    (out / name / folder).mkdir(parents=True)
+    (out / name / folder / "results.json").write_text(json.dumps({
+        "machine": {"threads": 1},
+        "steps": [{"id": step, "result": result} for step, result in steps.items()]}))
+
+
+def test_paper_scale_cost_is_estimated_from_measured_seconds_per_epoch(tmp_path):
+    """A training step at the paper's scale: its epochs × the measured seconds per epoch
+    per training trajectory × its training trajectories (the pendulum's 500 × 0.7)."""
+    from mpnode_cli.experiments.estimate import paper_cost
+
+    _measured_run(tmp_path, "messages-pendulum", "small-paper",
+                  {"messages": {"seconds_per_epoch": 2.0, "trajectories": 140}})
+    cost = paper_cost(spec.load("messages-pendulum"), tmp_path)
+    assert cost.core_hours == pytest.approx(4000 * 2.0 / 140 * 350 / 3600)
+    assert cost.missing == ["no-messages"] and cost.sources == ["small-paper"]
+    assert cost.shown() == "≥ 5.6"
+    # L2S trains CI-sized at the small scale: it costs more at the paper's (marked *).
+    _measured_run(tmp_path, "zeroshot-gene", "small-mpnode", {
+        "train-gene-ba-4x4": {"seconds_per_epoch": 0.7, "trajectories": 140},
+        "l2s": {"seconds_per_epoch": 12.0, "trajectories": 140}})
+    gene = paper_cost(spec.load("zeroshot-gene"), tmp_path)
+    assert gene.resized == ["l2s"] and gene.shown().endswith("*") and not gene.missing
+    assert paper_cost(spec.load("message-pca"), tmp_path).shown() == "—"
+
+    result = runner.invoke(app, ["experiment", "list", "--scale", "paper", "--out",
+                                 str(tmp_path)], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "paper, core-h" in result.output and "≥ 5.6" in result.output
+    assert "seconds per epoch per training trajectory measured" in result.output
+    assert "costs more than shown" in result.output
+    refused = runner.invoke(app, ["experiment", "list", "--scale", "tiny"])
+    assert refused.exit_code == 2 and "unknown scale 'tiny'" in refused.output
+
+
 def _statuses(record) -> dict[str, str]:
     return {step.id: step.status for step in record.steps}
 
