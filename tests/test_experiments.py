@@ -279,7 +279,7 @@ def test_a_verdict_flags_runs_barely_below_the_time_mean():
     assert spec.barely_learned("good.test.mse < flat.test.mse", results) == []
     assert spec.not_learned("good.test.mse < flat.test.mse", results) == ["flat"]
     assert spec.verdict("near.test.mse < good.test.mse", results)[2] == (
-        "**no** (near: only 1.01× below the time mean)")
+        "**no** (near: barely learned, 1.01× below the time mean)")
     assert spec.verdict("good.test.mse < flat.test.mse", results)[2] == (
         "yes (flat: not below the time mean)")
 
@@ -323,7 +323,7 @@ def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
     assert row.endswith("| — / yes (PNA aggregation, not the paper's mean) |")
     weak = index.split("## Verdicts that rest on runs that did not learn")[1]
     assert ("- zeroshot-gene, `--recipe mpnode`: MP-NODE's validation error on BA is below "
-            "L2S's: l2s (1.01× below the time mean).") in weak
+            "L2S's: l2s (barely learned, 1.01× below the time mean).") in weak
 
 
 def test_the_absolute_path_check_tells_paths_from_urls():

@@ -544,7 +544,8 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     said = "—" if holds is None else ("yes" if holds else "**no**")
     ratios = learning(text, results)
     notes = [f"{step}: not below the time mean" if ratio <= 1 else
-             f"{step}: only {ratio:.3g}× below the time mean" for step, ratio in ratios.items()]
+             f"{step}: barely learned, {ratio:.3g}× below the time mean"
+             for step, ratio in ratios.items()]
     notes += departures(text, results, experiment)
     if notes:
         said += f" ({'; '.join(notes)})"
