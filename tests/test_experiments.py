@@ -266,22 +266,13 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
         "**no** (off: not below the time mean)")
     assert spec.verdict("zeroed.mse > on.test.mse", results)[2] == "yes"
     assert spec.verdict("on.val.mse < 1", results)[2] == "—"
-
-
-
-def test_a_verdict_flags_runs_barely_below_the_time_mean():
-    # 1.006× below the time mean "beats" it but has barely learned; 1.6× has learned.
-    results = {"near": {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.006}},
-               "weak": {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.4}},
-               "good": {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.6}},
-               "flat": {"best_epoch": 9, "test": {"mse": 1.1, "time_mean": 1.0}}}
+    # 1.006× below the time mean "beats" it but has barely learned, as has 1.4×; 10× has.
+    results["near"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.006}}
+    results["weak"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.4}}
     assert spec.barely_learned("near.test.mse < weak.test.mse", results) == ["near", "weak"]
-    assert spec.barely_learned("good.test.mse < flat.test.mse", results) == []
-    assert spec.not_learned("good.test.mse < flat.test.mse", results) == ["flat"]
-    assert spec.verdict("near.test.mse < good.test.mse", results)[2] == (
+    assert spec.barely_learned("on.test.mse < off.test.mse", results) == []
+    assert spec.verdict("near.test.mse < on.test.mse", results)[2] == (
         "**no** (near: barely learned, 1.01× below the time mean)")
-    assert spec.verdict("good.test.mse < flat.test.mse", results)[2] == (
-        "yes (flat: not below the time mean)")
 
 
 def test_a_verdict_says_when_the_model_is_not_the_papers():
