@@ -658,7 +658,12 @@ def main(argv=None) -> int:
     threads = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads(),"
                               " torch.__version__)"], capture_output=True, text=True,
                              env=env(), check=True).stdout.split()
-    header = {"command": " ".join(["bench/quality.py", *(argv or sys.argv[1:])]),
+    from mpnode_cli.paths import shown_argv
+
+    # Absolute paths are shown relative to the current folder, or as <option>: the
+    # results are committed, and the folders of the machine that ran them mean nothing.
+    shown = shown_argv(list(argv or sys.argv[1:]))
+    header = {"command": " ".join(["bench/quality.py", *shown]),
               "cores": os.cpu_count(), "threads": threads[0], "torch": threads[1],
               "commit": git_commit(), "date": datetime.now().isoformat(timespec="minutes"),
               "load_before": "/".join(f"{x:.2f}" for x in os.getloadavg()),

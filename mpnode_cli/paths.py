@@ -329,3 +329,31 @@ def _limits(path: Path) -> tuple[int, int]:
 def _short(text: str, keep: int = 60) -> str:
     """`text` as it is, or its start and end around an ellipsis when over `keep` chars."""
     return text if len(text) <= keep else f"{text[:keep * 2 // 3]}…{text[-keep // 3:]}"
+
+
+# ------------------------------------------------------------------- paths in records
+
+
+def shown_path(path: str | Path, placeholder: str) -> str:
+    """`path` as a committed record shows it: a relative path as given, an absolute one
+    under the current folder relative to it, any other absolute one as `placeholder`
+    (e.g. `<work>`), so records do not carry the folders of the machine that wrote them."""
+    path = Path(path)
+    if not path.is_absolute():
+        return str(path)
+    try:
+        return str(path.relative_to(Path.cwd())) or "."
+    except ValueError:
+        return placeholder
+
+
+def shown_argv(args: list[str]) -> list[str]:
+    """Command-line arguments as a record shows them: each absolute path through
+    `shown_path`, its placeholder named after the option before it (`--runs /tmp/x` →
+    `--runs <runs>`)."""
+    out = []
+    for i, arg in enumerate(args):
+        before = args[i - 1] if i else ""
+        name = before.lstrip("-") if before.startswith("--") else "path"
+        out.append(shown_path(arg, f"<{name}>") if os.path.isabs(arg) else arg)
+    return out

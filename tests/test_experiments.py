@@ -8,6 +8,7 @@ changed one, and reruns a step whose folder an interruption left unfinished.
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -28,6 +29,11 @@ from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
 
 runner = CliRunner()
+ROOT = Path(__file__).resolve().parents[1]
+# An absolute path of the machine that wrote a file: a root folder right after a space,
+# quote, backtick or bracket (not inside a URL, a relative path or a word).
+ABSOLUTE_PATH = re.compile(
+    r"(?<![\w.:/~-])/(?:work|tmp|home|root|Users|private|var|mnt|opt|srv|scratch)/")
 # The issue's experiments (the paper's §4 and App. B), each one command.
 PAPER_EXPERIMENTS = {
     "messages-pendulum", "messages-kuramoto", "finetune-lorenz", "finetune-lorenz-high",
@@ -126,6 +132,42 @@ def test_cli_lists_the_experiments():
     assert all(name in result.output for name in PAPER_EXPERIMENTS)
 
 
+def _measured_run(out: Path, name: str, folder: str, steps: dict[str, dict]) -> None:
+    (out / name / folder).mkdir(parents=True)
+    (out / name / folder / "results.json").write_text(json.dumps({
+        "machine": {"threads": 1},
+        "steps": [{"id": step, "result": result} for step, result in steps.items()]}))
+
+
+def test_paper_scale_cost_is_estimated_from_measured_seconds_per_epoch(tmp_path):
+    """A training step at the paper's scale: its epochs × the measured seconds per epoch
+    per training trajectory × its training trajectories (the pendulum's 500 × 0.7)."""
+    from mpnode_cli.experiments.estimate import paper_cost
+
+    _measured_run(tmp_path, "messages-pendulum", "small-paper",
+                  {"messages": {"seconds_per_epoch": 2.0, "trajectories": 140}})
+    cost = paper_cost(spec.load("messages-pendulum"), tmp_path)
+    assert cost.core_hours == pytest.approx(4000 * 2.0 / 140 * 350 / 3600)
+    assert cost.missing == ["no-messages"] and cost.sources == ["small-paper"]
+    assert cost.shown() == "≥ 5.6"
+    # L2S trains CI-sized at the small scale: it costs more at the paper's (marked *).
+    _measured_run(tmp_path, "zeroshot-gene", "small-mpnode", {
+        "train-gene-ba-4x4": {"seconds_per_epoch": 0.7, "trajectories": 140},
+        "l2s": {"seconds_per_epoch": 12.0, "trajectories": 140}})
+    gene = paper_cost(spec.load("zeroshot-gene"), tmp_path)
+    assert gene.resized == ["l2s"] and gene.shown().endswith("*") and not gene.missing
+    assert paper_cost(spec.load("message-pca"), tmp_path).shown() == "—"
+
+    result = runner.invoke(app, ["experiment", "list", "--scale", "paper", "--out",
+                                 str(tmp_path)], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert "paper, core-h" in result.output and "≥ 5.6" in result.output
+    assert "seconds per epoch per training trajectory measured" in result.output
+    assert "costs more than shown" in result.output
+    refused = runner.invoke(app, ["experiment", "list", "--scale", "tiny"])
+    assert refused.exit_code == 2 and "unknown scale 'tiny'" in refused.output
+
+
 def _statuses(record) -> dict[str, str]:
     return {step.id: step.status for step in record.steps}
 
@@ -185,6 +227,12 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     assert all(" < " in row or " > " in row for row in rows)
     saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
     assert saved["scale"] == "tiny" and len(saved["claims"]) == len(experiment.claims)
+    # The work folder (under /tmp here) is nowhere in what a report commits.
+    assert saved["work"] == "<work>" and "--work <work>" in saved["command"]
+    assert saved["steps"][0]["folder"] == Path(first.steps[0].folder).name
+    for written in (out / "messages-pendulum").rglob("*"):
+        if written.suffix in (".md", ".json"):
+            assert not ABSOLUTE_PATH.search(written.read_text()), written
 
 
 def test_table2_per_mean_does_not_depend_on_the_normalization():
@@ -218,7 +266,177 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
         "**no** (off: not below the time mean)")
     assert spec.verdict("zeroed.mse > on.test.mse", results)[2] == "yes"
     assert spec.verdict("on.val.mse < 1", results)[2] == "—"
+    # 1.006× below the time mean "beats" it but has barely learned, as has 1.4×; 10× has.
+    results["near"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.006}}
+    results["weak"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.4}}
+    assert spec.barely_learned("near.test.mse < weak.test.mse", results) == ["near", "weak"]
+    assert spec.barely_learned("on.test.mse < off.test.mse", results) == []
+    assert spec.verdict("near.test.mse < on.test.mse", results)[2] == (
+        "**no** (near: barely learned, 1.01× below the time mean)")
 
+
+def test_a_verdict_says_when_the_model_is_not_the_papers():
+    """An MP-NODE run with PNA (mpnode's recipe for gene) is not the paper's mean-aggregating
+    model; a claim on an evaluation of it says so too, through its checkpoint."""
+    experiment = spec.Experiment(**{**tomllib.loads(GOOD), "name": "good"})
+    experiment.steps.append(spec.EvaluateStep(id="test", verb="evaluate", checkpoint="run",
+                                              data="data"))
+    run = {"best_epoch": 3, "model": "mpnode", "model_options": {"aggregate": "pna"},
+           "test": {"mse": 0.001, "time_mean": 0.5}}
+    results = {"run": run, "test": {"mse": 0.002}}
+    assert spec.verdict("run.test.mse < 1", results, experiment)[2] == (
+        "yes (PNA aggregation, not the paper's mean)")
+    assert spec.verdict("test.mse < 1", results, experiment)[2] == (
+        "yes (PNA aggregation, not the paper's mean)")
+    mean = {**run, "model_options": {"aggregate": "mean"}}
+    assert spec.verdict("run.test.mse < 1", {"run": mean}, experiment)[2] == "yes"
+
+
+def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
+    """From stored results alone: a claim comparing a run 1.01× below the time mean is
+    listed under the table, and a PNA model is named in its verdict."""
+    results = {"train-gene-ba-4x4": {"best_epoch": 5, "model": "mpnode",
+                                     "model_options": {"aggregate": "pna"},
+                                     "val": {"mse": 0.001},
+                                     "test": {"mse": 0.001, "time_mean": 0.5}},
+               "l2s": {"best_epoch": 5, "model": "l2s", "model_options": {},
+                       "val": {"mse": 0.5}, "test": {"mse": 0.5, "time_mean": 0.505}},
+               "zeroshot": {"gene-er-4x4": {"mse": 0.002}, "gene-ws-4x4": {"mse": 0.003}}}
+    folder = tmp_path / "zeroshot-gene" / "small-mpnode"
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "scale": "small", "recipe": "mpnode",
+        "steps": [{"id": step, "result": result} for step, result in results.items()]}))
+    from mpnode_cli.experiments.report import rebuild_index
+
+    index = rebuild_index(tmp_path).read_text()
+    row = next(line for line in index.splitlines() if "BA test error at or below" in line)
+    assert row.endswith("| — / yes (PNA aggregation, not the paper's mean) |")
+    weak = index.split("## Verdicts that rest on runs that did not learn")[1]
+    assert ("- zeroshot-gene, `--recipe mpnode`: MP-NODE's validation error on BA is below "
+            "L2S's: l2s (barely learned, 1.01× below the time mean).") in weak
+
+
+def test_the_absolute_path_check_tells_paths_from_urls():
+    for text in ("--work /work/x/y", "`/tmp/qruns`", '"/home/me/a"', "(/Users/me/b)"):
+        assert ABSOLUTE_PATH.search(text), text
+    for text in ("https://example.org/home/x", "reports/work/x", "~/tmp/x", "a.b/var/x",
+                 "file:///tmp/x", "<work>/gene", "/workshop/"):
+        assert not ABSOLUTE_PATH.search(text), text
+
+
+def test_recorded_paths_are_relative_or_placeholders(tmp_path, monkeypatch):
+    """What the runner and the benchmarks record of a path: relative as given, relative to
+    the current folder when under it, else a placeholder; commands as run from --work."""
+    from mpnode_cli.experiments.commands import from_work
+    from mpnode_cli.paths import shown_argv, shown_path
+
+    monkeypatch.chdir(tmp_path)
+    assert shown_path(tmp_path / "runs" / "x", "<work>") == "runs/x"
+    assert shown_path("runs/x", "<work>") == "runs/x"
+    assert shown_path("/elsewhere/x", "<work>") == "<work>"
+    assert shown_argv(["--runs", "/elsewhere/q", "--data", str(tmp_path / "d"), "--only",
+                       "a"]) == ["--runs", "<runs>", "--data", "d", "--only", "a"]
+    line = "mpnode train /w/a/data.h5 --run-dir '/w/b c/run' --x ../w/y --out=/w/z"
+    assert from_work(line, Path("/w")) == (
+        "mpnode train a/data.h5 --run-dir 'b c/run' --x ../w/y --out=z")
+
+def test_committed_reports_hold_no_absolute_paths():
+    """Reports and benchmark results are committed: the folders of the machine that ran
+    them (step folders, --work, --out, data and run folders) are written relative to a
+    folder the report names, or as placeholders (`<work>`)."""
+    files = [path for folder in ("reports", "bench/results") for path in (ROOT / folder).rglob("*")
+             if path.suffix in (".md", ".json", ".csv", ".txt", ".toml")]
+    assert files
+    found = {str(path.relative_to(ROOT)): match.group(0) for path in files
+             for match in [ABSOLUTE_PATH.search(path.read_text(errors="replace"))] if match}
+    assert not found, f"absolute paths in committed files: {found}"
+
+
+
+def test_loss_curves_are_drawn_in_time_mean_units(tmp_path, monkeypatch):
+    """A finetune's losses are in its parent's normalization: each run's curves are divided
+    by its own time-mean predictor's validation MSE (raw when one has none)."""
+    from mpnode_cli.experiments.steps import plot_losses
+    from mpnode_cli.report import plots
+
+    drawn = {}
+    monkeypatch.setattr(plots, "plot_curves",
+                        lambda runs, path, **kw: drawn.update(runs=runs, **kw) or path)
+    metrics = {"f": [{"epoch": 1, "train_loss": 2.0, "val_mse": 4.0}],
+               "s": [{"epoch": 1, "train_loss": 0.5, "val_mse": None}]}
+    results = {"f": {"val": {"time_mean": 4.0}}, "s": {"val": {"time_mean": 0.5}}}
+    labels = {"f": "finetuned", "s": "scratch"}
+    plot_losses(labels, metrics, results, tmp_path / "loss.png")
+    assert drawn["runs"] == {"finetuned": [{"epoch": 1, "train_loss": 0.5, "val_mse": 1.0}],
+                             "scratch": [{"epoch": 1, "train_loss": 1.0, "val_mse": None}]}
+    assert all("time-mean" in title for title in drawn["titles"])
+    drawn.clear()
+    plot_losses(labels, metrics, {**results, "s": {"val": {}}}, tmp_path / "loss.png")
+    assert drawn["runs"] == {"finetuned": metrics["f"], "scratch": metrics["s"]}
+    assert "titles" not in drawn
+
+
+def test_a_one_group_bar_chart_is_wide_enough_for_its_title(tmp_path):
+    from matplotlib.image import imread
+
+    from mpnode_cli.report.plots import plot_bars
+
+    title = "Table-2 figure (lower is better)"
+    path = plot_bars({"gene 8×8": {"finetuned": 700.0, "scratch": 200.0}}, tmp_path / "b.png",
+                     ylabel="best epoch × min validation loss", title=title, dpi=50)
+    assert imread(path).shape[1] >= (1.0 + 0.085 * len(title)) * 50 - 1
+
+
+PCA = """
+title = "t"
+paper = "p"
+[[steps]]
+id = "data"
+verb = "generate"
+system = "lorenz"
+nodes = 3
+trajectories = 16
+t_end = 0.5
+dt = 0.05
+[[steps]]
+id = "run"
+verb = "train"
+data = "data"
+epochs = 2
+[[steps]]
+id = "pca"
+verb = "evaluate"
+checkpoint = "run"
+data = "data"
+split = "all"
+plot = false
+pca = 2
+trajectories = 4
+[[claims]]
+claim = "c"
+paper = "p"
+where = "w"
+holds = "pca.pca.growth > pca.pca.untrained.growth"
+"""
+
+
+def test_the_message_pca_is_judged_against_an_untrained_model(tmp_path):
+    """Messages start at zero, so they spread out in any model: the PCA step takes the same
+    statistic of the same architecture with its initial weights, and the claim compares
+    the trained model's growth with that one's. A step without a PCA keeps its options."""
+    experiment = spec.load(_experiment(tmp_path, PCA))
+    record = run_experiment(experiment, scale="small", recipe="mpnode", work=tmp_path / "w")
+    pca = record.steps[-1].result["pca"]
+    for stats in (pca, pca["untrained"]):
+        assert stats["growth"] == pytest.approx(stats["spread_last"] / stats["spread_first"])
+    assert pca["untrained"]["spread_last"] != pytest.approx(pca["spread_last"])
+    holds, shown = spec.judge(experiment.claims[0].holds,
+                              {s.id: s.result for s in record.steps})
+    assert holds is not None and " > " in shown
+    plain = spec.EvaluateStep(id="e", verb="evaluate", checkpoint="run", data="data")
+    assert "pca_untrained" not in spec.resolve(plain, "small", "mpnode")
+    assert spec.resolve(experiment.steps[-1], "small", "mpnode")["pca_untrained"] is True
 
 HOLD_LOCK = """
 import fcntl, sys

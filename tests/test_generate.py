@@ -122,6 +122,23 @@ def test_edge_list_graph(tmp_path):
         resolve_config(_config(tmp_path, system="kuramoto", nodes=6, edge_list=edges))
 
 
+def test_kuramoto_ba_and_er_share_omega_unless_omega_seed_is_given(tmp_path):
+    """One graph seed, one ω: the BA and ER presets differ only in the adjacency. An
+    `-p omega_seed=S` dataset draws other frequencies; the default leaves data as it was."""
+    def omega(name, *args):
+        out = tmp_path / f"{len(list(tmp_path.iterdir()))}.h5"
+        result = runner.invoke(app, ["generate", "--preset", name, *TINY_ARGS, *args,
+                                     "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        return read_dataset(out).params["omega"]
+
+    ba, er = omega("kuramoto10-ba"), omega("kuramoto10-er")
+    np.testing.assert_array_equal(ba, er)
+    np.testing.assert_array_equal(ba[0], np.random.default_rng([0, 0]).standard_normal(3))
+    other = omega("kuramoto10-er", "-p", "omega_seed=1")
+    assert not np.allclose(other, ba)
+    np.testing.assert_array_equal(other, omega("kuramoto10-er", "-p", "omega_seed=1"))
+
 def test_rejected_and_failed_trajectories_are_redrawn(tmp_path):
     # The appendix's wide box makes about one pendulum trajectory in five singular.
     config = _config(tmp_path, system="pendulum", nodes=2, trajectories=20, t_end=2.0,

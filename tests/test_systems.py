@@ -236,6 +236,26 @@ def test_kuramoto_omega_per_graph():
     assert params["omega"].shape == (3,)
 
 
+def test_kuramoto_omega_seed_draws_other_frequencies_and_its_default_does_not():
+    """By default ω comes from the graph's own generator, as it always has (BA and ER
+    datasets of one graph seed share it); `omega_seed` draws other frequencies."""
+    graph = make_graph("ba", 10, 0, m=5)
+
+    def omega(**options):
+        return get_system("kuramoto", **options).graph_params(
+            graph, np.random.default_rng([0, 0]))["omega"]
+
+    np.testing.assert_array_equal(omega(), np.random.default_rng([0, 0]).standard_normal(3))
+    np.testing.assert_array_equal(omega(omega_seed=0), omega())
+    assert not np.allclose(omega(omega_seed=1), omega())
+    assert not np.allclose(omega(omega_seed=1), omega(omega_seed=2))
+    np.testing.assert_array_equal(omega(omega_seed="1"), omega(omega_seed=1))  # -p gives text
+    with pytest.raises(ValueError, match="omega_seed must be a whole number"):
+        get_system("kuramoto", omega_seed=1.5)
+    with pytest.raises(ValueError, match="omega_seed must be a finite number >= 0"):
+        get_system("kuramoto", omega_seed=-1)
+
+
 @pytest.mark.parametrize(
     ("name", "options", "low", "high"),
     [

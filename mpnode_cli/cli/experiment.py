@@ -31,21 +31,59 @@ def _complete_name(incomplete: str) -> list[str]:
     return [name for name in names() if name.startswith(incomplete)]
 
 
-def list_command() -> None:
+def list_command(
+    scale: str = typer.Option(
+        "small", help="small: the expected minutes at the small scale; paper: the estimated "
+        "core-hours of training at the paper's scale, from the seconds per epoch measured "
+        "in the experiment's committed runs (under --out)."),
+    out: Path = typer.Option(Path("reports"), help="Where the runs' reports are (what "
+                             "--scale paper reads its measurements from)."),
+) -> None:
     """List the experiments: name, what of the paper it reproduces, steps, and the
-    expected minutes at the small scale (one core; steps done earlier are skipped)."""
+    expected minutes at the small scale (one core; steps done earlier are skipped), or with
+    `--scale paper` the estimated core-hours of their training at the paper's scale."""
     from mpnode_cli.experiments.spec import load, names
     from mpnode_cli.report.tables import titled
 
+    if scale not in ("small", "paper"):
+        fail(f"unknown scale '{scale}' (choose from: small, paper)")
     table = titled("mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper]")
-    for column in ("name", "the paper", "title", "steps", "small, min"):
+    last = "small, min" if scale == "small" else "paper, core-h"
+    for column in ("name", "the paper", "title", "steps", last):
         table.add_column(column)
+    estimates = {}
     for name in names():
         experiment = load(name)
-        minutes = experiment.small_minutes
+        if scale == "paper":
+            from mpnode_cli.experiments.estimate import paper_cost
+
+            estimates[name] = paper_cost(experiment, out)
+            cost = estimates[name].shown()
+        else:
+            minutes = experiment.small_minutes
+            cost = "—" if minutes is None else f"~{minutes:g}"
         table.add_row(name, experiment.paper, experiment.title, str(len(experiment.steps)),
-                      "—" if minutes is None else f"~{minutes:g}")
+                      cost)
     console().print(table)
+    if scale == "paper":
+        _explain_paper_cost(estimates, out)
+
+
+def _explain_paper_cost(estimates: dict[str, Any], out: Path) -> None:
+    """How `--scale paper`'s column is estimated, and what it leaves out."""
+    from mpnode_cli.experiments.estimate import HOW
+
+    lines = [f"paper, core-h: {HOW}."]
+    resized = sorted({s for e in estimates.values() for s in e.resized})
+    if resized:
+        lines.append("*: a step measured with a smaller model than the paper scale's (L2S "
+                     f"runs CI-sized at the small scale: {', '.join(resized)}), so it costs "
+                     "more than shown.")
+    if any(e.missing for e in estimates.values()):
+        lines.append("≥: some training steps have no measured run, and are left out; —: no "
+                     f"run of the experiment under {out}.")
+    for line in lines:
+        typer.echo(line)
 
 
 def run_command(
@@ -98,12 +136,16 @@ def run_command(
 
 
 def _given_paths(out: Path, work: Path) -> list[str]:
-    """`--out`/`--work` for the recorded command, when not the defaults."""
+    """`--out`/`--work` for the recorded command, when not the defaults: relative to the
+    current folder, or `<out>`/`<work>` for a folder outside it (reports are committed,
+    and the folders of the machine that ran them mean nothing elsewhere)."""
+    from mpnode_cli.paths import shown_path
+
     extra = []
     if out != Path("reports"):
-        extra += ["--out", str(out)]
+        extra += ["--out", shown_path(out, "<out>")]
     if work != Path("runs/experiments"):
-        extra += ["--work", str(work)]
+        extra += ["--work", shown_path(work, "<work>")]
     return extra
 
 

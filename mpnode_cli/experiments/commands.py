@@ -1,12 +1,15 @@
 """The `mpnode` command line equivalent to each step, for the report.
 
 A step runs through the library; these are the commands that would do the same from a
-shell (paths as the runner used them). What the CLI has no switch for (messages zeroed at
-test time, the PCA of the messages) is said in a comment after the command.
+shell, run from the work folder (`from_work`: its paths relative to it, so a committed
+report holds no folder of the machine that ran it). What the CLI has no switch for
+(messages zeroed at test time, the PCA of the messages) is said in a comment after the
+command.
 """
 
 from __future__ import annotations
 
+import re
 import shlex
 from pathlib import Path
 from typing import Any
@@ -43,6 +46,15 @@ def _options(fields: dict[str, Any], skip: tuple[str, ...] = ()) -> list[str]:
 
 def _line(args: list[Any]) -> str:
     return shlex.join(str(a) for a in args)
+
+
+def from_work(line: str, work: Path) -> str:
+    """`line` as run from the folder `work`: each argument under it (as given or resolved)
+    relative to it. Only whole arguments' starts are matched, so `../x` stays."""
+    for prefix in dict.fromkeys((str(Path(work)), str(Path(work).resolve()))):
+        if prefix not in (".", ""):
+            line = re.sub(r"(?<![^\s'\"=])" + re.escape(prefix.rstrip("/") + "/"), "", line)
+    return line
 
 
 def generate(step, options: dict[str, Any], out: Path) -> str:

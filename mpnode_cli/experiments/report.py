@@ -34,12 +34,16 @@ _RECIPE_ORDER = {"mpnode": 0, "paper": 1}
 
 def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> Path:
     """Save a run's results and figures under `out/<name>/`, rebuild its `report.md` and
-    the index `out/README.md`. Returns the report's path."""
+    the index `out/README.md`. Returns the report's path.
+
+    Reports are committed, so they hold no folder of the machine that ran them: step
+    folders are named relative to the work folder, commands are as run from it, and the
+    work folder itself is shown relative to the current folder, or as `<work>`."""
     folder = Path(out) / experiment.name / f"{record.scale}-{record.recipe}"
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    data = record.to_dict()
+    data = portable(record.to_dict(), Path(record.work))
     for step in data["steps"]:
         names = []
         for figure in step["figures"]:
@@ -48,13 +52,32 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
             names.append(name)
         step["figures"] = names
     results = {r["id"]: r["result"] for r in data["steps"]}
-    data["claims"] = [_claim(claim, results) for claim in experiment.claims]
+    data["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
     (tmp / RESULTS).write_text(json.dumps(jsonable(data), indent=2, default=str) + "\n")
     shutil.rmtree(folder, ignore_errors=True)
     os.replace(tmp, folder)
     path = rebuild_report(experiment, Path(out))
     rebuild_index(Path(out))
     return path
+
+
+def portable(data: dict[str, Any], work: Path) -> dict[str, Any]:
+    """A run's record (`RunRecord.to_dict()`) with its paths relative to the work folder
+    `work`: each step's folder by its path in it, its commands as run from it, and `work`
+    as `shown_path` shows it."""
+    from mpnode_cli.experiments.commands import from_work
+    from mpnode_cli.paths import shown_path
+
+    steps = []
+    for step in data["steps"]:
+        folder = Path(step["folder"])
+        for base in (work, work.resolve()):
+            if folder.is_relative_to(base):
+                folder = folder.relative_to(base)
+                break
+        steps.append({**step, "folder": str(folder),
+                      "commands": [from_work(c, work) for c in step["commands"]]})
+    return {**data, "work": shown_path(work, "<work>"), "steps": steps}
 
 
 def _runs(out: Path, name: str) -> list[dict[str, Any]]:
@@ -94,7 +117,7 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     for run in _runs(out, experiment.name):
         # Claims judged anew from the spec, so a claim added later is judged on old results.
         results = {s["id"]: s["result"] for s in run["steps"]}
-        run["claims"] = [_claim(claim, results) for claim in experiment.claims]
+        run["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
         lines += _section(run)
     path = out / experiment.name / REPORT
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -138,12 +161,14 @@ def _section(run: dict[str, Any]) -> list[str]:
         for step_id, name in figures:
             lines += [f"**{name.removesuffix('.png')}** (step `{step_id}`)", "",
                       f"![{name}]({sub}/{name})", ""]
+    work = run.get("work", "<work>")
     lines += ["### Steps and the commands that do the same", "",
+              f"Folders and paths are in the work folder (`--work`, here `{work}`).", "",
               "| step | verb | status | seconds | folder |", "|---|---|---|---:|---|"]
     for s in run["steps"]:
         lines.append(f"| {s['id']} | {s['verb']} | {s['status']} | {s['seconds']:.1f} | "
                      f"`{s['folder']}` |")
-    lines += ["", "```bash"]
+    lines += ["", "```bash", f"# from the work folder: cd {work}"]
     lines += [c for s in run["steps"] for c in s["commands"]]
     lines += ["```", ""]
     seeds = _seeds(run["steps"])
@@ -251,7 +276,8 @@ def _seeds(steps: list[dict[str, Any]]) -> str:
 
 def rebuild_index(out: Path) -> Path:
     """`out/README.md`: one row per claim of every shipped experiment, with ours under each
-    recipe from the largest scale run (tiny runs are smoke tests and are left out)."""
+    recipe from the largest scale run (tiny runs are smoke tests and are left out), and
+    the verdicts that rest on runs that did not learn or barely learned."""
     lines = [
         "# Reproducing the paper: the index", "",
         "One row per claim of the paper (Gupta, Vemprala & Kapoor, \"Learning Modular "
@@ -259,12 +285,16 @@ def rebuild_index(out: Path) -> Path:
         "comparison on our results, from the largest scale run (`paper`, else `small`) with "
         "the paper's recipe (`--recipe paper`) and with mpnode's default (`--recipe "
         "mpnode`); *holds* says whether the paper's direction holds in each (paper recipe / "
-        "mpnode recipe), and names the training runs it compares whose test error is not "
-        "below the time-mean predictor's: those have not learned, and the comparison says "
-        "little. Each experiment's report has its tables, figures, commands and "
-        "machine; run one with `mpnode experiment run NAME --scale small`.", "",
+        "mpnode recipe). After a verdict, in brackets: the training runs it compares whose "
+        "test error is not below the time-mean predictor's (they have not learned) or less "
+        f"than {spec.BARELY_LEARNED:g}× below it (they barely have), so the comparison says "
+        "little; and an MP-NODE that is not the paper's model: an aggregation other than "
+        "the paper's mean (§3.2), as mpnode's recipe uses for some systems. Each experiment's "
+        "report has its tables, figures, commands and machine; run one with `mpnode "
+        "experiment run NAME --scale small`.", "",
         "| experiment | claim | the paper | where | ours, `--recipe paper` | ours, `--recipe "
         "mpnode` | holds |", "|---|---|---|---|---|---|---|"]
+    weak: list[str] = []
     for name in spec.names():
         experiment = spec.load(name)
         runs = [r for r in _runs(out, name) if r["scale"] != "tiny"]
@@ -280,19 +310,37 @@ def rebuild_index(out: Path) -> Path:
                     verdicts.append("—")
                     continue
                 results = {s["id"]: s["result"] for s in run["steps"]}
-                _, shown, said = spec.verdict(claim.holds, results)
+                _, shown, said = spec.verdict(claim.holds, results, experiment)
                 cells.append(f"{shown} ({run['scale']})")
                 verdicts.append(said)
+                weak += _weak(name, claim, recipe, results)
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
+    if weak:
+        lines += ["", "## Verdicts that rest on runs that did not learn, or barely", "",
+                  f"Runs not below the time-mean predictor, or less than "
+                  f"{spec.BARELY_LEARNED:g}× below it, that a claim compares:", "", *weak]
     path = out / INDEX
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_text(path, "\n".join(lines) + "\n")
     return path
 
 
-def _claim(claim: spec.Claim, results: dict[str, Any]) -> dict[str, Any]:
-    holds, shown, said = spec.verdict(claim.holds, results)
+def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any]) -> list[str]:
+    """A line for the index if `claim`'s verdict under `recipe` rests on runs that did not
+    learn or barely learned."""
+    ratios = spec.learning(claim.holds, results)
+    if not ratios:
+        return []
+    runs = ", ".join(f"{step} (not below the time mean)" if ratio <= 1 else
+                     f"{step} (barely learned, {ratio:.3g}× below the time mean)"
+                     for step, ratio in ratios.items())
+    return [f"- {name}, `--recipe {recipe}`: {claim.claim}: {runs}."]
+
+
+def _claim(claim: spec.Claim, results: dict[str, Any],
+           experiment: spec.Experiment) -> dict[str, Any]:
+    holds, shown, said = spec.verdict(claim.holds, results, experiment)
     return {**claim.model_dump(), "holds_now": holds, "ours": shown, "verdict": said}
 
 

@@ -55,6 +55,7 @@ class RunRecord:
     scale: str
     recipe: str
     command: str
+    work: str  # the folder of step folders, as given (`report` records it relative)
     started: str
     wall_seconds: float
     machine: dict[str, Any]
@@ -72,7 +73,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     Args:
         work: the folder of step folders (shared by experiments).
         command: the command line to record (default: the `mpnode experiment run` that
-            does the same).
+            does the same; an absolute path in it is shown as `mpnode_cli.paths.shown_path`
+            shows it, since reports are committed).
         jobs: processes that run steps side by side (this one and `jobs - 1` workers, one
             torch pool each of this process's size). A step runs once its inputs are done;
             each process takes the first step, in the spec's order, that is ready and that
@@ -84,11 +86,11 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         TrainingInterrupted, KeyboardInterrupt: Ctrl-C; finished steps stay reusable and a
             training resumes from its last epoch on the next run.
     """
-    from mpnode_cli.paths import check_output_folder
+    from mpnode_cli.paths import check_output_folder, shown_path
 
     emit = progress or (lambda event: None)
     command = command or (f"mpnode experiment run {experiment.name} --scale {scale} "
-                          f"--recipe {recipe} --work {work}")
+                          f"--recipe {recipe} --work {shown_path(work, '<work>')}")
     work = Path(work)
     check_output_folder(work)
     work.mkdir(parents=True, exist_ok=True)
@@ -106,7 +108,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         stop_workers(workers)
     machine["load_after"] = _load()
     return RunRecord(experiment=experiment.name, title=experiment.title, scale=scale,
-                     recipe=recipe, command=command, started=started,
+                     recipe=recipe, command=command, work=str(work), started=started,
                      wall_seconds=time.perf_counter() - start, machine=machine,
                      steps=[records[entry.step.id] for entry in steps])
 

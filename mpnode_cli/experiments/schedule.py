@@ -37,6 +37,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from mpnode_cli.experiments.commands import from_work
 from mpnode_cli.experiments.spec import Experiment, Scale, resolve
 from mpnode_cli.experiments.steps import (
     RUN_DIR,
@@ -136,7 +137,12 @@ def _finished_record(entry: Planned, token: str) -> StepRecord | None:
     if done is None:
         return None
     ran_now = done.pop("run_token", None) == token
+    # The folder is where the step is now (the work folder may have moved since), and its
+    # commands as run from the work folder (step records before that held absolute paths).
     return StepRecord(**{**done, "status": done["status"] if ran_now else "skipped",
+                         "folder": str(entry.folder),
+                         "commands": [from_work(c, entry.folder.parent)
+                                      for c in done["commands"]],
                          "label": entry.step.label or entry.step.id,
                          "reported": dict(entry.step.reported),
                          "reported_in": entry.step.reported_in})
@@ -298,7 +304,8 @@ def run_step(step, options: dict[str, Any], fingerprint: str, folder: Path,
     record = StepRecord(
         id=step.id, verb=step.verb, label=step.label or step.id, status=status,
         folder=str(folder), fingerprint=fingerprint, options=options,
-        seconds=time.perf_counter() - start, commands=cmds, result=result, figures=figures,
+        seconds=time.perf_counter() - start, commands=[from_work(c, folder.parent) for c in cmds],
+        result=result, figures=figures,
         reported=dict(step.reported), reported_in=step.reported_in)
     write_json(folder / STEP_JSON, {**asdict(record), "outputs": outputs, "run_token": token})
     (folder / PENDING_JSON).unlink(missing_ok=True)

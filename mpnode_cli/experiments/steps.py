@@ -180,63 +180,140 @@ def _evaluate(step, options, folder: Path, inputs, status, emit):
 
 def _message_pca(ckpt, data, step, path: Path) -> dict[str, Any]:
     """PCA of all nodes' messages over time (the paper's Fig. 12): each sample time of each
-    trajectory is one point of N·M message values."""
+    trajectory is one point of N·M message values.
+
+    Messages start at zero, so their spread from the start grows in any model whose
+    messages move at all; with `pca_untrained` the same statistic is taken of the same
+    architecture with fresh weights (the training's seed) on the same trajectories, and
+    `growth` (late spread ÷ early spread) of the trained model is judged against its."""
     import torch
 
-    from mpnode_cli.config import stored_solver, train_solver
+    from mpnode_cli.models.registry import build_model
     from mpnode_cli.report.plots import plot_components
-    from mpnode_cli.training.evaluate import predict
 
     subset = data.subset(step.split)
     n = min(step.trajectories, len(subset))
-    model, normalizer = ckpt.build_model(), ckpt.build_normalizer()
-    pred = predict(model, subset, normalizer, torch.arange(n),
+    trained = ckpt.build_model()
+    time, messages = _messages(ckpt, trained, subset, n)
+    b, _, nodes, m = messages.shape
+    scores, explained = _components(messages, step.pca)
+    plot_components(time, scores, path, dpi=FIGURE_DPI,
+                    title=f"PCA of {nodes}×{m} messages, {b} trajectories")
+    result = {"trajectories": b, "messages": nodes * m, "explained": explained,
+              **_spread(scores)}
+    if step.pca_untrained:
+        # The weights the training started from (it seeds, then builds), with the data
+        # statistics it fitted (buffers such as PNA's degree scale), which are not weights.
+        with torch.random.fork_rng():
+            torch.manual_seed(int((ckpt.train_config or {}).get("seed", 0)))
+            fresh = build_model(ckpt.model_kind, ckpt.model_config)
+        fresh.to(dtype=next(trained.parameters()).dtype)  # a float64 training's, too
+        state = fresh.state_dict()
+        state.update({k: v for k, v in trained.named_buffers() if k in state})
+        fresh.load_state_dict(state)
+        _, untrained = _messages(ckpt, fresh, subset, n)
+        result["untrained"] = _spread(_components(untrained, step.pca)[0])
+    return result
+
+
+def _messages(ckpt, model, subset, n: int):
+    """The sample times `[T]` and messages `[B, T, N, M]` of `model` on the first `n`
+    trajectories of `subset`, with the checkpoint's normalization and training solver."""
+    import torch
+
+    from mpnode_cli.config import stored_solver, train_solver
+    from mpnode_cli.training.evaluate import predict
+
+    pred = predict(model, subset, ckpt.build_normalizer(), torch.arange(n),
                    solver=stored_solver(ckpt.train_config, train_solver))
     if pred.messages is None or pred.messages.shape[-1] == 0:
         raise ValueError(f"model '{ckpt.model_kind}' has no message states")
-    b, t, nodes, m = pred.messages.shape
-    flat = pred.messages.double().reshape(b * t, nodes * m)  # (B·T, N·M)
+    return pred.time, pred.messages
+
+
+def _components(messages, k: int):
+    """The first `k` principal components' scores `[B, T, k]` of messages `[B, T, N, M]`
+    (each sample time of each trajectory one point of N·M values), and the share of the
+    variance each component explains."""
+    import torch
+
+    b, t, nodes, m = messages.shape
+    flat = messages.double().reshape(b * t, nodes * m)  # (B·T, N·M)
     centred = flat - flat.mean(dim=0)
     _, s, v = torch.linalg.svd(centred, full_matrices=False)
-    k = min(step.pca, v.shape[0])
+    k = min(k, v.shape[0])
     scores = (centred @ v[:k].T).reshape(b, t, k)  # (B, T, k)
-    explained = (s**2 / (s**2).sum()).tolist()
-    plot_components(pred.time, scores, path, dpi=FIGURE_DPI,
-                    title=f"PCA of {nodes}×{m} messages, {b} trajectories")
-    # How far the components have moved from where each trajectory started, early and
-    # late in the horizon: the paper reads growth as the messages countering drift.
+    total = float((s**2).sum())
+    return scores, [float(x) / total if total > 0 else 0.0 for x in (s**2)[:k]]
+
+
+def _spread(scores) -> dict[str, float | None]:
+    """How far the components have moved from where each trajectory started, early and
+    late in the horizon (the first and last quarter of the samples), and late over early:
+    the paper reads growth as the messages countering drift."""
+    t = scores.shape[1]
     moved = (scores - scores[:, :1]).abs().mean(dim=(0, 2))  # (T,)
     quarter = max(1, t // 4)
-    return {"trajectories": b, "messages": nodes * m, "explained": explained[:k],
-            "spread_first": float(moved[:quarter].mean()),
-            "spread_last": float(moved[-quarter:].mean())}
+    first, last = float(moved[:quarter].mean()), float(moved[-quarter:].mean())
+    return {"spread_first": first, "spread_last": last,
+            "growth": last / first if first > 0 else None}
 
 
 def _compare(step, options, folder: Path, inputs, status, emit):
-    from mpnode_cli.report.plots import plot_bars, plot_curves
     from mpnode_cli.training.run import read_metrics
 
     labels = {i: inputs[i].label for i in step.runs}
     metrics = {i: read_metrics(Path(inputs[i].folder) / RUN_DIR) for i in step.runs}
     curves = folder / f"{step.id}-loss.png"
-    plot_curves({labels[i]: metrics[i] for i in step.runs}, curves, dpi=FIGURE_DPI)
+    plot_losses(labels, metrics, {i: inputs[i].result for i in step.runs}, curves,
+                per_mean=step.curves == "time-mean")
     figures = [str(curves)]
     result = {"runs": {i: {k: inputs[i].result.get(k) for k in
                            ("best_epoch", "min_val_loss", "table2", "min_train_loss")}
                        for i in step.runs}}
     if step.groups:
         bars = folder / f"{step.id}-bars.png"
-        first = next(iter(step.groups.values()))
-        series = step.series or [labels[i] for i in first]
-        plot_bars({group: {series[j] if j < len(series) else labels[i]:
-                           inputs[i].result.get("table2") for j, i in enumerate(members)}
-                   for group, members in step.groups.items()}, bars, dpi=FIGURE_DPI,
-                  ylabel="best epoch × min validation loss",
-                  title="Table-2 figure (lower is better)")
+        plot_table2(step, labels, {i: inputs[i].result.get("table2") for i in step.runs},
+                    bars)
         figures.append(str(bars))
         result["groups"] = step.groups
     runs = [Path(inputs[i].folder) / RUN_DIR for i in step.runs]
     return result, [Path(f).name for f in figures], [commands.compare(runs)], figures
+
+
+def plot_losses(labels: dict[str, str], metrics: dict[str, list[dict[str, Any]]],
+                results: dict[str, dict[str, Any]], path: Path, per_mean: bool = True) -> Path:
+    """Training runs' loss curves (run id → label, `metrics.jsonl` rows, results). With
+    `per_mean`, each run's training loss and validation MSE are divided by its own
+    time-mean predictor's validation MSE: a finetune keeps its parent's normalization, so
+    its raw losses are in other units than a scratch run's on the same data. Raw when a
+    run has no time-mean MSE to divide by."""
+    from mpnode_cli.report.plots import plot_curves
+
+    means = {i: (results[i].get("val") or {}).get("time_mean") for i in labels}
+    if per_mean and all(isinstance(m, int | float) and m > 0 for m in means.values()):
+        runs = {labels[i]: [{**row, **{key: row[key] / means[i] for key in
+                                       ("train_loss", "val_mse") if row.get(key) is not None}}
+                            for row in metrics[i]] for i in labels}
+        return plot_curves(runs, path, dpi=FIGURE_DPI, titles=(
+            "training loss ÷ time-mean predictor's val MSE",
+            "validation MSE ÷ time-mean predictor's"))
+    return plot_curves({labels[i]: metrics[i] for i in labels}, path, dpi=FIGURE_DPI)
+
+
+def plot_table2(step, labels: dict[str, str], table2: dict[str, float | None],
+                path: Path) -> Path:
+    """The paper's Table-2 figure of a compare step's groups, a bar per run (run id →
+    label, Table-2 figure)."""
+    from mpnode_cli.report.plots import plot_bars
+
+    first = next(iter(step.groups.values()))
+    series = step.series or [labels[i] for i in first]
+    return plot_bars({group: {series[j] if j < len(series) else labels[i]: table2[i]
+                              for j, i in enumerate(members)}
+                      for group, members in step.groups.items()}, path, dpi=FIGURE_DPI,
+                     ylabel="best epoch × min validation loss",
+                     title="Table-2 figure (lower is better)")
 
 
 VERBS = {"generate": _generate, "train": _train, "finetune": _train, "zeroshot": _zeroshot,

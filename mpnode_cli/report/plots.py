@@ -103,12 +103,15 @@ def plot_error_vs_time(time, mse_vs_time, path: str | Path, *, labels: Sequence[
     return _save(fig, path, dpi)
 
 
-def plot_curves(runs: dict[str, Sequence[dict]], path: str | Path, *, dpi: int = DPI) -> Path:
+def plot_curves(runs: dict[str, Sequence[dict]], path: str | Path, *, dpi: int = DPI,
+                titles: Sequence[str] = ("training loss", "validation MSE (normalized)"),
+                ) -> Path:
     """Training loss and validation MSE against epoch, one line per run (the paper's
     Fig. 3a, 4, 5, 7, 8, 9), log scale.
 
     Args:
         runs: label → a run's `metrics.jsonl` rows (`epoch`, `train_loss`, `val_mse`).
+        titles: the two panels' (say the units when the rows are scaled).
     """
     fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.4))
     for label, rows in runs.items():
@@ -116,7 +119,7 @@ def plot_curves(runs: dict[str, Sequence[dict]], path: str | Path, *, dpi: int =
             points = [(r["epoch"], r[key]) for r in rows if r.get(key) is not None]
             if points:
                 ax.plot(*zip(*points, strict=True), lw=1.2, label=label)
-    for ax, name in zip(axes, ("training loss", "validation MSE (normalized)"), strict=True):
+    for ax, name in zip(axes, titles, strict=True):
         ax.set_yscale("log")
         ax.set_xlabel("epoch")
         ax.set_title(name, fontsize=10)
@@ -128,7 +131,9 @@ def plot_curves(runs: dict[str, Sequence[dict]], path: str | Path, *, dpi: int =
 def plot_bars(groups: dict[str, dict[str, float | None]], path: str | Path, *, ylabel: str,
               title: str = "", dpi: int = DPI) -> Path:
     """Grouped bars on a log scale: group → {bar label → value} (a missing value: no bar)."""
-    fig, ax = plt.subplots(figsize=(1.2 + 1.4 * max(len(groups), 1), 3.4))
+    # Wide enough for the title too (one group's bars alone would clip it).
+    inches = max(1.2 + 1.4 * max(len(groups), 1), 1.0 + 0.085 * len(title))
+    fig, ax = plt.subplots(figsize=(inches, 3.4))
     labels = list(dict.fromkeys(k for bars in groups.values() for k in bars))
     width = 0.8 / max(len(labels), 1)
     for j, label in enumerate(labels):

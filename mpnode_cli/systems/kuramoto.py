@@ -7,6 +7,12 @@ Each node carries 3 independent phases, coupled component-wise along the graph:
 with one natural-frequency vector ω ~ N(0, I₃) per graph, shared by all its nodes
 (`src/systems/kuramoto.jl:25-54`). Phases are not wrapped. Initial states U(−1, 1).
 
+Graph g's ω is drawn from the graph's generator, `default_rng([graph_seed, g])`, so two
+datasets with the same graph seed (the BA and ER presets) share their ω and differ only in
+the adjacency. `-p omega_seed=S` (S > 0) draws it from a generator seeded by S and that
+one instead: other frequencies, still one per graph. The default (0) leaves every dataset
+as it was.
+
 Graphs with mean degree ≈ 5, the paper's "each node connected to 5 other nodes" (App. A.4):
 `ba` with m = 5 (needs N > 5), `er` G(n, M) with M = round(5n/2) edges (halves round up;
 capped at the complete graph), `ws` with k = 4, p = 0.5. We follow the paper here, not the
@@ -21,7 +27,7 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, NeighbourSum, System
+from mpnode_cli.systems.base import RHS, NeighbourSum, Option, System
 
 if TYPE_CHECKING:
     import torch
@@ -36,6 +42,10 @@ class Kuramoto(System):
     default_topology: ClassVar[str] = "ba"
     default_nodes: ClassVar[int] = 10
     defaults: ClassVar[dict[str, float]] = {"K": 1.0 / 3.0}
+    options: ClassVar[dict[str, Option]] = {"omega_seed": Option(
+        0, "Seed of the natural frequencies ω: 0 draws them from each graph's seed (BA and "
+        "ER of one graph seed share them); a whole number S > 0 draws others.", minimum=0)}
+    omega_seed: float
     paper_loss: ClassVar[str] = "huber"  # the paper's App. A.4
     # Coupled only through neighbour sums: runs on edge lists, so on graphs of any size.
     sparse: ClassVar[bool] = True
@@ -48,6 +58,12 @@ class Kuramoto(System):
         f"kuramoto10-{topology}": {"nodes": 10, "topology": topology, "trajectories": 500,
                                    "t_end": 2.5, "dt": 0.05}
         for topology in ("ba", "er", "ws")}
+
+    def __init__(self, **given: float | str) -> None:
+        super().__init__(**given)
+        if not float(self.omega_seed).is_integer():
+            raise ValueError(f"kuramoto option omega_seed must be a whole number, got "
+                             f"{given.get('omega_seed')!r}")
 
     def graph_kwargs(self, topology: str, n: int) -> dict[str, float]:
         """Mean degree ≈ 5 for each topology."""
@@ -62,7 +78,11 @@ class Kuramoto(System):
     def graph_params(
         self, adjacency: np.ndarray, rng: np.random.Generator
     ) -> dict[str, np.ndarray]:
-        """`{"omega": float64 [3]}`, the natural frequencies shared by the graph's nodes."""
+        """`{"omega": float64 [3]}`, the natural frequencies shared by the graph's nodes:
+        from `rng` (the graph's), or with `omega_seed` from a generator seeded by it and
+        by a draw of `rng` (so the graphs of one dataset still differ)."""
+        if self.omega_seed:
+            rng = np.random.default_rng([int(self.omega_seed), *rng.integers(2**32, size=2)])
         return {"omega": rng.standard_normal(3)}
 
     def sample_initial(self, adjacency: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
