@@ -17,7 +17,8 @@ of them at the small scale:
 
 A claim compares two numbers of the results (`holds = "a.min_train_loss < b.min_train_loss"`,
 each side `[FACTOR *] STEP.PATH` or a number); the paper's figure for it is text, with the
-place in the paper it comes from.
+place in the paper it comes from. Run with `--seeds S`, every training is an ensemble and a
+claim is judged member by member and on the members' means (`members.decide`).
 """
 
 from __future__ import annotations
@@ -30,14 +31,16 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from mpnode_cli.experiments import members
 from mpnode_cli.textfiles import read_text
 
 SCALES = ("tiny", "small", "paper")
 Scale = Literal["tiny", "small", "paper"]
 _ID = r"^[a-z0-9][a-z0-9-]*$"
 # Fields of a train config that the runner sets: the data, the run folder, the recipe, the
-# parent checkpoint (from the step's `data`, its folder, `--recipe`, `checkpoint`).
-RUNNER_FIELDS = ("dataset", "run_dir", "recipe", "init_checkpoint")
+# parent checkpoint, the ensemble's members (from the step's `data`, its folder, `--recipe`,
+# `checkpoint`, `--seeds`).
+RUNNER_FIELDS = ("dataset", "run_dir", "recipe", "init_checkpoint", "seeds")
 TINY_TRAJECTORIES = 24  # per generated dataset at the tiny scale
 TINY_SAMPLES = 5  # sample times per trajectory at the tiny scale
 TINY_EPOCHS = 2
@@ -280,6 +283,9 @@ def check(experiment: Experiment) -> None:
         where = f"{experiment.name}: step '{step.id}'"
         if step.id in seen:
             raise ValueError(f"{where} is defined twice")
+        if step.id == members.MEMBERS:  # a zero-shot step's results hold a row per data id
+            raise ValueError(f"{where}: '{members.MEMBERS}' is the name of an ensemble's "
+                             "results per member, not a step's")
         for ref in step.inputs():
             want = _wanted(step, ref)
             if ref not in seen:
@@ -287,8 +293,8 @@ def check(experiment: Experiment) -> None:
             if seen[ref] not in want:
                 raise ValueError(f"{where} reads '{ref}' ({seen[ref]}), not a "
                                  f"{' or '.join(want)} step")
-        for group, members in getattr(step, "groups", {}).items():
-            missing = [m for m in members if m not in step.runs]
+        for group, runs in getattr(step, "groups", {}).items():
+            missing = [m for m in runs if m not in step.runs]
             if missing:
                 raise ValueError(f"{where}: group '{group}' names {missing[0]}, not in runs")
         seen[step.id] = step.verb
@@ -316,12 +322,14 @@ def _wanted(step: Any, ref: str) -> tuple[str, ...]:
 # ----------------------------------------------------------------------------- resolving
 
 
-def resolve(step: Any, scale: Scale, recipe: str) -> dict[str, Any]:
+def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1) -> dict[str, Any]:
     """A step's verb options at `scale`, checked, as plain JSON: what the step does and what
     its fingerprint hashes (with its inputs' fingerprints).
 
     - generate: `{"config": GenerateConfig fields}`, the preset merged in (no `out`).
-    - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}`.
+    - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}`, with
+      `seeds` when it is over 1 (an ensemble of that many members; left out at 1, so a
+      single model's step keeps the fingerprint and folder it had before seeds).
     - others: their options.
 
     Raises:
@@ -356,6 +364,8 @@ def resolve(step: Any, scale: Scale, recipe: str) -> dict[str, Any]:
             options = shrink_train(options)
         if step.verb == "finetune" and ("model" in options or "model_options" in options):
             raise ValueError("a finetune keeps its checkpoint's model (no model options)")
+        if seeds > 1:
+            options["seeds"] = seeds
         _validated(TrainConfig, {**options, "dataset": "data.h5"})
         model = options.get("model", "mpnode")
         if model in OPTIONS:
@@ -425,7 +435,6 @@ _NUMBER = r"[-+0-9.eE]+"
 _REF = r"[a-z0-9][a-z0-9-]*(?:\.[A-Za-z0-9_-]+)+"  # STEP.PATH
 _SIDE = rf"\s*(?:(?P<{{0}}f>{_NUMBER})\s*\*\s*)?(?P<{{0}}>{_NUMBER}|{_REF})\s*"
 _CLAIM = re.compile(_SIDE.format("a") + r"(?P<op><=|>=|<|>)" + _SIDE.format("b") + "$")
-_OPS = {"<": float.__lt__, ">": float.__gt__, "<=": float.__le__, ">=": float.__ge__}
 
 
 def parse_claim(text: str) -> tuple[tuple[float, str | None], str, tuple[float, str | None]]:
@@ -493,16 +502,57 @@ def learning(text: str, results: dict[str, dict[str, Any]]) -> dict[str, float]:
     return out
 
 
+def member_learning(text: str, results: dict[str, dict[str, Any]]
+                    ) -> dict[str, dict[int | None, float]]:
+    """`learning` member by member: run → {member k → its ratio} for the members that have
+    not learned or barely (the member is None for a single model's results)."""
+    out: dict[str, dict[int | None, float]] = {}
+    named = _named(text, results)
+    for k in range(members.count(named)):
+        for step, ratio in learning(text, members.view(named, k)).items():
+            out.setdefault(step, {})[k if _ensemble(named) else None] = ratio
+    return out
+
+
+def _named(text: str, results: dict[str, Any]) -> dict[str, Any]:
+    """The results of the steps a claim names."""
+    steps = [(ref or "").partition(".")[0] for _, ref in parse_claim(text)[::2]]
+    return {step: results[step] for step in steps if step in results}
+
+
+def _ensemble(results: dict[str, Any]) -> bool:
+    return any(isinstance(r, dict) and r.get(members.MEMBERS) for r in results.values())
+
+
 def not_learned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
-    """The training runs a claim reads whose test MSE is not below the time-mean
-    predictor's: they have not learned, so the claim says little whichever way it goes."""
-    return [step for step, ratio in learning(text, results).items() if ratio <= 1]
+    """The training runs a claim reads with a member whose test MSE is not below the
+    time-mean predictor's: it has not learned, so the claim says little whichever way it
+    goes."""
+    return [step for step, ratios in member_learning(text, results).items()
+            if any(ratio <= 1 for ratio in ratios.values())]
 
 
 def barely_learned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
-    """The training runs a claim reads that are below the time-mean predictor, but by less
-    than `BARELY_LEARNED`×."""
-    return [step for step, ratio in learning(text, results).items() if ratio > 1]
+    """The training runs a claim reads with a member below the time-mean predictor, but by
+    less than `BARELY_LEARNED`×."""
+    return [step for step, ratios in member_learning(text, results).items()
+            if any(ratio > 1 for ratio in ratios.values())]
+
+
+def learning_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """What `member_learning` finds, a phrase per run: `not below the time mean` or
+    `barely learned, 1.3× below the time mean`; for an ensemble `member 1 not below the
+    time mean, member 2 barely learned (1.3× below the time mean)`."""
+    def said(k: int | None, ratio: float) -> str:
+        if ratio <= 1:
+            return "not below the time mean" if k is None else \
+                f"member {k} not below the time mean"
+        below = f"{ratio:.3g}× below the time mean"
+        return f"barely learned, {below}" if k is None else \
+            f"member {k} barely learned ({below})"
+
+    return {step: ", ".join(said(k, ratio) for k, ratio in ratios.items())
+            for step, ratios in member_learning(text, results).items()}
 
 
 def trained_runs(text: str, experiment: Experiment) -> list[str]:
@@ -536,41 +586,61 @@ def departures(text: str, results: dict[str, dict[str, Any]],
 
 def verdict(text: str, results: dict[str, dict[str, Any]],
             experiment: Experiment | None = None) -> tuple[bool | None, str, str]:
-    """`judge`'s (holds, numbers shown) and the verdict as the reports write it: yes, **no**
-    or — (a number missing), followed by what it rests on: the runs that did not beat the
-    time mean or barely did, and a model that is not the paper's (with `experiment`, to
-    find the runs behind an evaluation)."""
-    holds, shown = judge(text, results)
-    said = "—" if holds is None else ("yes" if holds else "**no**")
-    ratios = learning(text, results)
-    notes = [f"{step}: not below the time mean" if ratio <= 1 else
-             f"{step}: barely learned, {ratio:.3g}× below the time mean"
-             for step, ratio in ratios.items()]
+    """Whether a claim holds (None: undecided, or a number missing), the numbers shown, and
+    the verdict as the reports write it: yes, **no**, undecided or — (a number missing),
+    followed by what it rests on: for an ensemble, how many members it holds for and
+    whether the means differ by more than their combined std (`members.decide`); the
+    runs (members) that did not beat the time mean or barely did; and a model that is not
+    the paper's (with `experiment`, to find the runs behind an evaluation).
+
+    One model's results show their two numbers (`0.025 < 0.62`), an ensemble's their means
+    ± std over the members."""
+    decision = decide(text, results)
+    holds = {"holds": True, "fails": False}.get(decision.outcome or "")
+    said = {"holds": "yes", "fails": "**no**", "undecided": "undecided"}.get(
+        decision.outcome or "", "—")
+    notes = [decision.reason()] if _ensemble(_named(text, results)) and decision.outcome else []
+    notes += [f"{step}: {note}" for step, note in learning_notes(text, results).items()]
     notes += departures(text, results, experiment)
     if notes:
         said += f" ({'; '.join(notes)})"
-    return holds, shown, said
+    return holds, decision.shown(), said
+
+
+def decide(text: str, results: dict[str, dict[str, Any]]) -> members.Decision:
+    """A claim judged on each member alone (member k of every step it names) and on the
+    members' means (`members.decide`); results without members are one member."""
+    named = _named(text, results)
+    return members.decide([_sides(text, members.view(named, k))
+                           for k in range(members.count(named))], parse_claim(text)[1])
 
 
 def judge(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str]:
-    """Whether a claim holds on `results` (step id → its results), and the numbers shown.
+    """Whether a claim holds on `results` (step id → its results; one model's, or one
+    member's), and the numbers shown.
 
     Returns:
         (True/False, or None when a number is missing; e.g. "0.025 < 0.62").
     """
+    values = _sides(text, results)
+    op = parse_claim(text)[1]
+    shown = f" {op} ".join("—" if v is None else f"{v:.4g}" for v in values)
+    if None in values:
+        return None, shown
+    return members.OPS[op](float(values[0]), float(values[1])), shown
+
+
+def _sides(text: str, results: dict[str, dict[str, Any]]) -> tuple[float | None, float | None]:
+    """A claim's two numbers on `results` (None where one is missing)."""
     results = {step: with_derived(result) for step, result in results.items()}
-    left, op, right = parse_claim(text)
+    left, _, right = parse_claim(text)
     values = []
     for factor, ref in (left, right):
         if ref is None:
             values.append(factor)
             continue
         step, _, path = ref.partition(".")
-        value: Any = results.get(step)
-        for key in path.split("."):
-            value = value.get(key) if isinstance(value, dict) else None
-        values.append(None if not isinstance(value, int | float) else factor * float(value))
-    shown = f" {op} ".join("—" if v is None else f"{v:.4g}" for v in values)
-    if None in values:
-        return None, shown
-    return _OPS[op](float(values[0]), float(values[1])), shown
+        value = members.lookup(results.get(step), path)
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        values.append(factor * float(value) if ok else None)
+    return values[0], values[1]
