@@ -222,7 +222,7 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     resumed.scale = "small"
     write_report(resumed, experiment, tmp_path / "index")
     rows = [line for line in (tmp_path / "index" / "README.md").read_text().splitlines()
-            if "(small)" in line]
+            if "(small, 1 seed)" in line]
     assert len(rows) == len(experiment.claims)
     assert all(" < " in row or " > " in row for row in rows)
     saved = json.loads((out / "messages-pendulum" / "tiny-mpnode" / "results.json").read_text())
@@ -587,7 +587,8 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
     work = tmp_path / "work"
     proc = subprocess.Popen(
         [sys.executable, "-m", "mpnode_cli", "experiment", "run", str(tmp_path / "pair.toml"),
-         "--jobs", "2", "--threads", "1", "--work", str(work), "--out", str(tmp_path / "out")],
+         "--jobs", "2", "--threads", "1", "--seeds", "1", "--work", str(work), "--out",
+         str(tmp_path / "out")],
         env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     steps = experiment_runner.plan(spec.load(tmp_path / "pair.toml"), "small", "mpnode", work)
     trainings = [entry for entry in steps if entry.step.verb == "train"]

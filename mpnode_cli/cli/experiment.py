@@ -47,7 +47,8 @@ def list_command(
 
     if scale not in ("small", "paper"):
         fail(f"unknown scale '{scale}' (choose from: small, paper)")
-    table = titled("mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper]")
+    table = titled("mpnode experiment run NAME [--scale small|paper] [--recipe mpnode|paper] "
+                   "[--seeds S]")
     last = "small, min" if scale == "small" else "paper, core-h"
     for column in ("name", "the paper", "title", "steps", last):
         table.add_column(column)
@@ -104,6 +105,12 @@ def run_command(
         1, "--jobs", "-j", metavar="N",
         help="Processes running steps side by side, each on --threads threads: a step "
         "runs once its inputs are done (2 on 2 cores takes about half the time)."),
+    seeds: int = typer.Option(
+        3, metavar="S",
+        help="Train every model as an ensemble of S members in one run (member k with the "
+        "step's seed + k); reports give each number as mean ± std over the members, and a "
+        "claim holds, fails or is undecided from the members (docs/reproducing.md). 1: one "
+        "model per training step."),
     threads: str | None = THREADS,
 ) -> None:
     """Run (or resume) an experiment and write its report."""
@@ -117,6 +124,8 @@ def run_command(
         fail(f"unknown scale '{scale}' (choose from: {', '.join(_SCALES)})")
     if jobs < 1:
         fail(f"jobs: Input should be greater than or equal to 1 (got {jobs})")
+    if seeds < 1:
+        fail(f"seeds: Input should be greater than or equal to 1 (got {seeds})")
     if jobs > available_cpus():  # each job is a process holding torch: never one per typo
         fail(f"--jobs must be at most {available_cpus()}, the CPUs this process may use, "
              f"got {jobs}")
@@ -130,9 +139,9 @@ def run_command(
     except ValueError as exc:
         fail(error_message(exc))
     command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
-                          _RECIPES[recipe], *_given_paths(out, work),
+                          _RECIPES[recipe], "--seeds", str(seeds), *_given_paths(out, work),
                           *(["--jobs", str(jobs)] if jobs > 1 else [])])
-    _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs)
+    _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs, seeds)
 
 
 def _given_paths(out: Path, work: Path) -> list[str]:
@@ -150,7 +159,7 @@ def _given_paths(out: Path, work: Path) -> list[str]:
 
 
 def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: str,
-         jobs: int = 1) -> None:
+         jobs: int = 1, seeds: int = 1) -> None:
     from mpnode_cli.experiments.report import write_report
     from mpnode_cli.experiments.runner import StepFailed, run_experiment
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
@@ -160,11 +169,12 @@ def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: st
     try:
         with interrupt_on_signals():
             record = run_experiment(experiment, scale=scale, recipe=recipe, work=work,
-                                    command=command, progress=display.on_event, jobs=jobs)
+                                    command=command, progress=display.on_event, jobs=jobs,
+                                    seeds=seeds)
     except StepFailed as exc:
         display.close()
         fail(str(exc), code=1)
-    except ValueError as exc:  # a work folder that cannot be used (before any step)
+    except ValueError as exc:  # a work folder or --seeds that cannot be used (before any step)
         display.close()
         fail(error_message(exc))
     except (TrainingInterrupted, KeyboardInterrupt) as exc:

@@ -60,6 +60,7 @@ class RunRecord:
     wall_seconds: float
     machine: dict[str, Any]
     steps: list[StepRecord]
+    seeds: int = 1  # members of every training's ensemble (`--seeds`)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -67,7 +68,7 @@ class RunRecord:
 
 def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: Path,
                    command: str = "", progress: Progress | None = None,
-                   jobs: int = 1) -> RunRecord:
+                   jobs: int = 1, seeds: int = 1) -> RunRecord:
     """Run (or resume) every step of `experiment` at `scale` with `recipe`.
 
     Args:
@@ -79,9 +80,14 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
             torch pool each of this process's size). A step runs once its inputs are done;
             each process takes the first step, in the spec's order, that is ready and that
             no other process holds.
+        seeds: S, the members of every training (`mpnode train --seeds S`: member k has
+            the step's seed + k; a finetune's members start from their parent's). Every
+            step that reads a trained model then reports each member's numbers too
+            (`mpnode_cli.experiments.members`). 1: a single model, as before seeds.
 
     Raises:
-        ValueError: a work folder that cannot be made or written in (before any step).
+        ValueError: a work folder that cannot be made or written in, or options that do
+            not resolve with `seeds` (before any step).
         StepFailed: a step failed (its message names the step).
         TrainingInterrupted, KeyboardInterrupt: Ctrl-C; finished steps stay reusable and a
             training resumes from its last epoch on the next run.
@@ -90,7 +96,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
 
     emit = progress or (lambda event: None)
     command = command or (f"mpnode experiment run {experiment.name} --scale {scale} "
-                          f"--recipe {recipe} --work {shown_path(work, '<work>')}")
+                          f"--recipe {recipe} --seeds {seeds} "
+                          f"--work {shown_path(work, '<work>')}")
     work = Path(work)
     check_output_folder(work)
     work.mkdir(parents=True, exist_ok=True)
@@ -99,7 +106,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         machine["jobs"] = jobs
     start = time.perf_counter()
     started = datetime.now().isoformat(timespec="seconds")
-    steps = plan(experiment, scale, recipe, work)
+    steps = plan(experiment, scale, recipe, work, seeds)
     token = uuid.uuid4().hex  # marks in step.json the steps this run's processes ran
     workers = start_workers(steps, token, jobs - 1)
     try:
@@ -110,7 +117,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     return RunRecord(experiment=experiment.name, title=experiment.title, scale=scale,
                      recipe=recipe, command=command, work=str(work), started=started,
                      wall_seconds=time.perf_counter() - start, machine=machine,
-                     steps=[records[entry.step.id] for entry in steps])
+                     steps=[records[entry.step.id] for entry in steps], seeds=seeds)
 
 
 # ------------------------------------------------------------------------------ machine

@@ -1,10 +1,11 @@
 """Which process runs which step, and when: step folders, fingerprints, locks and workers.
 
 A step's folder is `WORK/<id>-<fingerprint[:12]>`. The fingerprint hashes the step's
-resolved options (`spec.resolve`: the scale and, for training, the recipe are in them) and
-the fingerprints of the steps it reads, so a step is the same step wherever the same
-options meet the same inputs: experiments that share a step (the Lorenz3 model of four
-experiments) share its folder when they share a work folder.
+resolved options (`spec.resolve`: the scale and, for training, the recipe and the members
+of an ensemble, `--seeds`, are in them) and the fingerprints of the steps it reads, so a
+step is the same step wherever the same options meet the same inputs: experiments that
+share a step (the Lorenz3 model of four experiments) share its folder when they share a
+work folder, and runs with different `--seeds` share only their datasets.
 
 A finished step leaves `step.json` (written last, atomically): its fingerprint, options,
 results, the equivalent commands and its seconds. A step whose folder holds a `step.json`
@@ -64,12 +65,21 @@ class Planned:
     folder: Path
 
 
-def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path) -> list[Planned]:
+def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path,
+         seeds: int = 1) -> list[Planned]:
     """Every step's options, fingerprint and folder, in the spec's order (a fingerprint
-    depends on its inputs' fingerprints, not on their results, so nothing has to run)."""
+    depends on its inputs' fingerprints, not on their results, so nothing has to run);
+    every training an ensemble of `seeds` members when that is over 1.
+
+    Raises:
+        ValueError: a step whose options do not resolve (e.g. its seeds past the largest).
+    """
     planned: dict[str, Planned] = {}
     for index, step in enumerate(experiment.steps, start=1):
-        options = resolve(step, scale, recipe)
+        try:
+            options = resolve(step, scale, recipe, seeds)
+        except ValueError as exc:
+            raise ValueError(f"{experiment.name}: step '{step.id}': {exc}") from None
         fingerprint = _fingerprint(step.verb, options, [planned[i].fingerprint
                                                         for i in step.inputs()])
         planned[step.id] = Planned(index, step, options, fingerprint,

@@ -7,6 +7,10 @@ It returns `(result, outputs, commands, figures)`: the numbers the report needs,
 (relative to the folder) whose presence says the step is done, the equivalent `mpnode`
 command lines, and the figures' paths. A verb raises ValueError or FileNotFoundError for
 what a user can fix; `schedule.run_step` turns them into `StepFailed`.
+
+A training step's options may ask for an ensemble (`seeds` S > 1, from `--seeds`); the
+result of every step that reads a trained model then holds, under `members`, each member's
+result with the keys of a single model's (`mpnode_cli.experiments.members`).
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mpnode_cli.experiments import commands
+from mpnode_cli.experiments import commands, members
 from mpnode_cli.experiments.spec import TRAINING
 from mpnode_cli.jsonable import jsonable
 
@@ -116,7 +120,7 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
     reference, _ = train_reference(best, dataset)
     val = baseline_mse(reference, dataset.subset("validation"), best.build_normalizer())
     test = summary.get("test") or {}
-    return {
+    result = {
         "model": summary["model"], "loss": summary["loss"], "epochs": summary["epochs"],
         "best_epoch": summary["best_epoch"], "min_val_loss": summary["min_val_loss"],
         "table2": summary["table2"], "min_train_loss": min(train_losses, default=None),
@@ -129,6 +133,31 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
         "trajectories": len(reference), "recipe": config.recipe,
         "model_options": config.model_options,
     }  # fmt: skip
+    if summary.get("members"):
+        result[members.MEMBERS] = [_member_training(result, member, metrics)
+                                   for member in summary["members"]]
+    return result
+
+
+def _member_training(result: dict[str, Any], member: dict[str, Any],
+                     metrics: list[dict[str, Any]]) -> dict[str, Any]:
+    """Member k's `training_result` from the ensemble's (`result`), its entry of
+    `summary.json`'s `members` and its rows of `metrics.jsonl`: its best epoch, validation
+    loss and MSE there, Table-2 figure, lowest training loss, test MSE and seed. The naive
+    predictors, the model and the timings are the ensemble's."""
+    k = member["member"]
+    rows = {row["epoch"]: row["members"][k] for row in metrics if row.get("members")}
+    best = rows.get(member["best_epoch"]) or {}
+    train_losses = [row["train_loss"] for row in rows.values()
+                    if row.get("train_loss") is not None]
+    test = member.get("test") or {}
+    return {**result,
+            "best_epoch": member["best_epoch"], "min_val_loss": member["min_val_loss"],
+            "table2": member["best_epoch"] * member["min_val_loss"],
+            "min_train_loss": min(train_losses, default=None),
+            "val": {**result["val"], "mse": best.get("val_mse")},
+            "test": {**result["test"], "mse": test.get("mse"), "failed": test.get("failed")},
+            "seed": member["seed"], "stopped_early": member.get("stopped") or None}
 
 
 def _zeroshot(step, options, folder: Path, inputs, status, emit):
@@ -137,23 +166,30 @@ def _zeroshot(step, options, folder: Path, inputs, status, emit):
     from mpnode_cli.training.evaluate import evaluate_checkpoint
 
     ckpt = load_checkpoint(_best(inputs[step.checkpoint]))
-    result, figures, paths = {}, [], []
+    result: dict[str, Any] = {}
+    by_member: list[dict[str, Any]] = [{} for _ in range(ckpt.members if ckpt.members > 1
+                                                         else 0)]
+    figures, paths = [], []
     for data_id in step.data:
         path = Path(inputs[data_id].folder) / DATA_FILE
         paths.append(path)
         data = TrajectoryData.load(path)
         row = evaluate_checkpoint(ckpt, data, split=step.split, verb="zeroshot")
         result[data_id] = _row(row)
+        for member, member_row in zip(by_member, _member_rows(row), strict=True):
+            member[data_id] = member_row
         if step.plot:
             figures.append(_rollout_figure(ckpt, data, step.split,
                                            folder / f"{step.id}-{data_id}-rollout.png"))
+    if by_member:
+        result[members.MEMBERS] = by_member
     return (result, [Path(f).name for f in figures],
             [commands.zeroshot(_best(inputs[step.checkpoint]), paths, step.split)], figures)
 
 
 def _evaluate(step, options, folder: Path, inputs, status, emit):
     from mpnode_cli.data.dataset import TrajectoryData
-    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
     from mpnode_cli.training.evaluate import evaluate_checkpoint
 
     best = _best(inputs[step.checkpoint])
@@ -168,19 +204,32 @@ def _evaluate(step, options, folder: Path, inputs, status, emit):
     data = TrajectoryData.load(path)
     row = evaluate_checkpoint(ckpt, data, split=step.split)
     result = {**_row(row), "zero_messages": step.zero_messages}
+    by_member = [{**member_row, "zero_messages": step.zero_messages}
+                 for member_row in _member_rows(row)]
     figures = []
     if step.plot:
         figures.append(_rollout_figure(ckpt, data, step.split, folder / f"{step.id}-rollout.png"))
     if step.pca:
-        result["pca"] = _message_pca(ckpt, data, step, folder / f"{step.id}-pca.png")
-        figures.append(str(folder / f"{step.id}-pca.png"))
+        # An ensemble's messages are each member's own (their mean is no model's): each
+        # member gets its PCA, and the figure and the step's own `pca` are member 0's.
+        pca = folder / f"{step.id}-pca.png"
+        if by_member:
+            for k, member in enumerate(by_member):
+                member["pca"] = _message_pca(member_checkpoint(ckpt, k), data, step,
+                                             pca if k == 0 else None)
+            result["pca"] = by_member[0]["pca"]
+        else:
+            result["pca"] = _message_pca(ckpt, data, step, pca)
+        figures.append(str(pca))
+    if by_member:
+        result[members.MEMBERS] = by_member
     return (result, [Path(f).name for f in figures],
             [commands.evaluate(best, path, step)], figures)
 
 
-def _message_pca(ckpt, data, step, path: Path) -> dict[str, Any]:
-    """PCA of all nodes' messages over time (the paper's Fig. 12): each sample time of each
-    trajectory is one point of N·M message values.
+def _message_pca(ckpt, data, step, path: Path | None) -> dict[str, Any]:
+    """PCA of all nodes' messages over time (the paper's Fig. 12), drawn at `path` (None:
+    not drawn): each sample time of each trajectory is one point of N·M message values.
 
     Messages start at zero, so their spread from the start grows in any model whose
     messages move at all; with `pca_untrained` the same statistic is taken of the same
@@ -197,8 +246,9 @@ def _message_pca(ckpt, data, step, path: Path) -> dict[str, Any]:
     time, messages = _messages(ckpt, trained, subset, n)
     b, _, nodes, m = messages.shape
     scores, explained = _components(messages, step.pca)
-    plot_components(time, scores, path, dpi=FIGURE_DPI,
-                    title=f"PCA of {nodes}×{m} messages, {b} trajectories")
+    if path is not None:
+        plot_components(time, scores, path, dpi=FIGURE_DPI,
+                        title=f"PCA of {nodes}×{m} messages, {b} trajectories")
     result = {"trajectories": b, "messages": nodes * m, "explained": explained,
               **_spread(scores)}
     if step.pca_untrained:
@@ -268,17 +318,26 @@ def _compare(step, options, folder: Path, inputs, status, emit):
     plot_losses(labels, metrics, {i: inputs[i].result for i in step.runs}, curves,
                 per_mean=step.curves == "time-mean")
     figures = [str(curves)]
-    result = {"runs": {i: {k: inputs[i].result.get(k) for k in
-                           ("best_epoch", "min_val_loss", "table2", "min_train_loss")}
-                       for i in step.runs}}
+    results = {i: inputs[i].result for i in step.runs}
+    result: dict[str, Any] = _compared(results)
+    size = members.count(results)
+    if size > 1:
+        result[members.MEMBERS] = [_compared(members.view(results, k)) for k in range(size)]
     if step.groups:
         bars = folder / f"{step.id}-bars.png"
-        plot_table2(step, labels, {i: inputs[i].result.get("table2") for i in step.runs},
+        plot_table2(step, labels, {i: members.values(results[i], "table2") for i in step.runs},
                     bars)
         figures.append(str(bars))
         result["groups"] = step.groups
     runs = [Path(inputs[i].folder) / RUN_DIR for i in step.runs]
     return result, [Path(f).name for f in figures], [commands.compare(runs)], figures
+
+
+def _compared(results: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """A compare step's numbers of its runs (run id → its training result)."""
+    return {"runs": {i: {key: result.get(key) for key in
+                         ("best_epoch", "min_val_loss", "table2", "min_train_loss")}
+                     for i, result in results.items()}}
 
 
 def plot_losses(labels: dict[str, str], metrics: dict[str, list[dict[str, Any]]],
@@ -301,23 +360,38 @@ def plot_losses(labels: dict[str, str], metrics: dict[str, list[dict[str, Any]]]
     return plot_curves({labels[i]: metrics[i] for i in labels}, path, dpi=FIGURE_DPI)
 
 
-def plot_table2(step, labels: dict[str, str], table2: dict[str, float | None],
+def plot_table2(step, labels: dict[str, str], table2: dict[str, list[float | None]],
                 path: Path) -> Path:
     """The paper's Table-2 figure of a compare step's groups, a bar per run (run id →
-    label, Table-2 figure)."""
+    label, its members' Table-2 figures: one for a single model), an ensemble's the
+    members' mean with their std as an error bar."""
     from mpnode_cli.report.plots import plot_bars
 
     first = next(iter(step.groups.values()))
     series = step.series or [labels[i] for i in first]
-    return plot_bars({group: {series[j] if j < len(series) else labels[i]: table2[i]
-                              for j, i in enumerate(members)}
-                      for group, members in step.groups.items()}, path, dpi=FIGURE_DPI,
+    stats = {i: members.mean_std(values) for i, values in table2.items()}
+
+    def bars(pick: int) -> dict[str, dict[str, float | None]]:
+        return {group: {series[j] if j < len(series) else labels[i]:
+                        None if stats[i] is None else stats[i][pick]
+                        for j, i in enumerate(runs)}
+                for group, runs in step.groups.items()}
+
+    spread = any(len(values) > 1 for values in table2.values())
+    return plot_bars(bars(0), path, dpi=FIGURE_DPI, errors=bars(1) if spread else None,
                      ylabel="best epoch × min validation loss",
                      title="Table-2 figure (lower is better)")
 
 
 VERBS = {"generate": _generate, "train": _train, "finetune": _train, "zeroshot": _zeroshot,
          "evaluate": _evaluate, "compare": _compare}
+
+
+def _member_rows(row: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each member's `_row` of an ensemble's `evaluate_checkpoint` row (none for a single
+    model's): its own errors beside the same naive predictors."""
+    return [_row({**row, "result": member})
+            for member in row["result"].get(members.MEMBERS) or []]
 
 
 def _row(row: dict[str, Any]) -> dict[str, Any]:
@@ -345,22 +419,34 @@ def _rollout_figure(ckpt, data, split: str, path: Path) -> str:
     messages = None if pred.messages is None else pred.messages[0]
     title = f"{data.system}, N={data.num_nodes} ({split}), trajectory 0"
     return str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
-                            path, title=title, dpi=FIGURE_DPI))
+                            path, title=title, dpi=FIGURE_DPI,
+                            spread=None if pred.spread is None else pred.spread[0]))
 
 
 def line(record: StepRecord) -> str:
-    """One line of a finished step's main number."""
+    """One line of a finished step's main number (an ensemble's as mean ± std over its
+    members)."""
     r = record.result
+
+    def g(path: str) -> str:
+        return members.shown(members.values(r, path))
+
     if record.verb in TRAINING:
-        return (f"best epoch {r['best_epoch']}/{r['epochs']}, min val loss "
-                f"{_g(r['min_val_loss'])}, test MSE {_g(r['test'].get('mse'))}")
+        return (f"best epoch {g('best_epoch')}/{r['epochs']}, min val loss "
+                f"{g('min_val_loss')}, test MSE {g('test.mse')}" + _of_members(r))
     if record.verb == "generate":
         return f"{r['trajectories']} trajectories × {r['samples']} samples"
     if record.verb == "evaluate":
-        return f"{r['split']} MSE {_g(r['mse'])} (hold x(0) {_g(r['hold_x0'])})"
+        return f"{r['split']} MSE {g('mse')} (hold x(0) {_g(r['hold_x0'])})" + _of_members(r)
     if record.verb == "zeroshot":
-        return ", ".join(f"{k} MSE {_g(v['mse'])}" for k, v in r.items())
+        return ", ".join(f"{k} MSE {g(k + '.mse')}" for k in r
+                         if k != members.MEMBERS) + _of_members(r)
     return f"{len(record.figures)} figures"
+
+
+def _of_members(result: dict[str, Any]) -> str:
+    size = len(result.get(members.MEMBERS) or [])
+    return f" (mean ± std of {size} members)" if size else ""
 
 
 def _g(value: Any) -> str:

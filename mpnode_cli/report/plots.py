@@ -129,8 +129,11 @@ def plot_curves(runs: dict[str, Sequence[dict]], path: str | Path, *, dpi: int =
 
 
 def plot_bars(groups: dict[str, dict[str, float | None]], path: str | Path, *, ylabel: str,
-              title: str = "", dpi: int = DPI) -> Path:
-    """Grouped bars on a log scale: group → {bar label → value} (a missing value: no bar)."""
+              title: str = "", dpi: int = DPI,
+              errors: dict[str, dict[str, float | None]] | None = None) -> Path:
+    """Grouped bars on a log scale: group → {bar label → value} (a missing value: no bar),
+    with `errors` (the same keys: each bar's std, e.g. over an ensemble's members) drawn as
+    error bars."""
     # Wide enough for the title too (one group's bars alone would clip it).
     inches = max(1.2 + 1.4 * max(len(groups), 1), 1.0 + 0.085 * len(title))
     fig, ax = plt.subplots(figsize=(inches, 3.4))
@@ -139,8 +142,10 @@ def plot_bars(groups: dict[str, dict[str, float | None]], path: str | Path, *, y
     for j, label in enumerate(labels):
         xs = [i + (j - (len(labels) - 1) / 2) * width for i in range(len(groups))]
         ys = [bars.get(label) for bars in groups.values()]
-        ax.bar([x for x, y in zip(xs, ys, strict=True) if y],
-               [y for y in ys if y], width, label=label)
+        spread = [(errors or {}).get(group, {}).get(label) for group in groups]
+        drawn = [i for i, y in enumerate(ys) if y]
+        ax.bar([xs[i] for i in drawn], [ys[i] for i in drawn], width, label=label,
+               yerr=[spread[i] or 0.0 for i in drawn] if errors else None, capsize=3)
     ax.set_xticks(range(len(groups)), list(groups))
     ax.set_yscale("log")
     ax.set_ylabel(ylabel, fontsize=8)
