@@ -7,7 +7,11 @@ reports can be regenerated without running anything, and a second recipe or scal
 what is there instead of replacing it.
 
 Every MSE is in the training normalization with t₀ excluded (the paper's "test error";
-`mpnode_cli.training.evaluate`), beside the two naive predictors of `baseline_mse`.
+`mpnode_cli.training.evaluate`), beside the two naive predictors of `baseline_mse`. A run
+with `--seeds S` (S > 1) shows every number of a trained model as the mean ± std
+(population) over the members of its ensemble, and each claim as holds, fails or undecided
+from the members (`mpnode_cli.experiments.members`); a run of one seed, and every record
+written before seeds, shows its numbers as they are.
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mpnode_cli.data.atomic import atomic_text
-from mpnode_cli.experiments import spec
+from mpnode_cli.experiments import members, spec
 from mpnode_cli.experiments.runner import RunRecord
 from mpnode_cli.jsonable import jsonable
 
@@ -133,8 +137,10 @@ def _section(run: dict[str, Any]) -> list[str]:
     m = run["machine"]
     sub = f"{run['scale']}-{run['recipe']}"
     ran = [s["id"] for s in run["steps"] if s["status"] != "skipped"]
+    size = _size(run)
     lines = [
-        f"## `--scale {run['scale']} --recipe {run['recipe']}`", "",
+        f"## `--scale {run['scale']} --recipe {run['recipe']}"
+        f"{f' --seeds {size}' if size > 1 else ''}`", "",
         f"Run `{run['command']}` on {run['started']}: {run['wall_seconds'] / 60:.1f} min wall"
         f"{_reused(len(ran), len(run['steps']))}. Machine: "
         f"{m['cores']} cores, torch {m['torch']} on {m['threads']} thread(s)"
@@ -145,12 +151,15 @@ def _section(run: dict[str, Any]) -> list[str]:
     if run["scale"] == "tiny":
         lines += ["*The tiny scale is a smoke test (a few trajectories and samples, two "
                   "epochs): its numbers measure nothing.*", ""]
+    if size > 1:
+        lines += [_ENSEMBLE.format(size=size), ""]
     if run.get("claims"):
         lines += ["### The paper's claims", "",
                   "| claim | the paper | where | ours | holds |", "|---|---|---|---|---|"]
         for c in run["claims"]:
+            each = f"; members: {c['by_member']}" if c.get("by_member") else ""
             lines.append(f"| {c['claim']} | {c['paper']} | {c['where']} | `{c['holds']}`: "
-                         f"{c['ours']} | {c['verdict']} |")
+                         f"{c['ours']}{each} | {c['verdict']} |")
         lines.append("")
     lines += _errors(run["steps"])
     lines += _training(run["steps"])
@@ -177,6 +186,23 @@ def _section(run: dict[str, Any]) -> list[str]:
     return lines
 
 
+_ENSEMBLE = (
+    "*Every training here is an ensemble of {size} members (`--seeds {size}`: member k has "
+    "the step's seed + k, and a finetune's member k starts from its parent's member k). "
+    "Each number of a trained model is the mean ± std (population) over the {size} "
+    "members; the naive predictors do not depend on the seed. A claim is judged on each "
+    "member alone (member k of every step it names) and on the means: it holds when it "
+    "holds for every member, or when the means differ by more than their combined std "
+    "(√(std₁² + std₂²)) the claimed way; it fails when it fails for every member, or when "
+    "the means differ by more than that the other way; otherwise it is undecided. Each "
+    "member's comparison follows the means.*")
+
+
+def _size(run: dict[str, Any]) -> int:
+    """S, the members a run's numbers are over (1 for a record of one seed)."""
+    return members.count({s["id"]: s["result"] for s in run["steps"]})
+
+
 def _reused(ran: int, total: int) -> str:
     if ran == total:
         return ""
@@ -189,30 +215,41 @@ def _errors(steps: list[dict[str, Any]]) -> list[str]:
     for s in steps:
         r, paper = s["result"], s.get("reported") or {}
         if s["verb"] in spec.TRAINING:
-            rows.append((s["id"], "validation (best)", r["val"], paper.get("val")))
-            rows.append((s["id"], "test", r["test"], paper.get("test")))
+            rows.append((s["id"], "validation (best)", _each(r, "val"), paper.get("val")))
+            rows.append((s["id"], "test", _each(r, "test"), paper.get("test")))
         elif s["verb"] == "evaluate":
             what = f"{r['split']}" + (", messages zeroed" if r.get("zero_messages") else "")
-            rows.append((s["id"], what, r, paper.get(s["id"]) or paper.get(r["split"])))
+            rows.append((s["id"], what, _each(r), paper.get(s["id"]) or paper.get(r["split"])))
         elif s["verb"] == "zeroshot":
             for data_id, row in r.items():
-                rows.append((s["id"], f"zero-shot on {data_id} ({row['split']})", row,
-                             paper.get(data_id)))
+                if data_id != members.MEMBERS:
+                    rows.append((s["id"], f"zero-shot on {data_id} ({row['split']})",
+                                 _each(r, data_id), paper.get(data_id)))
     if not rows:
         return []
     lines = ["### Errors beside the naive predictors", "",
              "| step | rows | MSE | hold x(0) | time mean | hold ÷ ours | mean ÷ ours | "
              "the paper |", "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for step_id, what, row, paper in rows:
-        mse = row.get("mse")
-        failed = f" ({row['failed']} failed)" if row.get("failed") else ""
-        lines.append(f"| {step_id} | {what} | {_f(mse)}{failed} | {_f(row.get('hold_x0'))} | "
-                     f"{_f(row.get('time_mean'))} | {_ratio(row.get('hold_x0'), mse)} | "
-                     f"{_ratio(row.get('time_mean'), mse)} | {_f(paper)} |")
+    for step_id, what, each, paper in rows:
+        # The naive predictors are the same for every member: they do not depend on a seed.
+        mse, hold, mean = ([row.get(key) for row in each] for key in ("mse", "hold_x0",
+                                                                     "time_mean"))
+        fails = [row.get("failed") or 0 for row in each]
+        failed = f" ({'/'.join(map(str, fails))} failed)" if any(fails) else ""
+        lines.append(f"| {step_id} | {what} | {_pm(mse)}{failed} | {_f(hold[0])} | "
+                     f"{_f(mean[0])} | {_ratios(hold, mse)} | {_ratios(mean, mse)} | "
+                     f"{_f(paper)} |")
     sources = sorted({s["reported_in"] for s in steps if s.get("reported_in")})
     if sources:
         lines += ["", f"The paper's numbers: {'; '.join(sources)}."]
     return [*lines, ""]
+
+
+def _each(result: dict[str, Any], key: str | None = None) -> list[dict[str, Any]]:
+    """Each member's `result[key]` (the result itself without `key`); one for a single
+    model."""
+    rows = result.get(members.MEMBERS) or [result]
+    return [row if key is None else (row.get(key) or {}) for row in rows]
 
 
 def _training(steps: list[dict[str, Any]]) -> list[str]:
@@ -228,11 +265,15 @@ def _training(steps: list[dict[str, Any]]) -> list[str]:
         options = ", ".join(f"{k} {v}" for k, v in (s["options"]["config"].get(
             "model_options") or {}).items())
         model = r["model"] + (f" ({options})" if options else "")
+
+        def each(key: str, result: dict[str, Any] = r) -> str:
+            return _pm(members.values(result, key))
+
         lines.append(f"| {s['id']} | {s['verb']} | {model} | {r['trajectories']} | "
-                     f"{r['epochs']} | {r['best_epoch']} | {_f(r['min_val_loss'])} "
-                     f"({r['loss']}) | {_f(r['table2'])} | {_f(r['min_train_loss'])} | "
+                     f"{r['epochs']} | {each('best_epoch')} | {each('min_val_loss')} "
+                     f"({r['loss']}) | {each('table2')} | {each('min_train_loss')} | "
                      f"{_f(r['seconds_per_epoch'], 3)} | {_f(r['wall_seconds'], 4)} | "
-                     f"{r['seed']} |")
+                     f"{_seed(r)} |")
     return [*lines, ""]
 
 
@@ -247,13 +288,17 @@ def _table2(steps: list[dict[str, Any]]) -> list[str]:
         lines += ["### Table 2: epochs to the lowest validation loss × that loss", "",
                   "| group | run | best epoch | min val loss | Table-2 figure | × the best "
                   "of the group | the paper |", "|---|---|---:|---:|---:|---:|---:|"]
-        for group, members in groups.items():
-            values = [by_id[m]["result"]["table2"] for m in members]
-            best = min((v for v in values if v is not None), default=None)
-            for m, value in zip(members, values, strict=True):
+        for group, runs in groups.items():
+            # An ensemble's bar is its members' mean; "× the best" is of the means.
+            values = [members.values(by_id[m]["result"], "table2") for m in runs]
+            means = [None if stats is None else stats[0]
+                     for stats in map(members.mean_std, values)]
+            best = min((v for v in means if v is not None), default=None)
+            for m, value, mean in zip(runs, values, means, strict=True):
                 r = by_id[m]["result"]
-                lines.append(f"| {group} | {m} | {r['best_epoch']} | {_f(r['min_val_loss'])} | "
-                             f"{_f(value)} | {_ratio(value, best)} | {_f(paper.get(m))} |")
+                lines.append(f"| {group} | {m} | {_pm(members.values(r, 'best_epoch'))} | "
+                             f"{_pm(members.values(r, 'min_val_loss'))} | {_pm(value)} | "
+                             f"{_ratio(mean, best)} | {_f(paper.get(m))} |")
         if s.get("reported_in"):
             lines += ["", f"The paper's numbers: {s['reported_in']}."]
         lines.append("")
@@ -267,8 +312,15 @@ def _seeds(steps: list[dict[str, Any]]) -> str:
         if s["verb"] == "generate":
             parts.append(f"{s['id']} data seed {r['seed']}, graph seed {r['graph_seed']}")
         elif s["verb"] in spec.TRAINING:
-            parts.append(f"{s['id']} seed {r['seed']}")
+            many = "s" if r.get(members.MEMBERS) else ""
+            parts.append(f"{s['id']} seed{many} {_seed(r)}")
     return "; ".join(parts)
+
+
+def _seed(result: dict[str, Any]) -> str:
+    """A training's seed, or its members' (`0–2`)."""
+    seeds = members.values(result, "seed")
+    return str(seeds[0]) if len(seeds) == 1 else f"{min(seeds)}–{max(seeds)}"
 
 
 # --------------------------------------------------------------------------------- index
@@ -284,8 +336,16 @@ def rebuild_index(out: Path) -> Path:
         "Simulations for Homogeneous Systems\", NeurIPS 2022). *Ours* shows the claim's "
         "comparison on our results, from the largest scale run (`paper`, else `small`) with "
         "the paper's recipe (`--recipe paper`) and with mpnode's default (`--recipe "
-        "mpnode`); *holds* says whether the paper's direction holds in each (paper recipe / "
-        "mpnode recipe). After a verdict, in brackets: the training runs it compares whose "
+        "mpnode`), with the scale and the seeds it ran with; *holds* says whether the "
+        "paper's direction holds in each (paper recipe / mpnode recipe). A run of one seed "
+        "trained one model per step and shows its two numbers: yes or **no**. A run with "
+        "`--seeds S` trained every model as an ensemble of S members and shows each side "
+        "as mean ± std (population) over the members: the claim holds (yes) when it holds "
+        "for every member or when the means differ by more than their combined std "
+        "(√(std₁² + std₂²)) the claimed way, fails (**no**) when it fails for every member "
+        "or the means differ by more than that the other way, and is otherwise undecided; "
+        "the verdict says which, and the report gives each member's numbers. After a "
+        "verdict, in brackets: the training runs (members) it compares whose "
         "test error is not below the time-mean predictor's (they have not learned) or less "
         f"than {spec.BARELY_LEARNED:g}× below it (they barely have), so the comparison says "
         "little; and an MP-NODE that is not the paper's model: an aggregation other than "
@@ -311,7 +371,8 @@ def rebuild_index(out: Path) -> Path:
                     continue
                 results = {s["id"]: s["result"] for s in run["steps"]}
                 _, shown, said = spec.verdict(claim.holds, results, experiment)
-                cells.append(f"{shown} ({run['scale']})")
+                size = members.count(results)
+                cells.append(f"{shown} ({run['scale']}, {size} seed{'s' if size > 1 else ''})")
                 verdicts.append(said)
                 weak += _weak(name, claim, recipe, results)
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
@@ -329,19 +390,22 @@ def rebuild_index(out: Path) -> Path:
 def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any]) -> list[str]:
     """A line for the index if `claim`'s verdict under `recipe` rests on runs that did not
     learn or barely learned."""
-    ratios = spec.learning(claim.holds, results)
-    if not ratios:
+    notes = spec.learning_notes(claim.holds, results)
+    if not notes:
         return []
-    runs = ", ".join(f"{step} (not below the time mean)" if ratio <= 1 else
-                     f"{step} (barely learned, {ratio:.3g}× below the time mean)"
-                     for step, ratio in ratios.items())
+    runs = ", ".join(f"{step} ({note})" for step, note in notes.items())
     return [f"- {name}, `--recipe {recipe}`: {claim.claim}: {runs}."]
 
 
 def _claim(claim: spec.Claim, results: dict[str, Any],
            experiment: spec.Experiment) -> dict[str, Any]:
     holds, shown, said = spec.verdict(claim.holds, results, experiment)
-    return {**claim.model_dump(), "holds_now": holds, "ours": shown, "verdict": said}
+    decision = spec.decide(claim.holds, results)
+    out = {**claim.model_dump(), "holds_now": holds, "ours": shown, "verdict": said}
+    if decision.members > 1:
+        out |= {"outcome": decision.outcome, "held": decision.held,
+                "seeds": decision.members, "by_member": decision.by_member()}
+    return out
 
 
 def _f(value: Any, digits: int = 4) -> str:
@@ -358,3 +422,23 @@ def _ratio(base: Any, value: Any) -> str:
     if base is None or value is None or not value > 0:
         return "—"
     return f"{base / value:.3g}"
+
+
+def _ratios(bases: list[Any], values: list[Any]) -> str:
+    """Each member's `base ÷ value`, as mean ± std over the members (one: as `_ratio`)."""
+    if len(values) == 1:
+        return _ratio(bases[0], values[0])
+    stats = members.mean_std([None if b is None or v is None or not v > 0 else b / v
+                              for b, v in zip(bases, values, strict=True)])
+    return "—" if stats is None else f"{stats[0]:.3g} ± {stats[1]:.2g}"
+
+
+def _pm(values: list[Any], digits: int = 4) -> str:
+    """One member's value as `_f` shows it; several as mean ± std (population); — when
+    one is missing."""
+    if len(values) == 1:
+        return _f(values[0], digits)
+    stats = members.mean_std(values)
+    if stats is None:
+        return "—"
+    return f"{_f(stats[0], digits)} ± {_f(stats[1], 2)}"
