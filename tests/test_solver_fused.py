@@ -120,3 +120,19 @@ def test_float32_gradients_agree_with_autograd_to_its_precision():
         sol = solve(problem(theta), y0, ts, rtol=1e-4, atol=1e-4, controller="i", fused=fused)
         grads.append(torch.autograd.grad(sol.ys.square().mean(), theta)[0])
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-7)
+
+
+def test_higher_derivatives_need_the_recorded_step():
+    """The fused backward writes its buffers outside autograd: asked to record itself for a
+    second derivative it raises, and `fused=False` gives one (y' = −θy², y(0) = 1:
+    y(1) = 1 / (1 + θ), d²y/dθ² = 2 / (1 + θ)³)."""
+    theta = torch.tensor(0.5, dtype=torch.float64, requires_grad=True)
+    y0 = torch.ones(1, 1, dtype=torch.float64)
+    sol = solve(lambda t, y: -theta * y**2, y0, [0.0, 1.0], rtol=1e-10, atol=1e-12)
+    with pytest.raises(RuntimeError, match=r"first-order.*fused=False"):
+        torch.autograd.grad(sol.ys[0, -1, 0], theta, create_graph=True)
+    sol = solve(lambda t, y: -theta * y**2, y0, [0.0, 1.0], rtol=1e-10, atol=1e-12,
+                fused=False)
+    (first,) = torch.autograd.grad(sol.ys[0, -1, 0], theta, create_graph=True)
+    (second,) = torch.autograd.grad(first, theta)
+    assert second.item() == pytest.approx(2 / 1.5**3, rel=1e-6)

@@ -22,11 +22,12 @@ respect to its parameters are autograd's own.
 The nodes of one step share a `StepRecord` (and those of one solve a `StepTape`): a
 node's backward adds to the buffer that an earlier-stage node's backward reads. That
 order is autograd's own: the input of stage i + 1 depends on k_i = f(Y_i), so its node's
-backward always runs before that of stage i. The backward is not itself differentiable
-(no `create_graph`). Against recording each op (the stage buffer's slice writes and their
-copies in the backward, the interpolant's einsum, the outputs' final scatter) the solver's
-part of a training step runs a third of the ops in the backward and 28% fewer in the
-forward (docs/solver.md, "Cost").
+backward always runs before that of stage i. The backward is not itself differentiable:
+with `create_graph` it raises (`fused=False` records every op, and is). Against recording
+each op (the stage buffer's slice writes and their copies in the backward, the
+interpolant's einsum, the outputs' final scatter) the solver's part of a training step
+runs a third of the ops in the backward and 28% fewer in the forward (docs/solver.md,
+"The fused step").
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch.autograd.function import once_differentiable
 
 from mpnode_cli.solver.runge_kutta import RHS, StageTableau
 
@@ -105,6 +105,16 @@ class StepRecord:
         return self.lam
 
 
+def _first_order_only() -> None:
+    """Raise where a backward would be recorded for a second derivative (`create_graph`):
+    the nodes' buffers are written in place, outside autograd. (`once_differentiable`'s
+    error node is pruned by `autograd.grad(..., inputs=...)`, which would then return a
+    second derivative without the solver's part, silently.)"""
+    if torch.is_grad_enabled():
+        raise RuntimeError("solve's fused step has a first-order backward only; for higher "
+                           "derivatives (create_graph=True) pass fused=False")
+
+
 def _store(rec: StepRecord, i: int, k: torch.Tensor) -> None:
     """`hk[i] = h·k`, from f's `[B, *S]` values or k₁'s `[B, F]`."""
     row = rec.tape.rows[i]
@@ -134,8 +144,8 @@ class _Stage(torch.autograd.Function):
         return _stage_input(rec, i, k_prev)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, g):
+        _first_order_only()
         rec, i = ctx.rec, ctx.i
         lam = rec.adjoint()
         if g is not None:  # λ[:i+1] += (1, a_i1, ..., a_ii−1) ⊗ g
@@ -208,8 +218,8 @@ class _End(torch.autograd.Function):
         return _end(rec, k_last)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, gy, gk):
+        _first_order_only()
         rec = ctx.rec
         tape, hc = rec.tape, rec.hc
         tab, s, batch = tape.tab, tape.tab.stages, hc.shape[0]
@@ -267,8 +277,8 @@ class _Outputs(torch.autograd.Function):
         return tape.out[:-1].view(y0.shape[0], -1, tape.feat)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, g):
+        _first_order_only()
         tape = ctx.tape
         if g is None:
             tape.g_out = None

@@ -87,8 +87,8 @@ def solve(
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
         (backpropagation through the solver's operations); the step-size controller is
-        detached. The fused step's backward is not itself differentiable (no
-        `create_graph`; `fused=False` is).
+        detached. The fused step's backward is first-order only: with `create_graph=True`
+        it raises (`fused=False` takes higher derivatives).
     """
     if y0.ndim < 1:
         raise ValueError("y0 must have a leading batch dimension: [B, *S]")
