@@ -136,3 +136,13 @@ def test_higher_derivatives_need_the_recorded_step():
     (first,) = torch.autograd.grad(sol.ys[0, -1, 0], theta, create_graph=True)
     (second,) = torch.autograd.grad(first, theta)
     assert second.item() == pytest.approx(2 / 1.5**3, rel=1e-6)
+
+
+@pytest.mark.parametrize("options", [{}, {"fixed_dt": 0.1}])
+def test_gradients_reach_y0_when_f_does_not_depend_on_the_state(options):
+    """y' = u(t): y(t) = y0 + ∫u, so ∂y(t)/∂y0 = 1 although f records nothing."""
+    y0 = torch.tensor([[0.5], [-1.0]], dtype=torch.float64, requires_grad=True)
+    ts = torch.linspace(0.0, 1.0, 6, dtype=torch.float64)
+    sol = solve(lambda t, y: torch.cos(t)[:, None], y0, ts, **options)
+    (grad,) = torch.autograd.grad(sol.ys.sum(), y0)
+    torch.testing.assert_close(grad, torch.full_like(y0, 6.0), rtol=0, atol=1e-12)

@@ -165,7 +165,7 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
         n_steps=torch.zeros_like(stop_idx), n_accepted=torch.zeros_like(stop_idx),
         n_nonfinite=torch.zeros_like(stop_idx),
         out_idx=torch.ones(batch, dtype=torch.long, device=dev))
-    record = torch.is_grad_enabled() and k1.requires_grad
+    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
     fused = shaped is not None and not compile
     if fused:
         tape = StepTape(tab, y, shape, record, n_out)

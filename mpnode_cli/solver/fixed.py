@@ -58,7 +58,7 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
     t_prev = out_times[0]
     t = torch.full((batch,), t_prev, dtype=torch.float64, device=dev)
     k1 = fun(t, y)
-    record = torch.is_grad_enabled() and k1.requires_grad
+    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
     if shaped is None:
         stages = Stages(tab.stages, batch, y.shape[1], y, reuse=not record)
     else:

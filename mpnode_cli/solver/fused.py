@@ -80,7 +80,8 @@ class StepRecord:
     rows: `[B·W]` output rows of the dense-output lanes; coef: `[B, W, s]` their weights
     b_i(θ) of h·k_i (y's is 1); lam: `[s + 1, B·F]` adjoints of
     `[y, h·k_1, ..., h·k_s]`; gk1: `[B, F]` the part of k₁'s adjoint that `_End` passes on
-    for the samples that keep k₁ (a rejected step).
+    for the samples that keep k₁ (a rejected step); last: `[B, *S]` the last stage's input
+    as autograd recorded it.
     """
 
     tape: StepTape
@@ -95,6 +96,7 @@ class StepRecord:
     coef: torch.Tensor | None = None
     lam: torch.Tensor | None = None
     gk1: torch.Tensor | None = None
+    last: torch.Tensor | None = None
 
     def adjoint(self) -> torch.Tensor:
         """The step's adjoint buffer (made by `_End`'s backward, the step's first)."""
@@ -135,10 +137,14 @@ def _stage_input(rec: StepRecord, i: int, k_prev: torch.Tensor) -> torch.Tensor:
 
 
 class _Stage(torch.autograd.Function):
-    """Stage i's input from k_{i−1} (and, for i = 1, from y); see the module docstring."""
+    """Stage i's input from k_{i−1}; see the module docstring. It also takes `prev`, the
+    previous stage's input (y for stage 1), whose adjoint it returns only for stage 1 (y's,
+    complete then): the chain End → stage s−1 → ... → stage 1 → y keeps every node of the
+    step in the backward, also where f's values carry no graph (an f without parameters
+    that ignores the state), and a None gradient costs autograd nothing."""
 
     @staticmethod
-    def forward(ctx, rec: StepRecord, i: int, k_prev: torch.Tensor, y: torch.Tensor | None):
+    def forward(ctx, rec: StepRecord, i: int, k_prev: torch.Tensor, prev: torch.Tensor):
         ctx.set_materialize_grads(False)
         ctx.rec, ctx.i, ctx.k_shape = rec, i, k_prev.shape
         return _stage_input(rec, i, k_prev)
@@ -176,13 +182,14 @@ def fused_stages(fun: RHS, tab: StageTableau, tape: StepTape, t: torch.Tensor,
     t_left = torch.nextafter(t_end, tab.neg_inf)
     tcs = (*torch.addcmul(t[:, None], h[:, None], tab.c_inner).unbind(1),
            *(t_left,) * tab.n_end)
-    fi = k1
+    fi, yi = k1, y
     for i in range(1, tab.stages):
         if tape.record:
-            yi = _Stage.apply(rec, i, fi, y if i == 1 else None)
+            yi = _Stage.apply(rec, i, fi, yi)
         else:
             yi = _stage_input(rec, i, fi)
         fi = fun(tcs[i - 1], yi)
+    rec.last = yi  # the new state as recorded, which `_End` takes
     # f at the new state (the last stage input), stored untracked (`_End` takes k_s's
     # adjoint) for the error estimate and the interpolant.
     with torch.no_grad():
@@ -192,7 +199,7 @@ def fused_stages(fun: RHS, tab: StageTableau, tape: StepTape, t: torch.Tensor,
 
 
 def _end(rec: StepRecord, k_last: torch.Tensor):
-    """The next `(y, k₁)`, each `[B, F]`: the stage's end where accepted, the start where not;
+    """The next `(y, k₁)`, each `[B, F]`: the step's end where accepted, its start where not;
     and the dense outputs the step crossed, written into `tape.out`."""
     tape = rec.tape
     y_next = torch.where(rec.accept, rec.y_new, rec.y)
@@ -204,15 +211,17 @@ def _end(rec: StepRecord, k_last: torch.Tensor):
         values = torch.bmm(rec.coef, hk_bsf)  # (B, W, F)
         values += rec.y[:, None]
         tape.out.index_copy_(0, rec.rows, values.view(-1, tape.feat))
-    rec.y = rec.k1 = rec.y_new = rec.y_flat = None  # the step's states are not needed past its end
+    rec.y = rec.k1 = rec.y_new = rec.y_flat = rec.last = None  # not needed past the step
     return y_next, k1_next
 
 
 class _End(torch.autograd.Function):
-    """The step's end from k_s = f(t + h, y_new); see `_end` and the module docstring."""
+    """The step's end from k_s = f(t + h, y_new); see `_end` and the module docstring. It
+    takes the last stage's input (y_new as recorded) for the graph's sake only (see
+    `_Stage`): y_new's adjoint goes into the step's buffer."""
 
     @staticmethod
-    def forward(ctx, rec: StepRecord, k_last: torch.Tensor):
+    def forward(ctx, rec: StepRecord, k_last: torch.Tensor, last: torch.Tensor):
         ctx.set_materialize_grads(False)
         ctx.rec, ctx.k_shape = rec, k_last.shape
         return _end(rec, k_last)
@@ -241,7 +250,7 @@ class _End(torch.autograd.Function):
         if gk is not None:
             gk_last += torch.where(rec.accept, gk, 0.0)
             rec.gk1 = torch.where(rec.accept, 0.0, gk)
-        return None, gk_last.view(ctx.k_shape)
+        return None, gk_last.view(ctx.k_shape), None
 
 
 def end_step(rec: StepRecord, f_new: torch.Tensor, accept: torch.Tensor,
@@ -261,7 +270,7 @@ def end_step(rec: StepRecord, f_new: torch.Tensor, accept: torch.Tensor,
     rec.coef = None if coef is None else coef.to(rec.hc.dtype,
                                                  memory_format=torch.contiguous_format)
     if rec.tape.record:
-        return _End.apply(rec, f_new)
+        return _End.apply(rec, f_new, rec.last)
     return _end(rec, f_new)
 
 
