@@ -114,7 +114,7 @@ def initial_step(fun, t0, y, k1, rtol, atol, span, p):
             (0.01 / dmax.clamp_min(1e-300)) ** (1.0 / p),
         )
         h = torch.minimum(torch.minimum(100 * h0, h1), span)
-        return torch.where(torch.isfinite(h) & (h > 0), h, span * 1e-6)
+        return torch.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0
 
 
 def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,

@@ -152,8 +152,9 @@ class _Reporter:
     """Calls `progress(fraction)` at most every `PROGRESS_SECONDS` (a no-op without one)."""
 
     def __init__(self, progress: Callable[[float], None] | None, ts: torch.Tensor):
-        self.progress, self.t0 = progress, ts[0]
-        self.span = ts[-1] - ts[0]
+        self.progress = progress
+        if progress is not None:  # three tensor ops that a solve without one skips
+            self.t0, self.span = ts[0], ts[-1] - ts[0]
         self.next = time.monotonic() + PROGRESS_SECONDS
 
     def __call__(self, t: torch.Tensor) -> None:
