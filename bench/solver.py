@@ -10,7 +10,9 @@ right-hand side. Reported per solver and batch size: wall time (median of `--rep
 one warm-up), right-hand-side evaluations and steps (max over samples; batched solvers
 evaluate the whole batch per call), relative L2 error against a DOP853 rtol=atol=1e-12
 reference (on the first `--ref-samples` samples), and for our solver the share of the wall
-time spent inside `f` (the rest is solver overhead).
+time spent inside `f` (the rest is solver overhead). A floor row per dtype and batch size times
+as many evaluations of `f` as ours took, chained by Euler updates with no solver; each batched
+torch solver's solver share is (wall − floor) / wall, the floor scaled to its f-evals.
 
 Wall times are noisy on a shared 2-core machine: read the ratios between solvers of one run.
 
@@ -116,6 +118,18 @@ def bench_ours_compiled(f, y0, ts, rtol, atol, repeats):
             int(sol.stats["n_steps"].max()), None, compile_s)
 
 
+def bench_floor(f, y0, n_evals: int, repeats: int) -> float:
+    """Seconds for `n_evals` evaluations of `f` chained by Euler updates: no solver."""
+
+    def run():
+        y, t = y0, torch.zeros(len(y0), dtype=torch.float64)
+        for _ in range(n_evals):
+            y = y + 1e-3 * f(t, y)
+        return y
+
+    return median_time(run, repeats)[0]
+
+
 def bench_torchdiffeq(f, y0, ts, rtol, atol, repeats):
     import torchdiffeq
 
@@ -211,14 +225,21 @@ def main(argv=None) -> int:
                 name = f"scipy {method} loop" + (f" (×{batch / n:.0f} extrap.)" if n < batch
                                                  else "")
                 results[name] = (wall, ys, nfev, steps, share)
-            ours = results["mpnode tsit5"][0]
+            ours, ours_evals = results["mpnode tsit5"][0], results["mpnode tsit5"][2]
+            floor = bench_floor(f, y0, ours_evals, args.repeats)
+            dt_name = str(dtype).replace("torch.", "")
             for name, (wall, ys, nfev, steps, share) in results.items():
                 err = rel_l2(ys[:nr], ref[:nr])
-                rows.append((str(dtype).replace("torch.", ""), batch, name, wall, wall / ours,
-                             nfev, steps, err, share))
-                print(f"{rows[-1][0]:8s} B={batch:5d} {name:32s} {wall:8.3f}s "
+                batched = not name.startswith("scipy")  # one call of f per step for the batch
+                solver_share = (wall - floor * nfev / ours_evals) / wall if batched else None
+                rows.append((dt_name, batch, name, wall, wall / ours, nfev, steps, err, share,
+                             solver_share))
+                print(f"{dt_name:8s} B={batch:5d} {name:32s} {wall:8.3f}s "
                       f"x{wall / ours:6.2f} f-evals {nfev:6d} err {err:.1e}"
-                      + (f" f-share {share:.0%}" if share is not None else ""), flush=True)
+                      + (f" f-share {share:.0%}" if share is not None else "")
+                      + (f" solver share {solver_share:.0%}" if batched else ""), flush=True)
+            rows.append((dt_name, batch, f"RHS floor: {ours_evals} evaluations chained, no "
+                         "solver", floor, floor / ours, ours_evals, None, None, None, None))
 
     write_table(args, rows)
     return 0
@@ -239,18 +260,25 @@ def write_table(args, rows):
         "time in the same configuration (higher = slower than mpnode). f-evals and steps: max "
         "over samples (batched solvers call f on the whole batch). rel. L2 error against "
         f"scipy DOP853 at rtol=atol=1e-12 on the first {args.ref_samples} samples. f-share: "
-        "fraction of mpnode's wall time spent inside the right-hand side.",
+        "fraction of mpnode's wall time spent inside the right-hand side. solver share: "
+        "(wall − floor) / wall, the floor (as many f-evals as ours, chained, no solver) scaled "
+        "to the row's f-evals.",
         "",
         "float64 runs use rtol=1e-6, atol=1e-8; float32 runs rtol=1e-4, atol=1e-6.",
         "",
-        "| dtype | B | solver | wall s | × ours | f-evals | steps | rel. L2 error | f-share |",
-        "|---|---:|---|---:|---:|---:|---:|---:|---:|",
+        "| dtype | B | solver | wall s | × ours | f-evals | steps | rel. L2 error | f-share | "
+        "solver share |",
+        "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for dt, b, name, wall, ratio, nfev, steps, err, share in rows:
+
+    def pct(x):
+        return f"{x:.0%}" if x is not None else "–"
+
+    for dt, b, name, wall, ratio, nfev, steps, err, share, solver_share in rows:
         lines.append(
             f"| {dt} | {b} | {name} | {wall:.3f} | {ratio:.2f} | {nfev} | "
-            f"{steps if steps is not None else '–'} | {err:.1e} | "
-            f"{f'{share:.0%}' if share is not None else '–'} |")
+            f"{steps if steps is not None else '–'} | "
+            f"{f'{err:.1e}' if err is not None else '–'} | {pct(share)} | {pct(solver_share)} |")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")

@@ -12,8 +12,13 @@ sample that fails is frozen and marked while the others go on.
 - The step-size controller (`controller.py`) works on detached tensors: gradients flow
   through the stages and the interpolant, not through the step-size choice (a prototype
   that let r^(−1/5) into autograd produced NaN gradients near r = 0).
-- `attempt_step` is pure tensor code over `State`, so that `torch.compile` can take it
-  whole (`STEP`); the loop around it does the host-side work.
+- Two ways through a step, with the same forward: eagerly (the default), the stages are
+  `fused.py`'s autograd nodes, whose backward is written for the tableau, and the step's end
+  (`fused.end_step`) selects the next state and writes the outputs it crossed into one
+  buffer; compiled, or with `fused=False`, `attempt_step` records every op on autograd's
+  tape, which `torch.compile` takes whole (`STEP`: dynamo cannot trace the fused nodes'
+  shared buffers), and the outputs are gathered once at the end. The loop around either
+  does the host-side work.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import torch
 
 from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import StepController
+from mpnode_cli.solver.fused import StepTape, collect_outputs, end_step, fused_stages, start_outputs
 from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
 from mpnode_cli.solver.solution import Status
 
@@ -57,7 +63,8 @@ class Constants(NamedTuple):
 
     tab: StageTableau
     ctrl: StepController
-    stages: Stages
+    stages: Stages | None  # the recorded step's stage buffer (None: fused steps)
+    tape: StepTape | None  # the fused steps' buffers (None: recorded steps)
     ts: torch.Tensor  # [T] float64 output times
     stops_pad: torch.Tensor  # [S + 1] float64 stops, the last repeated
     n_stops: int
@@ -74,10 +81,13 @@ class Attempt(NamedTuple):
     failed: torch.Tensor  # bool: failed at this step
     too_many: torch.Tensor  # bool: too many non-finite rejections in a row
     underflow: torch.Tensor  # bool: the next step would not move the clock
+    accept: torch.Tensor  # bool: the step was accepted
     t: torch.Tensor  # float64 step start
     h: torch.Tensor  # float64 step size
     y: torch.Tensor  # [B, F] state at the step start
-    hk: torch.Tensor  # [s, B, F] the stages h·k_i
+    hk: torch.Tensor | None = None  # [s, B, F] the stages h·k_i (recorded steps)
+    f_new: torch.Tensor | None = None  # [B, *S] f at the new state (fused steps)
+    rec: object = None  # the fused step's `StepRecord`, which `end_step` finishes
 
 
 def rms(x: torch.Tensor) -> torch.Tensor:
@@ -104,13 +114,14 @@ def initial_step(fun, t0, y, k1, rtol, atol, span, p):
             (0.01 / dmax.clamp_min(1e-300)) ** (1.0 / p),
         )
         h = torch.minimum(torch.minimum(100 * h0, h1), span)
-        return torch.where(torch.isfinite(h) & (h > 0), h, span * 1e-6)
+        return torch.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0
 
 
 def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
                    y: torch.Tensor, ts: torch.Tensor, stops: torch.Tensor, rtol: float,
                    atol: float, dt0, max_steps: int, compile: bool = False,
-                   report: Callable[[torch.Tensor], None] | None = None):
+                   report: Callable[[torch.Tensor], None] | None = None,
+                   shaped: RHS | None = None, shape: tuple[int, ...] | None = None):
     """Integrate with adaptive steps.
 
     Args:
@@ -121,12 +132,14 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
         dt0: the first step size, scalar or `[B]`, or None for `initial_step`'s.
         compile: run `attempt_step` compiled (`STEP`).
         report: called with each sample's time `[B]` after every step.
+        shaped: the right-hand side on `[B, *S]` states (`shape`), for fused steps; None
+            records every op of the step instead (`attempt_step`, as compiled).
         The rest are `solve`'s.
 
     Returns:
         `(ys [B, T, F], status [B], stats)`, as `solve` returns them.
     """
-    batch, feat = y.shape
+    batch = y.shape[0]
     dev, f64 = y.device, torch.float64
     n_out = ts.numel()
     t0 = ts[0]
@@ -141,80 +154,87 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
     else:
         dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
 
-    # Outputs: (column index [B, W], value [B, W, F]) per writing step, scattered into the
-    # result once at the end (one gather in the backward pass instead of one full-size copy
-    # per step); a spare column at index n_out takes the writes of masked-out lanes.
-    out_cols = [torch.zeros(batch, 1, dtype=torch.long, device=dev)]
-    out_vals = [y.unsqueeze(1)]
     stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
     stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
-    status = torch.zeros_like(stop_idx)
     start_ok = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
-    status[~start_ok] = Status.NON_FINITE
-    arange_out = torch.arange(n_out, device=dev)
-
-    stages = Stages(tab.stages, batch, feat, y,
-                    reuse=not (torch.is_grad_enabled() and k1.requires_grad))
-    consts = Constants(tab, ctrl, stages, ts, stops_pad, stops.numel(), rtol, atol, max_steps)
+    status = torch.where(start_ok, Status.SUCCESS, Status.NON_FINITE)
     state = State(
-        t=t, dt=dt, y=y, k1=k1, running=start_ok.clone(), stop_idx=stop_idx,
+        t=t, dt=dt, y=y, k1=k1, running=start_ok, stop_idx=stop_idx,
         stop_t=stops_pad[stop_idx],
         err_prev=torch.full((batch,), ctrl.initial_history(), dtype=f64, device=dev),
         n_steps=torch.zeros_like(stop_idx), n_accepted=torch.zeros_like(stop_idx),
         n_nonfinite=torch.zeros_like(stop_idx),
         out_idx=torch.ones(batch, dtype=torch.long, device=dev))
+    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
+    fused = shaped is not None and not compile
+    if fused:
+        tape = StepTape(tab, y, shape, record, n_out)
+        start_outputs(tape, y)
+        consts = Constants(tab, ctrl, None, tape, ts, stops_pad, stops.numel(), rtol, atol,
+                           max_steps)
+        steps = FusedSteps(tape, ts, shaped)
+    else:
+        consts = Constants(tab, ctrl, Stages(tab.stages, batch, y.shape[1], y, not record),
+                           None, ts, stops_pad, stops.numel(), rtol, atol, max_steps)
+        steps = RecordedSteps(y, ts, tab)
+    state, status, n_f = _loop(fun, consts, state, status, n_f, steps, compile, report)
+    n_f += (tab.stages - 1) * state.n_steps
+    stats = {"n_steps": state.n_steps, "n_accepted": state.n_accepted,
+             "n_rejected": state.n_steps - state.n_accepted, "n_f_evals": n_f}
+    return steps.result(y, state), status, stats
+
+
+def _loop(fun, consts, state, status, n_f, steps, compile, report):
+    """Step until no sample runs; returns `(state, status, n_f)`."""
     while True:
-        state, flags, step = STEP(compile, fun, consts, state)
+        state, flags, step = steps.attempt(fun, consts, state, compile)
         any_running, width, any_jumped, any_failed = flags.tolist()  # the step's one sync
         if any_failed:  # rare: record why those samples stopped
             why = torch.where(step.too_many, Status.NON_FINITE,
                               torch.where(step.underflow, Status.DT_UNDERFLOW,
                                           Status.MAX_STEPS))
             status = torch.where(step.failed, why, status)
+        state = steps.end(state, step, width)
         if width > 0:
-            cols, vals = interpolate_outputs(ts, tab, step, state.out_idx, width, arange_out)
-            out_cols.append(cols)
-            out_vals.append(vals)
             state = state._replace(out_idx=state.out_idx + step.n_cross)
         if any_jumped:  # right-limit derivative at the stop, for those that landed there
             k1 = torch.where(step.jumped[:, None], fun(state.t, state.y), state.k1)
             n_f = n_f + state.running
             state = state._replace(k1=k1)
         if not any_running:
-            break
+            return state, status, n_f
         if report is not None:
             report(state.t)
-    n_f += (tab.stages - 1) * state.n_steps
-    stats = {"n_steps": state.n_steps, "n_accepted": state.n_accepted,
-             "n_rejected": state.n_steps - state.n_accepted, "n_f_evals": n_f}
-    return gather_outputs(out_cols, out_vals, n_out), status, stats
 
 
-def attempt_step(fun: RHS, consts: Constants, state: State):
-    """Attempt one step for every running sample; pure tensor code, no host sync.
+def plan_step(consts: Constants, state: State):
+    """`(h, t_new, land)`, each `[B]`: the step to attempt, clipped so as not to cross the
+    next stop (0 for a sample that does not run), where it ends, and whether it lands on
+    the stop."""
+    with torch.no_grad():
+        to_stop = state.stop_t - state.t
+        land = state.dt >= to_stop
+        h = torch.where(state.running, torch.minimum(state.dt, to_stop), 0.0)
+        t_new = torch.where(land, state.stop_t, state.t + h)
+    return h, t_new, land
+
+
+def control(consts: Constants, state: State, h, t_new, land, y_new, err):
+    """Error control and bookkeeping of an attempted step, outside autograd.
 
     Returns:
-        `(state, flags, attempt)`: the next `State`; `flags`, a `[4]` int64 tensor (anyone
-        still running, the most outputs one sample crossed, anyone landed on an interior
-        stop, anyone failed), read by the loop in its one sync; and the `Attempt`.
+        `(state, flags, attempt)`: the next `State` with `y` and `k1` still the step's start
+        (the caller advances them); `flags`, a `[4]` int64 tensor (anyone still running, the
+        most outputs one sample crossed, anyone landed on an interior stop, anyone failed),
+        read by the loop in its one sync; and the `Attempt`.
     """
-    tab, ctrl, stages, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
+    _, ctrl, _, _, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
      out_idx) = state
-
-    # ---- attempt one step of size h (clipped so as not to cross the next stop)
-    with torch.no_grad():
-        to_stop = stop_t - t
-        land = dt >= to_stop
-        h = torch.where(running, torch.minimum(dt, to_stop), 0.0)
-        t_new = torch.where(land, stop_t, t + h)
-    y_new, err, f_new, hk = rk_step(fun, tab, stages, t, h, y, k1, t_new)
-
-    # ---- error control and bookkeeping, outside autograd
     with torch.no_grad():
         scale = torch.maximum(y.abs(), y_new.abs()).mul_(rtol).add_(atol)
         r = rms(err / scale)
-        finite = torch.isfinite(r)
+        finite = r < math.inf  # r ≥ 0, so this is isfinite in one op instead of three
         r = ctrl.ratio(r, finite)
         accept = running & (r <= 1.0)
         dt_next, err_prev = ctrl.propose(h, r, err_prev, accept)
@@ -228,53 +248,135 @@ def attempt_step(fun: RHS, consts: Constants, state: State):
         n_steps = n_steps + running
         n_acc = n_acc + accept
         stop_idx = stop_idx + landed
-        stop_t = stops_pad[stop_idx]
+        stop_t = stops_pad.index_select(0, stop_idx)
         n_nonfinite = torch.where(finite, 0, n_nonfinite + running)
-        not_done = stop_idx < n_stops
+        live = running & (stop_idx < n_stops)
         too_many = n_nonfinite >= _MAX_NON_FINITE_REJECTS
         # The next step would not move the clock. Checked after accepted steps too: near a
         # blow-up the step shrinks geometrically while every step is accepted, and checking
         # only rejections let such a sample take thousands of steps that advance no time.
         t_next = torch.where(accept, t_new, t)
         underflow = t_next + dt <= t_next
-        out_of_steps = n_steps >= max_steps
-        failed = (too_many | underflow | out_of_steps) & running & not_done
-        running_next = running & not_done & ~failed
+        failed = (too_many | underflow | (n_steps >= max_steps)) & live
+        running_next = live ^ failed  # failed ⊆ live
         # Landing on an interior stop invalidates FSAL: f may change there (a new control).
-        jumped = landed & not_done
-        flags = torch.stack([running_next.any(), n_cross.max(), jumped.any(), failed.any()])
-
-    # ---- advance accepted samples; FSAL: the last stage is f at the new state
-    acc2 = accept[:, None]
-    y_next = torch.where(acc2, y_new, y)
-    k1 = torch.where(acc2, f_new, k1)
-    state = State(t_next, dt, y_next, k1, running_next, stop_idx, stop_t, err_prev, n_steps,
+        jumped = landed & live
+        # One [4] int64 for the loop's one sync: one stack and one amax (type promotion
+        # makes the bools 0/1), against four reductions and a stack of their results.
+        flags = torch.stack([running_next, n_cross, jumped, failed]).amax(1)
+    state = State(t_next, dt, y, k1, running_next, stop_idx, stop_t, err_prev, n_steps,
                   n_acc, n_nonfinite, out_idx)
-    return state, flags, Attempt(jumped, n_cross, failed, too_many, underflow, t, h, y, hk)
+    return state, flags, Attempt(jumped, n_cross, failed, too_many, underflow, accept, t, h, y)
+
+
+def attempt_step(fun: RHS, consts: Constants, state: State):
+    """Attempt one step for every running sample, every op recorded by autograd; pure
+    tensor code, no host sync (what `STEP` compiles).
+
+    Returns:
+        `(state, flags, attempt)` as `control`'s, with the state advanced: an accepted
+        sample moves to the new state; FSAL, the last stage is f there.
+    """
+    h, t_new, land = plan_step(consts, state)
+    y_new, err, f_new, hk = rk_step(fun, consts.tab, consts.stages, state.t, h, state.y,
+                                    state.k1, t_new)
+    state_next, flags, step = control(consts, state, h, t_new, land, y_new, err)
+    acc2 = step.accept[:, None]
+    state_next = state_next._replace(y=torch.where(acc2, y_new, state.y),
+                                     k1=torch.where(acc2, f_new, state.k1))
+    return state_next, flags, step._replace(hk=hk)
 
 
 STEP = CompileCache(attempt_step)  # the step, compiled once per process when asked
 
 
-def interpolate_outputs(ts: torch.Tensor, tab: StageTableau, step: Attempt,
-                        out_idx: torch.Tensor, width: int, arange_out: torch.Tensor):
-    """Evaluate the interpolant at the ≤ `width` output times each sample's step crossed.
+def dense_weights(ts: torch.Tensor, tab: StageTableau, step: Attempt, out_idx: torch.Tensor,
+                  width: int, arange_out: torch.Tensor):
+    """The interpolant's weights at the ≤ `width` output times each sample's step crossed.
 
-    Returns `(cols [B, W], values [B, W, F])`: `values[b, w]` belongs in output column
-    `out_idx[b] + w` for `w < n_cross[b]`; other lanes point at the spare column `n_out`.
+    Returns:
+        `(cols [B, W], valid [B, W], coef [B, W, s])`: lane `w` of sample `b` belongs in
+        output column `cols[b, w] = out_idx[b] + w` where `valid` (`w < n_cross[b]`), and
+        is y + Σ_i coef[b, w, i]·h·k_i, coef (float64) the b_i(θ) of its time.
     """
-    t, h, y, hk = step.t, step.h, step.y, step.hk
     n_out = ts.numel()
     w = arange_out[:width]
-    j = out_idx[:, None] + w  # (B, W)
+    cols = out_idx[:, None] + w  # (B, W)
     valid = w < step.n_cross[:, None]
-    j = torch.where(valid, j, n_out)
     with torch.no_grad():
-        h_safe = torch.where(h > 0, h, 1.0)
-        theta = ((ts[j.clamp_max(n_out - 1)] - t[:, None]) / h_safe[:, None]).clamp(0.0, 1.0)
-        powers = torch.stack([theta**k for k in range(1, len(tab.interp) + 1)], -1)  # (B, W, K)
-        coef = (powers @ tab.interp).to(y.dtype)  # (B, W, s): b_i(θ)
-    return j, y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, hk)  # (B, W, F)
+        h_safe = torch.where(step.h > 0, step.h, 1.0)
+        theta = (ts.take(cols.clamp_max(n_out - 1)) - step.t[:, None]) / h_safe[:, None]
+        theta = theta.clamp_(0.0, 1.0)  # (B, W)
+        k_max = tab.interp.shape[0]
+        powers = theta[..., None].expand(-1, -1, k_max).cumprod(-1)  # (B, W, K): θ, ..., θ^K
+        # (s, K) @ (K, B·W): the long side last, twice as fast as (B·W, K) @ (K, s).
+        coef = (tab.interp_t @ powers.view(-1, k_max).T).view(-1, *theta.shape)  # (s, B, W)
+        coef = coef.permute(1, 2, 0)  # (B, W, s): b_i(θ)
+    return cols, valid, coef
+
+
+class RecordedSteps:
+    """Steps recorded op by op (`attempt_step`, compiled or not), and their outputs:
+    `(column index [B, W], value [B, W, F])` per writing step, scattered into the result
+    once at the end (one gather in the backward pass instead of one full-size copy per
+    step); a spare column at index T takes the writes of masked-out lanes."""
+
+    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau):
+        self.ts, self.tab, self.arange = ts, tab, torch.arange(ts.numel(), device=y.device)
+        self.cols = [torch.zeros(y.shape[0], 1, dtype=torch.long, device=y.device)]
+        self.vals = [y.unsqueeze(1)]
+
+    @staticmethod
+    def attempt(fun: RHS, consts: Constants, state: State, compile: bool):
+        return STEP(compile, fun, consts, state)
+
+    def end(self, state: State, step: Attempt, width: int) -> State:
+        """Collect the outputs the step crossed (the step has advanced the state)."""
+        if width > 0:
+            cols, valid, coef = dense_weights(self.ts, self.tab, step, state.out_idx, width,
+                                              self.arange)
+            coef = coef.to(step.y.dtype)
+            self.cols.append(torch.where(valid, cols, self.ts.numel()))
+            self.vals.append(step.y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, step.hk))
+        return state
+
+    def result(self, y0: torch.Tensor, state: State) -> torch.Tensor:
+        """`[B, T, F]` the outputs, NaN where none was written."""
+        return gather_outputs(self.cols, self.vals, self.ts.numel())
+
+
+class FusedSteps:
+    """Steps whose stages are `fused.py`'s autograd nodes; each step's end writes the
+    outputs it crossed into the tape's output buffer."""
+
+    def __init__(self, tape: StepTape, ts: torch.Tensor, shaped: RHS):
+        batch, dev = tape.shape[0], ts.device
+        self.tape, self.ts, self.shaped = tape, ts, shaped
+        self.arange = torch.arange(ts.numel(), device=dev)
+        self.base = torch.arange(batch, device=dev)[:, None] * ts.numel()  # (B, 1) row of col 0
+        self.spare = batch * ts.numel()  # the output buffer's spare row
+
+    def attempt(self, fun: RHS, consts: Constants, state: State, compile: bool):
+        """`control`'s `(state, flags, attempt)`; `end` then advances y and k₁."""
+        h, t_new, land = plan_step(consts, state)
+        rec, y_new, err, f_new = fused_stages(self.shaped, consts.tab, self.tape, state.t, h,
+                                              state.y, state.k1, t_new)
+        state, flags, step = control(consts, state, h, t_new, land, y_new, err)
+        return state, flags, step._replace(f_new=f_new, rec=rec)
+
+    def end(self, state: State, step: Attempt, width: int) -> State:
+        """Advance the accepted samples and write the outputs the step crossed."""
+        rows = coef = None
+        if width > 0:
+            cols, valid, coef = dense_weights(self.ts, self.tape.tab, step, state.out_idx, width,
+                                              self.arange)
+            rows = torch.where(valid, self.base + cols, self.spare).view(-1)  # (B·W,)
+        y, k1 = end_step(step.rec, step.f_new, step.accept, rows, coef)
+        return state._replace(y=y, k1=k1)
+
+    def result(self, y0: torch.Tensor, state: State) -> torch.Tensor:
+        """`[B, T, F]` the outputs, NaN where none was written."""
+        return collect_outputs(self.tape, y0, state.y, state.k1)
 
 
 def gather_outputs(cols: list[torch.Tensor], vals: list[torch.Tensor], n_out: int):

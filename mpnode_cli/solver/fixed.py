@@ -13,6 +13,7 @@ from collections.abc import Callable
 
 import torch
 
+from mpnode_cli.solver.fused import StepTape, end_step, fused_stages
 from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
 from mpnode_cli.solver.solution import Status
 
@@ -30,7 +31,8 @@ def fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[f
 
 def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
                 stops: torch.Tensor, fixed_dt: float, max_steps: int,
-                report: Callable[[torch.Tensor], None] | None = None):
+                report: Callable[[torch.Tensor], None] | None = None,
+                shaped: RHS | None = None, shape: tuple[int, ...] | None = None):
     """Integrate with fixed steps.
 
     Args:
@@ -38,6 +40,8 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
         y: `[B, F]` initial states at `ts[0]`; ts: `[T]` float64 output times;
         stops: sorted float64 times in (t0, t_end] that steps land on, t_end last.
         report: called with the time `[B]` after every step.
+        shaped: the right-hand side on `[B, *S]` states (`shape`), for fused steps
+            (`fused.py`); None records every op of the step instead.
 
     Returns:
         `(ys [B, T, F], status [B], stats)`, as `solve` returns them.
@@ -54,8 +58,11 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
     t_prev = out_times[0]
     t = torch.full((batch,), t_prev, dtype=torch.float64, device=dev)
     k1 = fun(t, y)
-    stages = Stages(tab.stages, batch, y.shape[1], y,
-                    reuse=not (torch.is_grad_enabled() and k1.requires_grad))
+    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
+    if shaped is None:
+        stages = Stages(tab.stages, batch, y.shape[1], y, reuse=not record)
+    else:
+        tape = StepTape(tab, y, shape, record)
     running = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
     status = torch.where(running, Status.SUCCESS, Status.NON_FINITE)
     n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
@@ -69,12 +76,19 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
             break
         h = torch.where(running, t_next - t_prev, zero)
         t_end = torch.full_like(t, t_next)
-        y_new, _, f_new, _ = rk_step(fun, tab, stages, t, h, y, k1, t_end)
-        ok = running & torch.isfinite(y_new).all(dim=1) & torch.isfinite(f_new).all(dim=1)
+        if shaped is None:
+            y_new, _, f_new, _ = rk_step(fun, tab, stages, t, h, y, k1, t_end)
+        else:
+            rec, y_new, _, f_new = fused_stages(shaped, tab, tape, t, h, y, k1, t_end)
+        ok = (running & torch.isfinite(y_new).all(dim=1)
+              & torch.isfinite(f_new).flatten(1).all(dim=1))
         status = torch.where(running & ~ok, Status.NON_FINITE, status)
         n_steps += running
-        y = torch.where(ok[:, None], y_new, y)
-        k1 = torch.where(ok[:, None], f_new, k1)
+        if shaped is None:
+            y = torch.where(ok[:, None], y_new, y)
+            k1 = torch.where(ok[:, None], f_new, k1)
+        else:
+            y, k1 = end_step(rec, f_new, ok)
         running = ok
         t = t_end
         t_prev = t_next

@@ -12,6 +12,7 @@ The step has no host sync and no data-dependent shapes, so the adaptive loop can
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -44,6 +45,11 @@ class StageTableau:
         ae = a.to(dtype=dtype, device=device)  # (s, s)
         self.stages = n
         self.ae_rows = [ae[i, :i].contiguous() for i in range(n)]
+        # The same rows over [y, h·k_1, ..., h·k_s]: stage input i is (1, a_i1, ..., a_ii−1)
+        # times the first i + 1 of them (the fused step's backward, `fused.py`).
+        a_ext = torch.cat([torch.ones(n, 1, dtype=torch.float64), a], 1).to(dtype=dtype,
+                                                                           device=device)
+        self.a_ext_rows = [a_ext[i, : i + 1].contiguous() for i in range(n)]
         self.e = None if e is None else torch.tensor(e, dtype=dtype, device=device)  # (s,)
         # Stages with c = 1 are evaluated at the step's end from the left; they must come
         # last (true of every method here), after the inner nodes 0 < c < 1.
@@ -55,6 +61,15 @@ class StageTableau:
         self.neg_inf = torch.tensor(-math.inf, dtype=torch.float64, device=device)
         # Interpolant: b(θ) = [θ, θ², ..., θ^K] @ interp, interp (K, s).
         self.interp = torch.tensor(tableau.interp, dtype=torch.float64, device=device).T
+        self.interp_t = self.interp.T.contiguous()  # (s, K)
+
+
+@functools.lru_cache(maxsize=64)
+def stage_tableau(tableau: ButcherTableau, dtype: torch.dtype,
+                  device: torch.device) -> StageTableau:
+    """The `StageTableau` of a method, dtype and device, made once per process: building
+    its ~20 small tensors cost more than a training step's error control."""
+    return StageTableau(tableau, dtype, device)
 
 
 class Stages:

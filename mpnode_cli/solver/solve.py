@@ -8,7 +8,8 @@ the batch; see docs/solver.md), and a sample that fails is frozen and marked whi
 go on.
 
 This module checks the arguments, flattens each sample's state to `[F]`, and hands over to
-one of two loops over the same Runge–Kutta step (`runge_kutta.py`): `adaptive.py` (error
+one of two loops over the same Runge–Kutta step (`runge_kutta.py`, recorded op by op by
+autograd, or `fused.py`, with a backward written for the tableau): `adaptive.py` (error
 control, dense output, an optional compiled step) or `fixed.py` (`fixed_dt`). The result
 types are in `solution.py`, the step-size controllers in `controller.py`.
 """
@@ -23,7 +24,7 @@ import torch
 from mpnode_cli.solver.adaptive import solve_adaptive
 from mpnode_cli.solver.controller import controller_for
 from mpnode_cli.solver.fixed import solve_fixed
-from mpnode_cli.solver.runge_kutta import RHS, StageTableau
+from mpnode_cli.solver.runge_kutta import RHS, stage_tableau
 from mpnode_cli.solver.solution import STAT_NAMES, Solution, Status
 from mpnode_cli.solver.tableau import get_method
 
@@ -45,6 +46,7 @@ def solve(
     compile: bool = False,
     controller: str = "pi",
     progress: Callable[[float], None] | None = None,
+    fused: bool = True,
 ) -> Solution:
     """Integrate `dy/dt = f(t, y)` for a batch of initial states with a Runge–Kutta method.
 
@@ -77,11 +79,16 @@ def solve(
         progress: if given, called now and then (at most every `PROGRESS_SECONDS`) with
             the fraction of the time span covered so far, the mean over samples, so that a
             long solve can show that it moves. Each call costs one host sync.
+        fused: take uncompiled steps as one autograd node per stage, whose backward is the
+            tableau's transposed sums (`fused.py`), about four times fewer ops a step than
+            recording each op. False records every op of the step instead, as `compile`
+            does (the same forward; the reference the tests hold the fused backward to).
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
         (backpropagation through the solver's operations); the step-size controller is
-        detached.
+        detached. The fused step's backward is first-order only: with `create_graph=True`
+        it raises (`fused=False` takes higher derivatives).
     """
     if y0.ndim < 1:
         raise ValueError("y0 must have a leading batch dimension: [B, *S]")
@@ -100,27 +107,42 @@ def solve(
     batch, shape = y0.shape[0], y0.shape[1:]
     n_out = ts.numel()
     y = y0.reshape(batch, -1).contiguous()  # (B, F); steps view it flat, e.g. y0 = x[:, 0]
-    flat = len(shape) == 1  # f sees (B, F) already: skip two reshapes per evaluation
-
-    def fun(t: torch.Tensor, yf: torch.Tensor) -> torch.Tensor:
-        out = f(t, yf if flat else yf.view(batch, *shape))
-        out = out if flat else out.reshape(batch, -1)
-        return out if out.dtype == y0.dtype else out.to(y0.dtype)
+    fun, shaped = _flat_and_shaped(f, batch, shape, y0.dtype)
 
     if n_out == 1:
         zeros = torch.zeros(batch, dtype=torch.long, device=device)
         return Solution(ts, y0.unsqueeze(1), zeros, {k: zeros for k in STAT_NAMES})
 
     stops = _stop_times(ts, tstops)
-    tab = StageTableau(tableau, y.dtype, device)
+    tab = stage_tableau(tableau, y.dtype, device)
     report = _Reporter(progress, ts)
+    shaped = shaped if fused else None
     if fixed_dt is not None:
-        ys, status, stats = solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps, report)
+        ys, status, stats = solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps, report,
+                                        shaped, (batch, *shape))
     else:
         p = tableau.controller_order
         ys, status, stats = solve_adaptive(fun, tab, p, controller_for(controller, p), y, ts,
-                                           stops, rtol, atol, dt0, max_steps, compile, report)
+                                           stops, rtol, atol, dt0, max_steps, compile, report,
+                                           shaped, (batch, *shape))
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
+
+
+def _flat_and_shaped(f: RHS, batch: int, shape: torch.Size, dtype: torch.dtype):
+    """f on flat `[B, F]` states (the recorded steps') and on `[B, *S]` ones (the fused
+    steps' nodes make and take them as they are), each returning the solve's dtype."""
+    flat = len(shape) == 1  # f sees (B, F) already: skip two reshapes per evaluation
+
+    def fun(t: torch.Tensor, yf: torch.Tensor) -> torch.Tensor:
+        out = f(t, yf if flat else yf.view(batch, *shape))
+        out = out if flat else out.reshape(batch, -1)
+        return out if out.dtype == dtype else out.to(dtype)
+
+    def shaped(t: torch.Tensor, ys: torch.Tensor) -> torch.Tensor:
+        out = f(t, ys)
+        return out if out.dtype == dtype else out.to(dtype)
+
+    return fun, shaped
 
 
 PROGRESS_SECONDS = 0.2  # shortest interval between two progress reports
@@ -130,8 +152,9 @@ class _Reporter:
     """Calls `progress(fraction)` at most every `PROGRESS_SECONDS` (a no-op without one)."""
 
     def __init__(self, progress: Callable[[float], None] | None, ts: torch.Tensor):
-        self.progress, self.t0 = progress, ts[0]
-        self.span = ts[-1] - ts[0]
+        self.progress = progress
+        if progress is not None:  # three tensor ops that a solve without one skips
+            self.t0, self.span = ts[0], ts[-1] - ts[0]
         self.next = time.monotonic() + PROGRESS_SECONDS
 
     def __call__(self, t: torch.Tensor) -> None:
