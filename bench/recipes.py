@@ -129,13 +129,13 @@ def result(args, system: str, recipe: str, seed: int) -> dict | None:
             "baselines": s.get("baselines") or {}, "curve": points}
 
 
-def _pm(values: list[float]) -> str:
+def _pm(values: list[float], spec: str = ".3g") -> str:
     values = [v for v in values if v is not None and math.isfinite(v)]
     if not values:
         return "—"
     if len(values) == 1:
-        return f"{values[0]:.3g}"
-    return f"{statistics.mean(values):.3g} ± {statistics.pstdev(values):.2g}"
+        return f"{values[0]:{spec}}"
+    return f"{statistics.mean(values):{spec}} ± {statistics.pstdev(values):{spec}}"
 
 
 def write_table(args) -> None:
@@ -166,7 +166,7 @@ def write_table(args) -> None:
             base = got[0]["baselines"]
             lines.append(
                 f"| {system} ({SYSTEMS[system]}) | {recipe} | {len(got)} | "
-                f"{_pm([x['epochs'] for x in got])} | {_pm([x['val'] for x in got])} | "
+                f"{_pm([x['epochs'] for x in got], '.0f')} | {_pm([x['val'] for x in got])} | "
                 f"{_pm([x['test'] for x in got])} | {_fmt(base.get('time_mean'))} / "
                 f"{_fmt(base.get('hold_x0'))} | {'yes' if ahead == recipe else ''} |")
         plot(args, system, rows)
