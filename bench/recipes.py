@@ -12,7 +12,9 @@ started together, so that both see the same machine load. Each stops at the budg
 From each run's `metrics.jsonl`, the best validation MSE reached by each time (the curve
 drawn per system in `bench/results/recipes-<system>.png`, both recipes, each seed); from its
 `summary.json`, the test MSE of its best checkpoint beside the naive predictors (hold x(0),
-the train split's time mean). The table gives, per system and recipe, mean ± std over the
+the train split's time mean); and its zero-shot MSE on held-out graphs (`HELD_OUT`: a larger
+graph or another topology, 200 trajectories), where a recipe that wins on its own graphs
+must also hold. The table gives, per system and recipe, mean ± std over the
 seeds of the validation MSE at the budget and the test MSE, and says which recipe is ahead.
 
 Runs are cached: `--runs`/<budget>/<system>-<recipe>-s<seed>/ keeps its run folder, and a
@@ -45,6 +47,11 @@ RECIPES = ("mpnode", "paper")
 # Each system's training set, as bench/quality.py trains it.
 SYSTEMS = {"lorenz": "lorenz3", "gene": "gene-ba-4x4", "kuramoto": "kuramoto10-ba",
            "pendulum": "pendulum", "quadrotor": "quad3"}
+# Held-out graphs for each system, where the recipe must also hold: a larger graph or another
+# topology, 200 trajectories of the preset (the model is run on them zero-shot).
+HELD_OUT = {"lorenz": "lorenz10", "gene": "gene-er-4x4", "kuramoto": "kuramoto10-er",
+            "quadrotor": "quad6"}
+HELD_OUT_TRAJECTORIES = 200
 PAPER_EPOCHS = 4000
 
 
@@ -68,6 +75,40 @@ def dataset(args, system: str) -> Path:
         if proc.wait():
             raise SystemExit(f"generating {preset} failed: see {args.runs / 'generate.log'}")
     return path
+
+
+def held_out_data(args, system: str) -> Path | None:
+    """The system's held-out dataset (generated once), or None."""
+    preset = HELD_OUT.get(system)
+    if preset is None:
+        return None
+    path = args.data / f"{preset}-k{HELD_OUT_TRAJECTORIES}.h5"
+    if not path.exists():
+        proc = mpnode("generate", "--preset", preset, "--trajectories",
+                      str(HELD_OUT_TRAJECTORIES), "--out", str(path),
+                      log=args.runs / "generate.log")
+        if proc.wait():
+            raise SystemExit(f"generating {preset} failed: see {args.runs / 'generate.log'}")
+    return path
+
+
+def held_out(args, system: str, recipe: str, seed: int) -> float | None:
+    """The run's zero-shot MSE on the held-out graphs (cached beside its run folder)."""
+    folder = run_dir(args, system, recipe, seed)
+    data = held_out_data(args, system)
+    cached = folder.parent / f"{folder.name}.held-out.json"
+    if data is None or not (folder / "summary.json").exists():
+        return None
+    if not cached.exists():
+        with cached.open("w") as out:
+            subprocess.run([sys.executable, "-m", "mpnode_cli", "zeroshot", str(folder),
+                            str(data), "--json"], cwd=ROOT, env=env(), stdout=out,
+                           stderr=subprocess.DEVNULL, check=False)
+    try:
+        (item,) = json.loads(cached.read_text())["datasets"]
+        return item["result"]["mse"]
+    except (ValueError, KeyError):
+        return None
 
 
 def run_dir(args, system: str, recipe: str, seed: int) -> Path:
@@ -126,6 +167,7 @@ def result(args, system: str, recipe: str, seed: int) -> dict | None:
     points = curve(folder)
     return {"val": points[-1][1] if points else math.nan, "seconds": points[-1][0],
             "epochs": s["epochs"], "test": (s.get("test") or {}).get("mse"),
+            "held_out": held_out(args, system, recipe, seed),
             "baselines": s.get("baselines") or {}, "curve": points}
 
 
@@ -150,8 +192,8 @@ def write_table(args) -> None:
                 "the best checkpoint's. Mean ± std (population) over the seeds listed."),
              "",
              "| system (train set) | recipe | seeds | epochs | validation MSE | test MSE | "
-             "test: time mean / hold x(0) | ahead |",
-             "|---|---|---|---|---|---|---|---|"]
+             "test: time mean / hold x(0) | held out: zero-shot MSE | ahead on validation |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for system in args.all_systems:
         rows = {r: [x for x in (result(args, system, r, s) for s in args.all_seeds) if x]
                 for r in RECIPES}
@@ -168,7 +210,8 @@ def write_table(args) -> None:
                 f"| {system} ({SYSTEMS[system]}) | {recipe} | {len(got)} | "
                 f"{_pm([x['epochs'] for x in got], '.0f')} | {_pm([x['val'] for x in got])} | "
                 f"{_pm([x['test'] for x in got])} | {_fmt(base.get('time_mean'))} / "
-                f"{_fmt(base.get('hold_x0'))} | {'yes' if ahead == recipe else ''} |")
+                f"{_fmt(base.get('hold_x0'))} | {_held_out(system, got)} | "
+                f"{'yes' if ahead == recipe else ''} |")
         plot(args, system, rows)
     out = results_file(args)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -179,6 +222,14 @@ def results_file(args) -> Path:
     """The table's file; the plots go beside it."""
     return args.out or HERE / "results" / ("recipes.md" if args.budget == "time"
                                            else "recipes-epochs.md")
+
+
+def _held_out(system: str, got: list[dict]) -> str:
+    if system not in HELD_OUT:
+        return "—"
+    values = [x["held_out"] for x in got]
+    shown = ", ".join("—" if v is None else f"{v:.3g}" for v in values)
+    return f"{HELD_OUT[system]}: {_pm(values)} (seeds: {shown})"
 
 
 def _fmt(value) -> str:
