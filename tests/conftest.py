@@ -229,3 +229,15 @@ def entry_point(monkeypatch):
     registry.entry_point_systems.cache_clear()
     for module in modules:
         sys.modules.pop(module, None)
+
+
+@pytest.fixture(scope="session")
+def gene_2x2(tmp_path_factory) -> Path:
+    """Gene dynamics on a 2×2 grid (ER graph): 48 trajectories × 21 samples."""
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import generate
+
+    out = tmp_path_factory.mktemp("data") / "gene.h5"
+    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
+                            dt=0.1, out=out))
+    return out

@@ -22,19 +22,15 @@ from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.run import checkpoint_path, read_metrics
 
 
-@pytest.fixture(scope="module")
-def gene(tmp_path_factory):
-    """Gene dynamics on a 2×2 grid (ER graph): 48 trajectories × 21 samples."""
-    out = tmp_path_factory.mktemp("data") / "gene.h5"
-    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
-                            dt=0.1, out=out))
-    return out
+@pytest.fixture
+def gene(gene_2x2):
+    return gene_2x2
 
 
 def config(dataset, run_dir, **kw) -> TrainConfig:
-    fields = {"dataset": dataset, "run_dir": run_dir, "batch_size": 16, "lr": 1e-2,
-              "epochs": 5, "plots": False}
-    return TrainConfig(**(fields | kw))
+    """Five epochs in batches of 16 at lr 1e-2, no plots; `kw` on top."""
+    return TrainConfig(**({"dataset": dataset, "run_dir": run_dir, "batch_size": 16,
+                           "lr": 1e-2, "epochs": 5, "plots": False} | kw))
 
 
 def members(kind: str, options: dict, s: int = 3, control_dim: int = 1) -> list:
