@@ -196,9 +196,6 @@ class Ensemble(nn.Module):
         for member in self.members:
             member.fit_statistics(states, dt, adjacency)
 
-    def member(self, k: int) -> NeuralModel:
-        return self.members[k]
-
     def _stacked(self, active: Sequence[int]) -> dict[str, torch.Tensor]:
         """The active members' parameters, each stacked `[S', ...]` (differentiable)."""
         params = [dict(self.members[k].named_parameters()) for k in active]
@@ -251,7 +248,7 @@ class Ensemble(nn.Module):
 
         Same arguments as `NeuralModel.rollout`; `messages` are the first member's.
         """
-        s, b = self.size, x0.shape[0]
+        s = self.size
         history = extra.get("history")
         outs = self.member_rollouts(
             x0.expand(s, *x0.shape), ts, [adjacency] * s,
@@ -260,7 +257,6 @@ class Ensemble(nn.Module):
             history=None if history is None else history.expand(s, *history.shape))
         members = torch.stack([o.states for o in outs])  # (S, B, T, N, D)
         status = torch.stack([o.status for o in outs])  # (S, B)
-        del b
         return EnsembleRollout(states=members.mean(dim=0), messages=outs[0].messages,
                                status=status.max(dim=0).values,
                                n_f_evals=max(o.n_f_evals for o in outs), members=members,

@@ -31,7 +31,7 @@ class Checkpointer:
         # An ensemble's best.pt holds each member's best weights, which may be of different
         # epochs: they are kept here (a resumed run's from its best.pt).
         self.best_weights: dict[str, torch.Tensor] | None = None
-        if len(run.shuffles) > 1:
+        if run.ensemble:
             best = runs.checkpoint_path(run.run_dir, "best")
             self.best_weights = (load_checkpoint(best).state_dict
                                  if run.resumed and best.exists()
@@ -41,7 +41,7 @@ class Checkpointer:
         """The run as it is now (its tensors shared with the model and optimizer)."""
         run = self.run
         rng = {"torch": torch.get_rng_state(), "shuffle": run.shuffle.get_state()}
-        if len(run.shuffles) > 1:
+        if run.ensemble:
             rng["member_shuffles"] = torch.stack([g.get_state() for g in run.shuffles])
         return Checkpoint(
             model_kind=run.kind, model_config=run.model_config,

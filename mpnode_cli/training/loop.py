@@ -140,7 +140,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None,
     config, state = run.config, run.state
     # 2.–3. The lr policy (each member's, for an ensemble), and the checkpointer with its
     # first snapshot: the starting point.
-    schedules = ([LRSchedule(config, run.optimizer, state)] if len(run.shuffles) == 1 else
+    schedules = ([LRSchedule(config, run.optimizer, state)] if not run.ensemble else
                  [LRSchedule(config, run.optimizer, m, group=k)
                   for k, m in enumerate(state.members)])
     saver = Checkpointer(run)
@@ -207,7 +207,7 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
             inputs = [_inputs(run, batch, size, horizons[i], run.shuffles[k])
                       for k, batch in zip(active, batches, strict=True)]
             graphs, share = [x.graph(run.device) for x in batches], len(batches[0]) / size
-            if len(run.shuffles) == 1:  # one model
+            if not run.ensemble:  # one model
                 (x, u), = inputs
                 results = [_step(run.model, run.optimizer, x, times[i], graphs[0], u, loss_fn,
                                  config, world, share)]
@@ -229,7 +229,7 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
     first = rows[active[0]]
     out = {**first, "horizon": max(horizons), "rhs_evals": n_f_evals,
            "train_seconds": time.perf_counter() - start}
-    if len(run.shuffles) > 1:
+    if run.ensemble:
         out |= {"train_loss": _mean([r["train_loss"] for r in rows.values()]),
                 "grad_norm": _mean([r["grad_norm"] for r in rows.values()]),
                 "skipped": sum(r["skipped"] for r in rows.values()),
@@ -269,7 +269,7 @@ def _after_step(run: Run, schedules: list[LRSchedule], saver: Checkpointer, epoc
         member.bad_run = 0
         return
     state.skipped, member.bad_run = state.skipped + 1, member.bad_run + 1
-    several = len(run.shuffles) > 1
+    several = run.ensemble
     run.emit({"event": "skip", "epoch": epoch, "batch": b,
               "reason": f"member {k}: {reason}" if several else reason})
     if member.bad_run >= run.config.max_bad_steps:

@@ -165,9 +165,14 @@ class Run:
     shuffles: list[torch.Generator]
 
     @property
+    def ensemble(self) -> bool:
+        """Whether the run trains several members (`seeds` > 1)."""
+        return len(self.shuffles) > 1
+
+    @property
     def members(self) -> list[torch.nn.Module]:
         """The models trained: an ensemble's members, or the one model."""
-        return list(self.model.members) if len(self.shuffles) > 1 else [self.model]
+        return list(self.model.members) if self.ensemble else [self.model]
 
     def active(self) -> list[int]:
         """The members still training (not frozen by early stopping)."""
