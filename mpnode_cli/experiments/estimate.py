@@ -11,7 +11,8 @@ in core-seconds. The measurement is the same step's in a committed run of the ex
 (`reports/<name>/<scale>-<recipe>/results.json`): the paper-scale run where there is one,
 else the small one, the paper's recipe first (its epochs roll out the whole horizon; the
 horizon curriculum of mpnode's recipe makes early epochs cheaper). Generate, evaluate and
-compare steps are left out (seconds to minutes), and a step shared with other experiments
+compare steps are left out (seconds to minutes), a step with a wall-time budget
+(`time_limit`) costs its budget, and a step shared with other experiments
 counts in each. The measurements come from shared 2-core machines, so this is a rough guide.
 """
 
@@ -71,6 +72,9 @@ def paper_cost(experiment: spec.Experiment, reports: Path) -> Estimate:
             continue
         out.steps += 1
         paper = spec.resolve(step, "paper", "paper")["config"]
+        if paper.get("time_limit"):  # a budget of wall time, on one thread
+            out.core_hours += paper["time_limit"] / 3600
+            continue
         found = _measured(step.id, records)
         if found is None:
             out.missing.append(step.id)
