@@ -23,6 +23,7 @@ Usage: python bench/solver.py [--batches 1 64 512 4096] [--repeats 3]
 from __future__ import annotations
 
 import argparse
+import os
 import platform
 import statistics
 import sys
@@ -194,6 +195,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("bench/results/solver.md"))
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    args.load_before = os.getloadavg()
 
     h_np = coupling()
     ts_np = np.arange(0.0, T_END + DT_SAVE / 2, DT_SAVE)
@@ -241,6 +243,7 @@ def main(argv=None) -> int:
             rows.append((dt_name, batch, f"RHS floor: {ours_evals} evaluations chained, no "
                          "solver", floor, floor / ours, ours_evals, None, None, None, None))
 
+    args.load_after = os.getloadavg()
     write_table(args, rows)
     return 0
 
@@ -255,7 +258,10 @@ def write_table(args, rows):
         "",
         f"Machine: {platform.processor() or platform.machine()}, {args.threads} threads, "
         f"torch {torch.__version__}, torchode {getattr(torchode, '__version__', '?')}, "
-        f"torchdiffeq {torchdiffeq.__version__}, Python {sys.version.split()[0]}. "
+        f"torchdiffeq {torchdiffeq.__version__}, Python {sys.version.split()[0]}, "
+        f"{time.strftime('%Y-%m-%d')}. Load average (1/5/15 min) before "
+        f"{'/'.join(f'{x:.2f}' for x in args.load_before)}, after "
+        f"{'/'.join(f'{x:.2f}' for x in args.load_after)}. "
         f"Median of {args.repeats} after a warm-up. `× ours` = wall time / mpnode's wall "
         "time in the same configuration (higher = slower than mpnode). f-evals and steps: max "
         "over samples (batched solvers call f on the whole batch). rel. L2 error against "
