@@ -253,6 +253,20 @@ def test_the_index_says_how_many_seeds_and_shows_mean_and_std(tmp_path):
     assert row.endswith("yes (holds for 2 of 2 members) |")
 
 
+def test_the_index_says_what_has_run_and_which_steps_a_run_lacks(tmp_path):
+    """A record without some of the experiment's steps (added since it ran) is listed with
+    those steps; scales and recipes without a record read —."""
+    steps = [step.id for step in spec.load("messages-pendulum").steps]
+    result = {"best_epoch": 5, "model": "mpnode", "test": {"mse": 0.1, "time_mean": 1.0}}
+    _record(tmp_path, "messages-pendulum", {step: result for step in steps[:-1]})
+    index = rebuild_index(tmp_path).read_text()
+    table = index[index.index("## What has run"):].splitlines()
+    row = next(line for line in table if line.startswith("| messages-pendulum |"))
+    assert row == f"| messages-pendulum | — | — | — | 1 seed; not run: {steps[-1]} |"
+    row = next(line for line in table if line.startswith("| zeroshot-lorenz |"))
+    assert row == "| zeroshot-lorenz | — | — | — | — |"
+
+
 def test_cli_refuses_zero_seeds(tmp_path):
     result = runner.invoke(app, ["experiment", "run", "messages-pendulum", "--seeds", "0",
                                  "--work", str(tmp_path)])

@@ -377,6 +377,7 @@ def rebuild_index(out: Path) -> Path:
                 weak += _weak(name, claim, recipe, results)
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
+    lines += ["", *_coverage(out)]
     if weak:
         lines += ["", "## Verdicts that rest on runs that did not learn, or barely", "",
                   f"Runs not below the time-mean predictor, or less than "
@@ -385,6 +386,41 @@ def rebuild_index(out: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_text(path, "\n".join(lines) + "\n")
     return path
+
+
+def _coverage(out: Path) -> list[str]:
+    """The index's table of what has run: per experiment, scale and recipe, the seeds and
+    the date of the saved run, and the steps the experiment has that the run lacks (added
+    since it ran: its claims on them show —)."""
+    kinds = [("paper", "paper"), ("paper", "mpnode"), ("small", "paper"), ("small", "mpnode")]
+    lines = ["## What has run", "",
+             "Per experiment, the saved run at each scale and recipe (the rows above come "
+             "from the largest scale): its seeds, the day it started, and the steps it has "
+             "not run yet (added to the experiment since; rerunning it runs only those). — "
+             "means no run.", "",
+             "| experiment | " + " | ".join(f"{scale} scale, `--recipe {recipe}`"
+                                         for scale, recipe in kinds) + " |",
+             "|---|" + "---|" * len(kinds)]
+    for name in spec.names():
+        experiment = spec.load(name)
+        runs = {(r["scale"], r["recipe"]): r for r in _runs(out, name)}
+        cells = []
+        for kind in kinds:
+            run = runs.get(kind)
+            if run is None:
+                cells.append("—")
+                continue
+            results = {s["id"]: s["result"] for s in run["steps"] if s.get("result")}
+            seeds = int(run.get("seeds") or members.count(results))
+            missing = [step.id for step in experiment.steps if step.id not in results]
+            cell = f"{seeds} seed{'s' if seeds > 1 else ''}"
+            if run.get("started"):
+                cell += f", {str(run['started'])[:10]}"
+            if missing:
+                cell += f"; not run: {', '.join(missing)}"
+            cells.append(cell)
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any]) -> list[str]:
