@@ -19,6 +19,9 @@ sample that fails is frozen and marked while the others go on.
   tape, which `torch.compile` takes whole (`STEP`: dynamo cannot trace the fused nodes'
   shared buffers), and the outputs are gathered once at the end. The loop around either
   does the host-side work.
+- For compaction (`solve(..., restrict=...)`) the loop may stop once few samples still run,
+  returning each sample's `State` (`Restart`), from which `solve` goes on with those
+  samples only: a restart needs no change to either step.
 """
 
 from __future__ import annotations
