@@ -209,8 +209,9 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
         consts = Constants(tab, ctrl, Stages(tab.stages, batch, y.shape[1], y, not record),
                            None, ts, stops_pad, stops.numel(), rtol, atol, max_steps, block)
         steps = RecordedSteps(y, ts, tab)
-    # Stop for compaction when at most half the rows still run and enough could be dropped.
-    keep_max = min(batch // 2, batch - COMPACT_MIN_DROP) if block else -1
+    # Stop for compaction when few enough rows still run and enough could be dropped.
+    keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP) if block
+                else -1)
     state, status, n_f, early = _loop(fun, consts, state, status, n_f, steps, compile,
                                       report, keep_max)
     stats = {"n_steps": state.n_steps, "n_accepted": state.n_accepted,
@@ -219,9 +220,10 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
     return steps.result(y, state), status, stats, Restart(state, status, n_f) if early else None
 
 
-# Compaction stops a solve only when at least this many rows would be dropped: restarting
-# a few rows costs more than it saves.
+# Compaction stops a solve only when at least this many rows would be dropped (restarting
+# a few rows costs more than it saves), and at most this fraction of its rows still run.
 COMPACT_MIN_DROP = 8
+COMPACT_KEEP_FRACTION = 0.5
 
 
 def _loop(fun, consts, state, status, n_f, steps, compile, report, keep_max):
