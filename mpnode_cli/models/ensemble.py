@@ -24,7 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -44,8 +44,52 @@ class StackedLayers(TorchFunctionMode):
 
     The input's leading rows are member-major (member k's rows k·R … (k+1)·R − 1 of S·R), so
     `x.reshape(S, R, in)` lines each member's rows up with its weight. Any other call, and
-    any call with an ordinary weight, runs unchanged.
+    any call with an ordinary weight, runs unchanged. A solve that goes on with some
+    members' rows only (compaction, `NeuralODEModel.rollout`) calls its right-hand side
+    under `keep`, which selects those members' weights.
+
+    Args:
+        size: S, the members stacked (the weights' leading axis); None (unknown) turns
+            compaction off under the mode.
     """
+
+    _entered: ClassVar[list[StackedLayers]] = []
+
+    def __init__(self, size: int | None = None):
+        super().__init__()
+        self.size = size
+        self.members: torch.Tensor | None = None  # `[K]` the members whose rows run
+
+    def __enter__(self):
+        StackedLayers._entered.append(self)
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        StackedLayers._entered.pop()
+        return super().__exit__(*exc)
+
+    @staticmethod
+    def active() -> StackedLayers | None:
+        """The innermost mode entered, or None outside one."""
+        return StackedLayers._entered[-1] if StackedLayers._entered else None
+
+    def keep(self, members: torch.Tensor, f: Callable) -> Callable:
+        """`f`, called with the weights of `members` (`[K]` int64, sorted) only: its input's
+        rows are those members' rows, member after member."""
+        def kept(*args):
+            outer, self.members = self.members, members
+            try:
+                return f(*args)
+            finally:
+                self.members = outer
+
+        return kept
+
+    def _select(self, param: torch.Tensor | None) -> torch.Tensor | None:
+        """A stacked parameter's kept members (differentiable), all of them outside `keep`."""
+        if param is None or self.members is None:
+            return param
+        return param.index_select(0, self.members)
 
     def __torch_function__(self, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}
@@ -53,11 +97,14 @@ class StackedLayers(TorchFunctionMode):
             weight = args[1] if len(args) > 1 else kwargs["weight"]
             if weight.dim() == 3:
                 bias = args[2] if len(args) > 2 else kwargs.get("bias")
-                return _linear(args[0], weight, bias)
+                return _linear(args[0], self._select(weight), self._select(bias))
         elif func is F.layer_norm:
             weight = args[2] if len(args) > 2 else kwargs.get("weight")
             if weight is not None and weight.dim() == 2:
-                return _layer_norm(func, args, kwargs)
+                bias = args[3] if len(args) > 3 else kwargs.get("bias")
+                eps = args[4] if len(args) > 4 else kwargs.get("eps", 1e-5)
+                return _layer_norm(func, (args[0], args[1], self._select(weight),
+                                          self._select(bias), eps), {})
         return func(*args, **kwargs)
 
 
@@ -230,7 +277,7 @@ class Ensemble(nn.Module):
         flat = x0.flatten(0, 1)  # (S'·B, N, D)
         u = None if controls is None else controls.flatten(0, 1)  # (S'·B, T, N, U)
         template = _Call(self.members[active[0]], "rollout")
-        with StackedLayers():
+        with StackedLayers(s):
             out = functional_call(template, self._stacked(active),
                                   (flat, ts, stack_graphs(graphs), u), options)
         return [Rollout(states=states, status=status,

@@ -11,6 +11,9 @@ in `NeuralODEModel.rollout`:
 - the whole horizon is integrated in one adaptive solve (`mpnode_cli.solver.solve`, with the
   training config's `SolverOptions`) from z(t₀) = `initial_state(x0, u0)` (x0, and for
   MP-NODE its initial messages), with dense output at the sample times (float64 `ts`);
+  the solve may go on with the trajectories still running only (`SolverOptions.compact`):
+  the vector field is rebuilt for them on their graphs and controls (`restrict`), or, for
+  an ensemble's stacked members, for the members that still run (`StackedLayers.keep`);
 - the solution `[B, T, N, D+M]` splits into the states (its first D features per node) and
   the message states (the last M, returned when asked for and M > 0).
 """
@@ -22,8 +25,10 @@ from collections.abc import Callable
 
 import torch
 
+from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.backend import Graph, as_graph
 from mpnode_cli.models.base import NeuralModel, Rollout
+from mpnode_cli.models.ensemble import StackedLayers
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.solver.runge_kutta import RHS
@@ -85,12 +90,51 @@ class NeuralODEModel(NeuralModel):
         # Steps must not straddle a control switch: stop where the held control changes.
         tstops = control_stops(controls, ts) if u is not None else None
         options = solver.solve_kwargs() if solver is not None else {}
-        sol = solve(self.vector_field(as_graph(adjacency, x0), u), z0, ts, **options,
-                    tstops=tstops)
+        graph = as_graph(adjacency, x0)
+        restrict, block = self._restriction(graph, controls if u is not None else None, ts,
+                                            z0.shape[0])
+        sol = solve(self.vector_field(graph, u), z0, ts, **options, tstops=tstops,
+                    restrict=restrict, restrict_block=block)
         d = self.node_dim
         messages = sol.ys[..., d:] if return_messages and self.message_dim else None
         return Rollout(states=sol.ys[..., :d], messages=messages, status=sol.status,
                        n_f_evals=int(sol.stats["n_f_evals"].max()))
+
+    def _restriction(self, graph: Graph, controls: torch.Tensor | None, ts: torch.Tensor,
+                     batch: int) -> tuple[Callable[[torch.Tensor], RHS] | None, int]:
+        """`solve`'s `restrict` and `restrict_block` for compaction: the vector field of
+        some of the batch's trajectories, on their graphs and controls.
+
+        Under an ensemble's `StackedLayers` the batch is its members' rows one member after
+        another, which the stacked layers line up with the members' weights; so trajectories
+        are kept by whole members (blocks of `batch / S`) and the field runs with the kept
+        members' weights (`StackedLayers.keep`).
+
+        Args:
+            graph: `[B, N, N]` (or `[1, N, N]`) or an `EdgeBatch`, as `vector_field` takes it.
+            controls: `[B, T, N, U]`, or None for a model without controls.
+            ts: `[T]` float64; batch: B.
+
+        Returns:
+            `(restrict, block)`; restrict None (no compaction) under a mode that does not
+            say how many members it stacks, or whose batch is not whole members.
+        """
+        stacked = StackedLayers.active()
+        block = 1
+        if stacked is not None:
+            if stacked.size is None or batch % stacked.size:
+                return None, 1
+            block = batch // stacked.size
+
+        def restrict(index: torch.Tensor) -> RHS:
+            u = None if controls is None else zoh_controls(controls[index], ts)
+            f = self.vector_field(select_graphs(graph, index), u)
+            if stacked is None:
+                return f
+            members = index.view(-1, block)[:, 0] // block  # whole members, in order
+            return stacked.keep(members, f)
+
+        return restrict, block
 
     def _held_controls(self, controls: torch.Tensor | None, ts: torch.Tensor) -> Control | None:
         """u(t) for `controls: [B, T, N, U]`, or None for a model without controls.
@@ -124,6 +168,15 @@ def zoh_controls(controls: torch.Tensor, ts: torch.Tensor) -> Control:
         return controls[rows, k]
 
     return u
+
+
+def select_graphs(graph: Graph, index: torch.Tensor) -> Graph:
+    """The graphs of the trajectories `index` (`[B']` int64) of `graph` (`[B, N, N]` or an
+    `EdgeBatch`); one graph shared by the batch (`[1, N, N]`, or an `EdgeBatch` of B = 1)
+    stays shared."""
+    if isinstance(graph, EdgeBatch):
+        return graph if graph.batch == 1 else graph.take(index)
+    return graph if graph.shape[0] == 1 else graph.index_select(0, index)
 
 
 def control_stops(controls: torch.Tensor | None, ts: torch.Tensor) -> torch.Tensor | None:

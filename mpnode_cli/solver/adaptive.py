@@ -19,6 +19,9 @@ sample that fails is frozen and marked while the others go on.
   tape, which `torch.compile` takes whole (`STEP`: dynamo cannot trace the fused nodes'
   shared buffers), and the outputs are gathered once at the end. The loop around either
   does the host-side work.
+- For compaction (`solve(..., restrict=...)`) the loop may stop once few samples still run,
+  returning each sample's `State` (`Restart`), from which `solve` goes on with those
+  samples only: a restart needs no change to either step.
 """
 
 from __future__ import annotations
@@ -71,6 +74,21 @@ class Constants(NamedTuple):
     rtol: float
     atol: float
     max_steps: int
+    block: int = 0  # compaction's block of samples kept or dropped together (0: no count)
+
+
+class Restart(NamedTuple):
+    """Where a solve that stopped early for compaction left off: what `solve` restarts
+    the running samples from (`solve._adaptive`); `[B]` tensors."""
+
+    state: State  # each sample's place, its y and k₁ differentiable
+    status: torch.Tensor  # int64 the statuses so far
+    n_f: torch.Tensor  # int64 evaluations of f besides the steps' own (k₁, restarts)
+
+    def select(self, index: torch.Tensor) -> Restart:
+        """The samples `index` (`[B']` int64) of it."""
+        return Restart(State(*(x.index_select(0, index) for x in self.state)),
+                       self.status.index_select(0, index), self.n_f.index_select(0, index))
 
 
 class Attempt(NamedTuple):
@@ -121,7 +139,8 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
                    y: torch.Tensor, ts: torch.Tensor, stops: torch.Tensor, rtol: float,
                    atol: float, dt0, max_steps: int, compile: bool = False,
                    report: Callable[[torch.Tensor], None] | None = None,
-                   shaped: RHS | None = None, shape: tuple[int, ...] | None = None):
+                   shaped: RHS | None = None, shape: tuple[int, ...] | None = None,
+                   start: Restart | None = None, block: int = 0):
     """Integrate with adaptive steps.
 
     Args:
@@ -134,61 +153,87 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
         report: called with each sample's time `[B]` after every step.
         shaped: the right-hand side on `[B, *S]` states (`shape`), for fused steps; None
             records every op of the step instead (`attempt_step`, as compiled).
+        start: go on from where an earlier solve of these samples stopped (its `Restart`,
+            the samples selected) instead of starting at `ts[0]`; `y` is then its `state.y`.
+        block: stop early for compaction, once the samples still running, counted in whole
+            blocks of `block` consecutive samples, make at most half of the batch and at
+            least `COMPACT_MIN_DROP` rows could be dropped (0: run to the end).
         The rest are `solve`'s.
 
     Returns:
-        `(ys [B, T, F], status [B], stats)`, as `solve` returns them.
+        `(ys [B, T, F], status [B], stats, restart)`, the first three as `solve` returns
+        them, and `restart`, None where the solve ran to the end; else it stopped early
+        (`block`): outputs beyond a running sample's progress are NaN and its stats are
+        those so far, and `restart` says where to go on from.
     """
     batch = y.shape[0]
     dev, f64 = y.device, torch.float64
     n_out = ts.numel()
     t0 = ts[0]
 
-    t = t0.expand(batch).clone()  # (B,) float64
-    k1 = fun(t, y)
-    n_f = torch.ones(batch, dtype=torch.long, device=dev)
-    span = (ts[-1] - t0).expand(batch)
-    if dt0 is None:
-        dt = initial_step(fun, t, y, k1, rtol, atol, span, p)
-        n_f += 1
-    else:
-        dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
-
-    stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
     stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
-    start_ok = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
-    status = torch.where(start_ok, Status.SUCCESS, Status.NON_FINITE)
-    state = State(
-        t=t, dt=dt, y=y, k1=k1, running=start_ok, stop_idx=stop_idx,
-        stop_t=stops_pad[stop_idx],
-        err_prev=torch.full((batch,), ctrl.initial_history(), dtype=f64, device=dev),
-        n_steps=torch.zeros_like(stop_idx), n_accepted=torch.zeros_like(stop_idx),
-        n_nonfinite=torch.zeros_like(stop_idx),
-        out_idx=torch.ones(batch, dtype=torch.long, device=dev))
+    if start is not None:
+        state, status, n_f = start
+    else:
+        t = t0.expand(batch).clone()  # (B,) float64
+        k1 = fun(t, y)
+        n_f = torch.ones(batch, dtype=torch.long, device=dev)
+        span = (ts[-1] - t0).expand(batch)
+        if dt0 is None:
+            dt = initial_step(fun, t, y, k1, rtol, atol, span, p)
+            n_f += 1
+        else:
+            dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
+
+        stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
+        start_ok = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
+        status = torch.where(start_ok, Status.SUCCESS, Status.NON_FINITE)
+        state = State(
+            t=t, dt=dt, y=y, k1=k1, running=start_ok, stop_idx=stop_idx,
+            stop_t=stops_pad[stop_idx],
+            err_prev=torch.full((batch,), ctrl.initial_history(), dtype=f64, device=dev),
+            n_steps=torch.zeros_like(stop_idx), n_accepted=torch.zeros_like(stop_idx),
+            n_nonfinite=torch.zeros_like(stop_idx),
+            out_idx=torch.ones(batch, dtype=torch.long, device=dev))
+    k1 = state.k1
+    block = block if block > 0 and batch % block == 0 and not compile else 0
     record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
     fused = shaped is not None and not compile
     if fused:
         tape = StepTape(tab, y, shape, record, n_out)
         start_outputs(tape, y)
         consts = Constants(tab, ctrl, None, tape, ts, stops_pad, stops.numel(), rtol, atol,
-                           max_steps)
+                           max_steps, block)
         steps = FusedSteps(tape, ts, shaped)
     else:
         consts = Constants(tab, ctrl, Stages(tab.stages, batch, y.shape[1], y, not record),
-                           None, ts, stops_pad, stops.numel(), rtol, atol, max_steps)
+                           None, ts, stops_pad, stops.numel(), rtol, atol, max_steps, block)
         steps = RecordedSteps(y, ts, tab)
-    state, status, n_f = _loop(fun, consts, state, status, n_f, steps, compile, report)
-    n_f += (tab.stages - 1) * state.n_steps
+    # Stop for compaction when few enough rows still run and enough could be dropped.
+    keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP) if block
+                else -1)
+    state, status, n_f, early = _loop(fun, consts, state, status, n_f, steps, compile,
+                                      report, keep_max)
     stats = {"n_steps": state.n_steps, "n_accepted": state.n_accepted,
-             "n_rejected": state.n_steps - state.n_accepted, "n_f_evals": n_f}
-    return steps.result(y, state), status, stats
+             "n_rejected": state.n_steps - state.n_accepted,
+             "n_f_evals": n_f + (tab.stages - 1) * state.n_steps}
+    return steps.result(y, state), status, stats, Restart(state, status, n_f) if early else None
 
 
-def _loop(fun, consts, state, status, n_f, steps, compile, report):
-    """Step until no sample runs; returns `(state, status, n_f)`."""
+# Compaction stops a solve only when at least this many rows would be dropped (restarting
+# a few rows costs more than it saves), and at most this fraction of its rows still run.
+COMPACT_MIN_DROP = 8
+COMPACT_KEEP_FRACTION = 0.5
+
+
+def _loop(fun, consts, state, status, n_f, steps, compile, report, keep_max):
+    """Step until no sample runs, or (`keep_max` ≥ 0, `consts.block`) until the rows of
+    the blocks that still run are at most `keep_max`; returns `(state, status, n_f,
+    stopped early)`."""
     while True:
         state, flags, step = steps.attempt(fun, consts, state, compile)
-        any_running, width, any_jumped, any_failed = flags.tolist()  # the step's one sync
+        flags = flags.tolist()  # the step's one sync
+        any_running, width, any_jumped, any_failed = flags[:4]
         if any_failed:  # rare: record why those samples stopped
             why = torch.where(step.too_many, Status.NON_FINITE,
                               torch.where(step.underflow, Status.DT_UNDERFLOW,
@@ -202,7 +247,9 @@ def _loop(fun, consts, state, status, n_f, steps, compile, report):
             n_f = n_f + state.running
             state = state._replace(k1=k1)
         if not any_running:
-            return state, status, n_f
+            return state, status, n_f, False
+        if consts.block and flags[4] <= keep_max:
+            return state, status, n_f, True
         if report is not None:
             report(state.t)
 
@@ -225,10 +272,11 @@ def control(consts: Constants, state: State, h, t_new, land, y_new, err):
     Returns:
         `(state, flags, attempt)`: the next `State` with `y` and `k1` still the step's start
         (the caller advances them); `flags`, a `[4]` int64 tensor (anyone still running, the
-        most outputs one sample crossed, anyone landed on an interior stop, anyone failed),
-        read by the loop in its one sync; and the `Attempt`.
+        most outputs one sample crossed, anyone landed on an interior stop, anyone failed;
+        with `consts.block`, a fifth: the rows of the blocks still running), read by the
+        loop in its one sync; and the `Attempt`.
     """
-    _, ctrl, _, _, ts, stops_pad, n_stops, rtol, atol, max_steps = consts
+    _, ctrl, _, _, ts, stops_pad, n_stops, rtol, atol, max_steps, block = consts
     (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
      out_idx) = state
     with torch.no_grad():
@@ -264,6 +312,10 @@ def control(consts: Constants, state: State, h, t_new, land, y_new, err):
         # One [4] int64 for the loop's one sync: one stack and one amax (type promotion
         # makes the bools 0/1), against four reductions and a stack of their results.
         flags = torch.stack([running_next, n_cross, jumped, failed]).amax(1)
+        if block:  # and the rows of the blocks that still run, for compaction
+            kept = (running_next.sum() if block == 1 else
+                    running_next.view(-1, block).any(1).sum() * block)
+            flags = torch.cat([flags, kept.view(1)])
     state = State(t_next, dt, y, k1, running_next, stop_idx, stop_t, err_prev, n_steps,
                   n_acc, n_nonfinite, out_idx)
     return state, flags, Attempt(jumped, n_cross, failed, too_many, underflow, accept, t, h, y)

@@ -11,7 +11,9 @@ This module checks the arguments, flattens each sample's state to `[F]`, and han
 one of two loops over the same Runge–Kutta step (`runge_kutta.py`, recorded op by op by
 autograd, or `fused.py`, with a backward written for the tableau): `adaptive.py` (error
 control, dense output, an optional compiled step) or `fixed.py` (`fixed_dt`). The result
-types are in `solution.py`, the step-size controllers in `controller.py`.
+types are in `solution.py`, the step-size controllers in `controller.py`. Given `restrict`,
+the adaptive solve compacts (`_Adaptive`): once most samples are done it restarts on the
+running ones, each from its own state, and merges their later outputs back.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ def solve(
     controller: str = "pi",
     progress: Callable[[float], None] | None = None,
     fused: bool = True,
+    compact: bool = True,
+    restrict: Callable[[torch.Tensor], RHS] | None = None,
+    restrict_block: int = 1,
 ) -> Solution:
     """Integrate `dy/dt = f(t, y)` for a batch of initial states with a Runge–Kutta method.
 
@@ -83,6 +88,19 @@ def solve(
             tableau's transposed sums (`fused.py`), about four times fewer ops a step than
             recording each op. False records every op of the step instead, as `compile`
             does (the same forward; the reference the tests hold the fused backward to).
+        compact: with `restrict`, once at most half of the samples still run (and at least
+            `adaptive.COMPACT_MIN_DROP` have finished or failed), go on with the running
+            samples only instead of carrying the finished ones through every later step;
+            repeated as long as it pays. Each sample still takes exactly the steps it would
+            take alone, so the result is the same up to the rounding of f over fewer rows.
+            Adaptive uncompiled steps only (ignored with `compile` or `fixed_dt`).
+        restrict: `restrict(index) -> f'`, the right-hand side of the samples `index`
+            (`[B']` int64, sorted, into this batch) alone: `f'(t [B'], y [B', *S])`. None
+            (the default): no compaction.
+        restrict_block: samples are kept or dropped in whole blocks of this many
+            consecutive samples, and `restrict` is only given such blocks (an ensemble's
+            members, `mpnode_cli.models.ensemble`); 1: sample by sample. A batch that is
+            not a multiple of it is not compacted.
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
@@ -122,10 +140,53 @@ def solve(
                                         shaped, (batch, *shape))
     else:
         p = tableau.controller_order
-        ys, status, stats = solve_adaptive(fun, tab, p, controller_for(controller, p), y, ts,
-                                           stops, rtol, atol, dt0, max_steps, compile, report,
-                                           shaped, (batch, *shape))
+        block = restrict_block if compact and restrict is not None and not compile else 0
+        if block and (restrict_block < 1 or batch % restrict_block):
+            block = 0
+        run = _Adaptive(tab, p, controller_for(controller, p), ts, stops, rtol, atol, dt0,
+                        max_steps, compile, report, fused, shape, y0.dtype, restrict, block)
+        ys, status, stats = run(fun, shaped, y, None, None)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
+
+
+class _Adaptive:
+    """The adaptive solve with compaction: `solve_adaptive` until it stops early, then the
+    same on the samples that still run (`restrict`), from where each one was, their later
+    outputs, statuses and stats merged back into the batch's."""
+
+    def __init__(self, tab, p, ctrl, ts, stops, rtol, atol, dt0, max_steps, compile, report,
+                 fused, shape, dtype, restrict, block):
+        self.tab, self.p, self.ctrl, self.ts, self.stops = tab, p, ctrl, ts, stops
+        self.rtol, self.atol, self.dt0, self.max_steps = rtol, atol, dt0, max_steps
+        self.compile, self.report, self.fused, self.shape = compile, report, fused, shape
+        self.dtype, self.restrict, self.block = dtype, restrict, block
+
+    def __call__(self, fun, shaped, y, start, index):
+        """`(ys [B, T, F], status [B], stats)` of the samples `index` (None: the batch)
+        from `start` (None: from `ts[0]`)."""
+        batch = y.shape[0]
+        ys, status, stats, rest = solve_adaptive(
+            fun, self.tab, self.p, self.ctrl, y, self.ts, self.stops, self.rtol, self.atol,
+            self.dt0, self.max_steps, self.compile, self.report,
+            shaped if self.fused else None, (batch, *self.shape), start, self.block)
+        if rest is None:
+            return ys, status, stats
+        running = rest.state.running
+        if self.block > 1:  # whole blocks with any sample still running
+            running = running.view(-1, self.block).any(1).repeat_interleave(self.block)
+        keep = running.nonzero().squeeze(1)  # (B',) sorted
+        sub = rest.select(keep)
+        full = keep if index is None else index.index_select(0, keep)
+        sub_fun, sub_shaped = _flat_and_shaped(self.restrict(full), keep.numel(), self.shape,
+                                               self.dtype)
+        ys_k, status_k, stats_k = self(sub_fun, sub_shaped, sub.state.y, sub, full)
+        # The kept samples' outputs from where each stopped on come from the restart.
+        cols = torch.arange(self.ts.numel(), device=y.device)
+        later = (cols >= sub.state.out_idx[:, None])[..., None]  # (B', T, 1)
+        ys = ys.index_copy(0, keep, torch.where(later, ys_k, ys.index_select(0, keep)))
+        status = status.index_copy(0, keep, status_k)
+        stats = {k: v.index_copy(0, keep, stats_k[k]) for k, v in stats.items()}
+        return ys, status, stats
 
 
 def _flat_and_shaped(f: RHS, batch: int, shape: torch.Size, dtype: torch.dtype):
