@@ -89,11 +89,10 @@ def solve(
             recording each op. False records every op of the step instead, as `compile`
             does (the same forward; the reference the tests hold the fused backward to).
         compact: with `restrict`, once at most half of the samples still run (and at least
-            `adaptive.COMPACT_MIN_DROP` have finished or failed), go on with the running
-            samples only instead of carrying the finished ones through every later step;
-            repeated as long as it pays. Each sample still takes exactly the steps it would
-            take alone, so the result is the same up to the rounding of f over fewer rows.
-            Adaptive uncompiled steps only (ignored with `compile` or `fixed_dt`).
+            `adaptive.COMPACT_MIN_DROP` are done), go on with the running ones only, again
+            as long as it pays. Each sample takes exactly the steps it would take alone: the
+            result is the same up to the rounding of f over fewer rows. Adaptive uncompiled
+            steps only (ignored with `compile` or `fixed_dt`).
         restrict: `restrict(index) -> f'`, the right-hand side of the samples `index`
             (`[B']` int64, sorted, into this batch) alone: `f'(t [B'], y [B', *S])`. None
             (the default): no compaction.
@@ -108,18 +107,7 @@ def solve(
         detached. The fused step's backward is first-order only: with `create_graph=True`
         it raises (`fused=False` takes higher derivatives).
     """
-    if y0.ndim < 1:
-        raise ValueError("y0 must have a leading batch dimension: [B, *S]")
-    if not (y0.is_floating_point() and y0.dtype in (torch.float32, torch.float64)):
-        raise ValueError(f"y0 must be float32 or float64, got {y0.dtype}")
-    device = y0.device
-    ts = torch.as_tensor(t_eval, dtype=torch.float64, device=device).reshape(-1)
-    if ts.numel() < 1:
-        raise ValueError("t_eval must hold at least one time")
-    if ts.numel() > 1 and not bool((ts[1:] > ts[:-1]).all()):
-        raise ValueError("t_eval must be strictly increasing")
-    if fixed_dt is not None and not fixed_dt > 0:
-        raise ValueError("fixed_dt must be positive")
+    ts = _checked_times(y0, t_eval, fixed_dt)
     tableau = get_method(method, fixed_dt)
 
     batch, shape = y0.shape[0], y0.shape[1:]
@@ -128,11 +116,11 @@ def solve(
     fun, shaped = _flat_and_shaped(f, batch, shape, y0.dtype)
 
     if n_out == 1:
-        zeros = torch.zeros(batch, dtype=torch.long, device=device)
+        zeros = torch.zeros(batch, dtype=torch.long, device=y0.device)
         return Solution(ts, y0.unsqueeze(1), zeros, {k: zeros for k in STAT_NAMES})
 
     stops = _stop_times(ts, tstops)
-    tab = stage_tableau(tableau, y.dtype, device)
+    tab = stage_tableau(tableau, y.dtype, y0.device)
     report = _Reporter(progress, ts)
     shaped = shaped if fused else None
     if fixed_dt is not None:
@@ -140,13 +128,36 @@ def solve(
                                         shaped, (batch, *shape))
     else:
         p = tableau.controller_order
-        block = restrict_block if compact and restrict is not None and not compile else 0
-        if block and (restrict_block < 1 or batch % restrict_block):
-            block = 0
+        block = _compaction_block(compact and not compile, restrict, restrict_block, batch)
         run = _Adaptive(tab, p, controller_for(controller, p), ts, stops, rtol, atol, dt0,
                         max_steps, compile, report, fused, shape, y0.dtype, restrict, block)
         ys, status, stats = run(fun, shaped, y, None, None)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
+
+
+def _checked_times(y0: torch.Tensor, t_eval, fixed_dt: float | None) -> torch.Tensor:
+    """`t_eval` as a float64 `[T]` tensor on y0's device, after checking `solve`'s
+    arguments (ValueError, one line, for a bad one)."""
+    if y0.ndim < 1:
+        raise ValueError("y0 must have a leading batch dimension: [B, *S]")
+    if not (y0.is_floating_point() and y0.dtype in (torch.float32, torch.float64)):
+        raise ValueError(f"y0 must be float32 or float64, got {y0.dtype}")
+    ts = torch.as_tensor(t_eval, dtype=torch.float64, device=y0.device).reshape(-1)
+    if ts.numel() < 1:
+        raise ValueError("t_eval must hold at least one time")
+    if ts.numel() > 1 and not bool((ts[1:] > ts[:-1]).all()):
+        raise ValueError("t_eval must be strictly increasing")
+    if fixed_dt is not None and not fixed_dt > 0:
+        raise ValueError("fixed_dt must be positive")
+    return ts
+
+
+def _compaction_block(compact: bool, restrict, restrict_block: int, batch: int) -> int:
+    """The block `_Adaptive` compacts by, or 0 for no compaction: without `restrict`, when
+    turned off (or compiled), or when the batch is not whole blocks."""
+    if not compact or restrict is None or restrict_block < 1 or batch % restrict_block:
+        return 0
+    return restrict_block
 
 
 class _Adaptive:
