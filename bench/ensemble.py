@@ -259,10 +259,11 @@ LIMITS = (
     "times one member's arithmetic. At a few hundred node rows a solve (batch 32 × 9 or 10 "
     "nodes) a small MLP's matmuls and tanh are already most of a step, so the gain is small "
     "there; at 72 rows (batch 8) overhead dominates and the gain is larger. The second "
-    "limit is `RHS evals ×`: one solve runs until its slowest sample is done, so the "
-    "members with fewer steps wait for the stiffest, their finished rows carried along. A "
-    "GPU, where S·B rows cost about what B rows do, is where one solve pays most; this "
-    "table has no GPU row.")
+    "limit is `RHS evals ×`: one solve runs until its slowest sample is done. Once at most "
+    "half its rows still run, the solve goes on with the members that still run only "
+    "(compaction), but each of the slowest member's extra steps still costs a step's "
+    "overhead. A GPU, where S·B rows cost about what B rows do, is where one solve pays "
+    "most; this table has no GPU row.")
 
 
 STEP_TEXT = (
