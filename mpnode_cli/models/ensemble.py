@@ -23,6 +23,7 @@ would alone.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -48,30 +49,50 @@ class StackedLayers(TorchFunctionMode):
     members' rows only (compaction, `NeuralODEModel.rollout`) calls its right-hand side
     under `keep`, which selects those members' weights.
 
+    An ensemble's rollout does not run whole under the mode: every op under a torch-function
+    mode pays a Python call, and most of a solve's ops (stage sums, error control, outputs)
+    use no weight. `Ensemble.member_rollouts` makes the mode `current` instead, and the
+    rollout enters it only to build the initial state and the vector field and to evaluate
+    the field (`run`, `wrap`).
+
     Args:
         size: S, the members stacked (the weights' leading axis); None (unknown) turns
             compaction off under the mode.
     """
 
-    _entered: ClassVar[list[StackedLayers]] = []
+    _current: ClassVar[list[StackedLayers]] = []
 
     def __init__(self, size: int | None = None):
         super().__init__()
         self.size = size
         self.members: torch.Tensor | None = None  # `[K]` the members whose rows run
 
-    def __enter__(self):
-        StackedLayers._entered.append(self)
-        return super().__enter__()
-
-    def __exit__(self, *exc):
-        StackedLayers._entered.pop()
-        return super().__exit__(*exc)
-
     @staticmethod
-    def active() -> StackedLayers | None:
-        """The innermost mode entered, or None outside one."""
-        return StackedLayers._entered[-1] if StackedLayers._entered else None
+    def current() -> StackedLayers | None:
+        """The mode of the ensemble rollout in progress (`made_current`), or None."""
+        return StackedLayers._current[-1] if StackedLayers._current else None
+
+    @contextmanager
+    def made_current(self):
+        """Within the block, `current()` is this mode (not entered: see the class)."""
+        StackedLayers._current.append(self)
+        try:
+            yield self
+        finally:
+            StackedLayers._current.pop()
+
+    def run(self, fn: Callable, *args):
+        """`fn(*args)` with the mode entered."""
+        with self:
+            return fn(*args)
+
+    def wrap(self, f: Callable) -> Callable:
+        """`f`, each call of it with the mode entered."""
+        def entered(*args):
+            with self:
+                return f(*args)
+
+        return entered
 
     def keep(self, members: torch.Tensor, f: Callable) -> Callable:
         """`f`, called with the weights of `members` (`[K]` int64, sorted) only: its input's
@@ -277,7 +298,7 @@ class Ensemble(nn.Module):
         flat = x0.flatten(0, 1)  # (S'·B, N, D)
         u = None if controls is None else controls.flatten(0, 1)  # (S'·B, T, N, U)
         template = _Call(self.members[active[0]], "rollout")
-        with StackedLayers(s):
+        with StackedLayers(s).made_current():
             out = functional_call(template, self._stacked(active),
                                   (flat, ts, stack_graphs(graphs), u), options)
         return [Rollout(states=states, status=status,
