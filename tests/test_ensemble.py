@@ -8,12 +8,14 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
+from torch.func import functional_call
 
 from mpnode_cli.config import GenerateConfig, TrainConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.graphs import EdgeBatch
-from mpnode_cli.models.ensemble import Ensemble, StackedLayers
+from mpnode_cli.models.ensemble import Ensemble
 from mpnode_cli.models.registry import build_model
+from mpnode_cli.models.stacked import LayerNorm, Linear, StackedLayers
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import checkpoint_problems, load_checkpoint
 from mpnode_cli.training.evaluate import EvalResult
@@ -46,10 +48,18 @@ def test_stacked_layers_are_each_members_own_layer():
     torch.manual_seed(0)
     w, b = torch.randn(3, 4, 5, dtype=torch.float64), torch.randn(3, 4, dtype=torch.float64)
     x = torch.randn(3 * 7, 2, 5, dtype=torch.float64)  # member-major rows
-    with StackedLayers():
-        y = F.linear(x, w, b)
-        g, h = torch.randn(3, 5, dtype=torch.float64), torch.randn(3, 5, dtype=torch.float64)
-        z = F.layer_norm(x, (5,), g, h)
+    g, h = torch.randn(3, 5, dtype=torch.float64), torch.randn(3, 5, dtype=torch.float64)
+    linear, norm = Linear(5, 4).double(), LayerNorm(5).double()
+    y = functional_call(linear, {"weight": w, "bias": b}, (x,))
+    z = functional_call(norm, {"weight": g, "bias": h}, (x,))
+    # Inside `keep`, the layers take the kept members' weights only (members 0 and 2).
+    with StackedLayers(3).made_current() as stacked:
+        kept = torch.cat([x[:7], x[14:]])
+        y2 = stacked.keep(torch.tensor([0, 2]),
+                          lambda v: functional_call(linear, {"weight": w, "bias": b}, (v,)))(kept)
+    assert torch.allclose(y2, torch.cat([y[:7], y[14:]]), atol=1e-12)
+    # An ordinary weight is torch's own layer.
+    assert torch.equal(linear(x), F.linear(x, linear.weight, linear.bias))
     for k in range(3):
         rows = slice(7 * k, 7 * (k + 1))
         assert torch.allclose(y[rows], x[rows] @ w[k].T + b[k], atol=1e-12)

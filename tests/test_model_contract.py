@@ -19,6 +19,7 @@ from mpnode_cli.models.node import NODE
 from mpnode_cli.models.ode import NeuralODEModel
 from mpnode_cli.models.options import ModelOptions
 from mpnode_cli.models.registry import build_model
+from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.options import SolverOptions
 
 pytestmark = pytest.mark.usefixtures("float64_default")
@@ -49,7 +50,9 @@ def random_weights(net: nn.Module, seed: int) -> None:
 def mlp_np(net: nn.Sequential, v: np.ndarray) -> np.ndarray:
     """A tanh MLP (Linear, Tanh, ..., Linear) applied to one input `v: [F]` by numpy."""
     linears = [m for m in net if isinstance(m, nn.Linear)]
-    assert [type(m) for m in net] == [nn.Linear, nn.Tanh] * (len(linears) - 1) + [nn.Linear]
+    # mpnode's Linear is torch's for an ordinary weight (tests/test_ensemble.py checks it).
+    kinds = [nn.Linear if type(m) in (nn.Linear, Linear) else type(m) for m in net]
+    assert kinds == [nn.Linear, nn.Tanh] * (len(linears) - 1) + [nn.Linear]
     for k, layer in enumerate(linears):
         v = layer.weight.detach().numpy() @ v + layer.bias.detach().numpy()
         if k < len(linears) - 1:

@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from mpnode_cli.models.options import ModelOptions
+from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.options import SolverOptions
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -216,8 +217,8 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) ->
     dims = [in_dim] + [hidden] * layers
     modules: list[nn.Module] = []
     for a, b in itertools.pairwise(dims):
-        modules += [nn.Linear(a, b), ACTIVATIONS[activation]()]
-    modules.append(nn.Linear(dims[-1], out_dim))
+        modules += [Linear(a, b), ACTIVATIONS[activation]()]
+    modules.append(Linear(dims[-1], out_dim))
     for module in modules:
         if isinstance(module, nn.Linear):
             nn.init.xavier_uniform_(module.weight)

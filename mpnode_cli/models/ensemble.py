@@ -10,10 +10,10 @@ which is what makes S members cheaper than S runs (`bench/ensemble.py` measures 
 
 How a member's weights reach its rows without a second copy of every model: the members'
 parameters are stacked (`[S, ...]`, differentiable, so gradients flow back to each member's
-own tensors) and swapped into one member for the call (`torch.func.functional_call`), under
-`StackedLayers`, a torch-function mode that turns `F.linear` and `F.layer_norm` with a
-stacked weight into their member-batched forms. Everything else a model does (concatenation,
-activations, the aggregation over each sample's graph) acts row by row already.
+own tensors) and swapped into one member for the call (`torch.func.functional_call`); the
+models' layers (`mpnode_cli.models.stacked`) see a stacked weight and apply each member's
+to its rows. Everything else a model does (concatenation, activations, the aggregation over
+each sample's graph) acts row by row already.
 
 Models that are not neural ODEs (L2S, whose training is one-step and whose rollout is
 autoregressive with its own noise) run their members one after another, each exactly as it
@@ -23,134 +23,19 @@ would alone.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 from torch.func import functional_call
-from torch.overrides import TorchFunctionMode
 
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout
+from mpnode_cli.models.stacked import StackedLayers
 from mpnode_cli.solver.options import SolverOptions
 
 Graph = torch.Tensor | EdgeBatch
-
-
-class StackedLayers(TorchFunctionMode):
-    """`F.linear` and `F.layer_norm` whose weight carries a leading member axis S.
-
-    The input's leading rows are member-major (member k's rows k·R … (k+1)·R − 1 of S·R), so
-    `x.reshape(S, R, in)` lines each member's rows up with its weight. Any other call, and
-    any call with an ordinary weight, runs unchanged. A solve that goes on with some
-    members' rows only (compaction, `NeuralODEModel.rollout`) calls its right-hand side
-    under `keep`, which selects those members' weights.
-
-    An ensemble's rollout does not run whole under the mode: every op under a torch-function
-    mode pays a Python call, and most of a solve's ops (stage sums, error control, outputs)
-    use no weight. `Ensemble.member_rollouts` makes the mode `current` instead, and the
-    rollout enters it only to build the initial state and the vector field and to evaluate
-    the field (`run`, `wrap`).
-
-    Args:
-        size: S, the members stacked (the weights' leading axis); None (unknown) turns
-            compaction off under the mode.
-    """
-
-    _current: ClassVar[list[StackedLayers]] = []
-
-    def __init__(self, size: int | None = None):
-        super().__init__()
-        self.size = size
-        self.members: torch.Tensor | None = None  # `[K]` the members whose rows run
-
-    @staticmethod
-    def current() -> StackedLayers | None:
-        """The mode of the ensemble rollout in progress (`made_current`), or None."""
-        return StackedLayers._current[-1] if StackedLayers._current else None
-
-    @contextmanager
-    def made_current(self):
-        """Within the block, `current()` is this mode (not entered: see the class)."""
-        StackedLayers._current.append(self)
-        try:
-            yield self
-        finally:
-            StackedLayers._current.pop()
-
-    def run(self, fn: Callable, *args):
-        """`fn(*args)` with the mode entered."""
-        with self:
-            return fn(*args)
-
-    def wrap(self, f: Callable) -> Callable:
-        """`f`, each call of it with the mode entered."""
-        def entered(*args):
-            with self:
-                return f(*args)
-
-        return entered
-
-    def keep(self, members: torch.Tensor, f: Callable) -> Callable:
-        """`f`, called with the weights of `members` (`[K]` int64, sorted) only: its input's
-        rows are those members' rows, member after member."""
-        def kept(*args):
-            outer, self.members = self.members, members
-            try:
-                return f(*args)
-            finally:
-                self.members = outer
-
-        return kept
-
-    def _select(self, param: torch.Tensor | None) -> torch.Tensor | None:
-        """A stacked parameter's kept members (differentiable), all of them outside `keep`."""
-        if param is None or self.members is None:
-            return param
-        return param.index_select(0, self.members)
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        kwargs = kwargs or {}
-        if func is F.linear:
-            weight = args[1] if len(args) > 1 else kwargs["weight"]
-            if weight.dim() == 3:
-                bias = args[2] if len(args) > 2 else kwargs.get("bias")
-                return _linear(args[0], self._select(weight), self._select(bias))
-        elif func is F.layer_norm:
-            weight = args[2] if len(args) > 2 else kwargs.get("weight")
-            if weight is not None and weight.dim() == 2:
-                bias = args[3] if len(args) > 3 else kwargs.get("bias")
-                eps = args[4] if len(args) > 4 else kwargs.get("eps", 1e-5)
-                return _layer_norm(func, (args[0], args[1], self._select(weight),
-                                          self._select(bias), eps), {})
-        return func(*args, **kwargs)
-
-
-def _linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
-    """`x: [S·R..., in]`, `weight: [S, out, in]`, `bias: [S, out]` → `[S·R..., out]`."""
-    s = weight.shape[0]
-    rows = x.reshape(s, -1, x.shape[-1])  # (S, R, in)
-    if bias is None:
-        y = torch.bmm(rows, weight.transpose(1, 2))
-    else:
-        y = torch.baddbmm(bias.unsqueeze(1), rows, weight.transpose(1, 2))  # (S, R, out)
-    return y.reshape(*x.shape[:-1], weight.shape[1])
-
-
-def _layer_norm(func, args, kwargs) -> torch.Tensor:
-    """`F.layer_norm` over the last dim with a `[S, H]` weight and bias."""
-    x, shape = args[0], args[1]
-    weight = args[2] if len(args) > 2 else kwargs.get("weight")
-    bias = args[3] if len(args) > 3 else kwargs.get("bias")
-    eps = args[4] if len(args) > 4 else kwargs.get("eps", 1e-5)
-    normed = func(x, shape, None, None, eps)
-    s = weight.shape[0]
-    rows = normed.reshape(s, -1, normed.shape[-1])  # (S, R, H)
-    out = rows * weight.unsqueeze(1) + (bias.unsqueeze(1) if bias is not None else 0)
-    return out.reshape(normed.shape)
 
 
 class _Call(nn.Module):

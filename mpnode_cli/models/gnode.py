@@ -25,6 +25,7 @@ from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
 from mpnode_cli.models.backend import Graph
 from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import GNODEOptions
+from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.runge_kutta import RHS
 
 
@@ -49,10 +50,10 @@ class GNODE(DegreeAwareAggregation, NeuralODEModel):
         o = self.options
         self.depth, self.graph, self.aggregate = o.depth, o.graph, o.aggregate
         hidden = o.hidden
-        self.lift = nn.Linear(node_dim + control_dim, hidden)
-        self.message = nn.Linear(hidden, hidden)
-        self.update = nn.Linear(channels(o.aggregate, hidden), hidden)
-        self.decode = nn.Linear(hidden, node_dim)
+        self.lift = Linear(node_dim + control_dim, hidden)
+        self.message = Linear(hidden, hidden)
+        self.update = Linear(channels(o.aggregate, hidden), hidden)
+        self.decode = Linear(hidden, node_dim)
         for layer in (self.lift, self.message, self.update, self.decode):
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)

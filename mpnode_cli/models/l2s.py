@@ -28,10 +28,11 @@ from mpnode_cli.models.aggregate import full_graph
 from mpnode_cli.models.backend import EdgeIndex, Graph, as_graph
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout, mlp
 from mpnode_cli.models.options import L2SOptions
+from mpnode_cli.models.stacked import LayerNorm
 
 
 def _mlp_ln(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequential:
-    return nn.Sequential(*mlp(in_dim, hidden, layers, out_dim, "relu"), nn.LayerNorm(out_dim))
+    return nn.Sequential(*mlp(in_dim, hidden, layers, out_dim, "relu"), LayerNorm(out_dim))
 
 
 class L2S(NeuralModel):

@@ -18,6 +18,7 @@ from mpnode_cli.models.backend import Graph
 from mpnode_cli.models.base import ACTIVATIONS
 from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import NODEOptions
+from mpnode_cli.models.stacked import LayerNorm, Linear
 from mpnode_cli.solver.runge_kutta import RHS
 
 
@@ -41,10 +42,10 @@ class NODE(NeuralODEModel):
         width = num_nodes * (node_dim + control_dim)
         modules: list[nn.Module] = []
         for _ in range(o.layers):
-            modules += [nn.Linear(width, o.hidden), nn.LayerNorm(o.hidden),
+            modules += [Linear(width, o.hidden), LayerNorm(o.hidden),
                         ACTIVATIONS[o.activation]()]
             width = o.hidden
-        modules.append(nn.Linear(width, num_nodes * node_dim))
+        modules.append(Linear(width, num_nodes * node_dim))
         self.net = nn.Sequential(*modules)
 
     def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:

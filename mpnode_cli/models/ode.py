@@ -28,7 +28,7 @@ import torch
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.backend import Graph, as_graph
 from mpnode_cli.models.base import NeuralModel, Rollout
-from mpnode_cli.models.ensemble import StackedLayers
+from mpnode_cli.models.stacked import StackedLayers
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.solver.runge_kutta import RHS
@@ -86,19 +86,15 @@ class NeuralODEModel(NeuralModel):
         self.check_states(x0)
         ts = ts.to(device=x0.device, dtype=torch.float64)
         u = self._held_controls(controls, ts)
-        # An ensemble's stacked members (`mpnode_cli.models.ensemble`): its mode is entered
-        # where the weights are used, not around the solver's own ops.
-        stacked = StackedLayers.current()
-        z0 = _entered(stacked, self.initial_state, x0, controls[:, 0] if u is not None else None)
+        z0 = self.initial_state(x0, controls[:, 0] if u is not None else None)
         # Steps must not straddle a control switch: stop where the held control changes.
         tstops = control_stops(controls, ts) if u is not None else None
         options = solver.solve_kwargs() if solver is not None else {}
         graph = as_graph(adjacency, x0)
         restrict, block = self._restriction(graph, controls if u is not None else None, ts,
-                                            z0.shape[0], stacked)
-        f = _entered(stacked, self.vector_field, graph, u)
-        sol = solve(f if stacked is None else stacked.wrap(f), z0, ts, **options,
-                    tstops=tstops, restrict=restrict, restrict_block=block)
+                                            z0.shape[0], StackedLayers.current())
+        sol = solve(self.vector_field(graph, u), z0, ts, **options, tstops=tstops,
+                    restrict=restrict, restrict_block=block)
         d = self.node_dim
         messages = sol.ys[..., d:] if return_messages and self.message_dim else None
         return Rollout(states=sol.ys[..., :d], messages=messages, status=sol.status,
@@ -119,11 +115,11 @@ class NeuralODEModel(NeuralModel):
             graph: `[B, N, N]` (or `[1, N, N]`) or an `EdgeBatch`, as `vector_field` takes it.
             controls: `[B, T, N, U]`, or None for a model without controls.
             ts: `[T]` float64; batch: B.
-            stacked: the ensemble's mode (`StackedLayers.current()`), or None.
+            stacked: the ensemble rollout in progress (`StackedLayers.current()`), or None.
 
         Returns:
-            `(restrict, block)`; restrict None (no compaction) under a mode that does not
-            say how many members it stacks, or whose batch is not whole members.
+            `(restrict, block)`; restrict None (no compaction) in an ensemble rollout that
+            does not say how many members it stacks, or whose batch is not whole members.
         """
         block = 1
         if stacked is not None:
@@ -136,9 +132,8 @@ class NeuralODEModel(NeuralModel):
             if stacked is None:
                 return self.vector_field(select_graphs(graph, index), u)
             members = index.view(-1, block)[:, 0] // block  # whole members, in order
-            f = stacked.run(stacked.keep(members, self.vector_field),
-                            select_graphs(graph, index), u)
-            return stacked.wrap(stacked.keep(members, f))
+            f = stacked.keep(members, self.vector_field)(select_graphs(graph, index), u)
+            return stacked.keep(members, f)
 
         return restrict, block
 
@@ -174,11 +169,6 @@ def zoh_controls(controls: torch.Tensor, ts: torch.Tensor) -> Control:
         return controls[rows, k]
 
     return u
-
-
-def _entered(stacked: StackedLayers | None, fn: Callable, *args):
-    """`fn(*args)`, under the ensemble's mode when there is one."""
-    return fn(*args) if stacked is None else stacked.run(fn, *args)
 
 
 def select_graphs(graph: Graph, index: torch.Tensor) -> Graph:

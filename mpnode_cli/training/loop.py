@@ -571,8 +571,8 @@ def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
     if config.solver.compile != "auto":
         return config
     steps = config.epochs * -(-n_train // config.batch_size)
-    # An ensemble runs eager: its members' layers are batched by a torch-function mode
-    # (`mpnode_cli.models.ensemble.StackedLayers`), which the compiled step does not trace.
+    # An ensemble runs eager: its members' stacked weights are swapped in for each rollout
+    # (`mpnode_cli.models.ensemble`), which the compiled step is not traced for.
     decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
               and config.seeds == 1
               and (config.device != "cpu" or _have_cxx()))
