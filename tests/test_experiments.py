@@ -191,9 +191,15 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
     index = (out / "README.md").read_text()
     assert "not run" in index  # tiny runs measure nothing and stay out of the index
 
+    saved = out / "messages-pendulum" / "tiny-mpnode" / "results.json"
+    facts = {k: json.loads(saved.read_text())[k] for k in ("started", "wall_seconds")}
     second = run(experiment)
     assert set(_statuses(second).values()) == {"skipped"}
     assert [s.result for s in second.steps] == [s.result for s in first.steps]
+    # A rerun that ran nothing keeps the saved run's facts (when it ran, and which steps).
+    kept = json.loads(saved.read_text())
+    assert {k: kept[k] for k in facts} == facts
+    assert {step["status"] for step in kept["steps"]} == {"ran"}
 
     # A changed step reruns, with every step after it that reads it; the rest is reused.
     fields = tomllib.loads(spec.shipped("messages-pendulum").read_text())

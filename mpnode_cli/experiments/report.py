@@ -47,7 +47,7 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
-    data = portable(record.to_dict(), Path(record.work))
+    data = _kept_facts(portable(record.to_dict(), Path(record.work)), folder / RESULTS)
     for step in data["steps"]:
         names = []
         for figure in step["figures"]:
@@ -63,6 +63,22 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
     path = rebuild_report(experiment, Path(out))
     rebuild_index(Path(out))
     return path
+
+
+def _kept_facts(data: dict[str, Any], previous: Path) -> dict[str, Any]:
+    """A rerun that ran no step (every one reused) keeps the saved run's facts: its command,
+    start, wall time, machine and which steps ran then; results and claims are the new."""
+    if any(step["status"] != "skipped" for step in data["steps"]) or not previous.is_file():
+        return data
+    old = json.loads(previous.read_text())
+    before = {step["id"]: step["status"] for step in old.get("steps", [])}
+    if old.get("seeds", 1) != data.get("seeds", 1) or not set(before) >= {
+            step["id"] for step in data["steps"]}:
+        return data
+    steps = [{**step, "status": before[step["id"]]} for step in data["steps"]]
+    return {**data, **{key: old[key] for key in ("command", "started", "wall_seconds",
+                                                  "machine") if key in old},
+            "steps": steps}
 
 
 def portable(data: dict[str, Any], work: Path) -> dict[str, Any]:
