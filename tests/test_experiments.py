@@ -623,3 +623,18 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
         assert experiment_runner._resumable(entry.folder, entry.fingerprint), entry.step.id
         assert not (entry.folder / STEP_JSON).exists()
     assert list(tmp_path.glob("out/*")) == []  # no report from a run that did not finish
+
+
+def test_an_option_added_later_leaves_fingerprints_alone_at_its_default():
+    """Finished steps stay finished when the solver table gains `compact` (on by default):
+    the fingerprint leaves it out at its default, and counts it when it is turned off."""
+    from mpnode_cli.experiments.schedule import _fingerprint
+
+    before = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8}}}
+    now = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8,
+                                                   "compact": True}}}
+    off = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8,
+                                                   "compact": False}}}
+    assert _fingerprint("generate", now, ["a"]) == _fingerprint("generate", before, ["a"])
+    assert _fingerprint("generate", off, ["a"]) != _fingerprint("generate", before, ["a"])
+

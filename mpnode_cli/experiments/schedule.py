@@ -255,9 +255,31 @@ def _try_lock(folder: Path) -> Any:
     return _held(handle)
 
 
+# Options added after steps were first fingerprinted, left out of the fingerprint at their
+# default so that a new option does not make every finished step run again: the solver's
+# `compact` (on by default; it changes results by rounding only).
+_LATER_DEFAULTS = {"solver": {"compact": True}}
+
+
+def _without_later_defaults(value: Any) -> Any:
+    """`value` with the `_LATER_DEFAULTS` that hold their default taken out, at any depth."""
+    if isinstance(value, list):
+        return [_without_later_defaults(v) for v in value]
+    if not isinstance(value, dict):
+        return value
+    out = {}
+    for key, v in value.items():
+        later = _LATER_DEFAULTS.get(key)
+        if later and isinstance(v, dict):
+            v = {k: x for k, x in v.items() if not (k in later and x == later[k])}
+        out[key] = _without_later_defaults(v)
+    return out
+
+
 def _fingerprint(verb: str, options: dict[str, Any], inputs: list[str]) -> str:
-    blob = json.dumps({"format": FINGERPRINT_FORMAT, "verb": verb, "options": options,
-                       "inputs": inputs}, sort_keys=True, default=str)
+    blob = json.dumps({"format": FINGERPRINT_FORMAT, "verb": verb,
+                       "options": _without_later_defaults(options), "inputs": inputs},
+                      sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()
 
 
