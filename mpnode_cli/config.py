@@ -417,7 +417,8 @@ class TrainConfig(BaseModel):
         "warning, where a dataset has fewer)."))
     renormalize: bool = Field(False, description=(
         "Finetune: fit the normalization on the new train split instead of reusing the "
-        "checkpoint's."))
+        "checkpoint's; better when the new graphs' states have another scale "
+        "(docs/cli.md)."))
     allow_other_system: bool = Field(False, description=(
         "Finetune: accept a dataset whose system differs from the checkpoint's (refused "
         "by default: the model learned another system)."))
