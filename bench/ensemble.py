@@ -32,7 +32,7 @@ weights of a short run of S members, against one member alone at B trajectories:
   none of the member batching. This is the floor of the S members' step on this machine.
 
 Usage:
-    .venv/bin/python bench/ensemble.py                    # about 12 minutes
+    .venv/bin/python bench/ensemble.py                    # about 2 minutes (quiet machine)
     .venv/bin/python bench/ensemble.py --sizes 1 2 --rounds 1 --epochs 3 --out /tmp/e.md
 Writes `bench/results/ensemble.md`. Target: S = 5 costs at most 2.5× one member's epoch.
 """
