@@ -156,6 +156,10 @@ def test_paper_scale_cost_is_estimated_from_measured_seconds_per_epoch(tmp_path)
         "l2s": {"seconds_per_epoch": 12.0, "trajectories": 140}})
     gene = paper_cost(spec.load("zeroshot-gene"), tmp_path)
     assert gene.resized == ["l2s"] and gene.shown().endswith("*") and not gene.missing
+    # A step with a wall-time budget (l2s-full: 3600 s at the paper's scale) costs its
+    # budget, measured or not.
+    trained = 4000 * (0.7 + 12.0) / 140 * 140 / 3600  # the pairs' 140 training trajectories
+    assert gene.core_hours == pytest.approx(trained + 3600 / 3600)
     assert paper_cost(spec.load("message-pca"), tmp_path).shown() == "—"
 
     result = runner.invoke(app, ["experiment", "list", "--scale", "paper", "--out",
