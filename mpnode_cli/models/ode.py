@@ -118,22 +118,22 @@ class NeuralODEModel(NeuralModel):
             stacked: the ensemble rollout in progress (`StackedLayers.current()`), or None.
 
         Returns:
-            `(restrict, block)`; restrict None (no compaction) in an ensemble rollout that
-            does not say how many members it stacks, or whose batch is not whole members.
+            `(restrict, block)`; restrict None (no compaction) in an ensemble rollout whose
+            batch is not whole members.
         """
         block = 1
         if stacked is not None:
-            if stacked.size is None or batch % stacked.size:
+            if batch % stacked.size:
                 return None, 1
             block = batch // stacked.size
 
         def restrict(index: torch.Tensor) -> RHS:
             u = None if controls is None else zoh_controls(controls[index], ts)
+            f = self.vector_field(select_graphs(graph, index), u)
             if stacked is None:
-                return self.vector_field(select_graphs(graph, index), u)
+                return f
             members = index.view(-1, block)[:, 0] // block  # whole members, in order
-            f = stacked.keep(members, self.vector_field)(select_graphs(graph, index), u)
-            return stacked.keep(members, f)
+            return stacked.keep(members, f)  # the layers take those members' weights
 
         return restrict, block
 

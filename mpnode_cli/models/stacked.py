@@ -30,13 +30,12 @@ class StackedLayers:
     still run.
 
     Args:
-        size: S, the members stacked (the weights' leading axis); None (unknown) turns
-            compaction off.
+        size: S, the members stacked (the weights' leading axis).
     """
 
     _current: ClassVar[list[StackedLayers]] = []
 
-    def __init__(self, size: int | None = None):
+    def __init__(self, size: int):
         self.size = size
         self.members: torch.Tensor | None = None  # `[K]` the members whose rows run
 

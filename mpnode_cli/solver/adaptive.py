@@ -157,7 +157,9 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
             the samples selected) instead of starting at `ts[0]`; `y` is then its `state.y`.
         block: stop early for compaction, once the samples still running, counted in whole
             blocks of `block` consecutive samples, make at most half of the batch and at
-            least `COMPACT_MIN_DROP` rows could be dropped (0: run to the end).
+            least `COMPACT_MIN_DROP` rows could be dropped (0: run to the end). The caller
+            passes a block that divides the batch, and 0 when compiled
+            (`solve._compaction_block`).
         The rest are `solve`'s.
 
     Returns:
@@ -196,7 +198,6 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
             n_nonfinite=torch.zeros_like(stop_idx),
             out_idx=torch.ones(batch, dtype=torch.long, device=dev))
     k1 = state.k1
-    block = block if block > 0 and batch % block == 0 and not compile else 0
     record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
     fused = shaped is not None and not compile
     if fused:
