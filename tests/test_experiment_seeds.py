@@ -253,6 +253,29 @@ def test_the_index_says_how_many_seeds_and_shows_mean_and_std(tmp_path):
     assert row.endswith("yes (holds for 2 of 2 members) |")
 
 
+def test_a_row_of_one_seed_at_the_paper_scale_also_shows_the_seeded_smaller_run(tmp_path):
+    """The paper scale's run (one seed) leads the cell; the small scale's run with three
+    seeds follows on a second line, and each scale has its own verdict; with no seeded
+    smaller run, the cell is the paper scale's alone."""
+    first, second = "messages", "no-messages"
+
+    def run(mse):
+        return {"best_epoch": 5, "model": "mpnode", "test": {"mse": mse, "time_mean": 10.0}}
+
+    _record(tmp_path, "messages-pendulum", {first: run(0.3), second: run(0.1)}, "paper")
+    alone = rebuild_index(tmp_path).read_text()
+    row = next(line for line in alone.splitlines() if "(paper, 1 seed)" in line)
+    assert "<br>" not in row and row.endswith("| — / **no** |")
+
+    seeded = {step: {**run(sum(m) / 3), "members": [run(x) for x in m]}
+              for step, m in ((first, [0.1, 0.2, 0.3]), (second, [0.4, 0.5, 0.6]))}
+    _record(tmp_path, "messages-pendulum", seeded, "small")
+    index = rebuild_index(tmp_path).read_text()
+    row = next(line for line in index.splitlines() if "(paper, 1 seed)" in line)
+    assert "0.3 < 0.1 (paper, 1 seed)<br>0.2 ± 0.08165 < 0.5 ± 0.08165 (small, 3 seeds)" in row
+    assert row.endswith("| — / paper: **no**; small: yes (holds for 3 of 3 members) |")
+
+
 def test_the_index_says_what_has_run_and_which_steps_a_run_lacks(tmp_path):
     """A record without some of the experiment's steps (added since it ran) is listed with
     those steps; scales and recipes without a record read —."""

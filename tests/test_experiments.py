@@ -323,8 +323,8 @@ def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
     row = next(line for line in index.splitlines() if "BA test error at or below" in line)
     assert row.endswith("| — / yes (PNA aggregation, not the paper's mean) |")
     weak = index.split("## Verdicts that rest on runs that did not learn")[1]
-    assert ("- zeroshot-gene, `--recipe mpnode`: MP-NODE's validation error on BA is below "
-            "L2S's: l2s (barely learned, 1.01× below the time mean).") in weak
+    assert ("- zeroshot-gene, `--scale small --recipe mpnode`: MP-NODE's validation error on "
+            "BA is below L2S's: l2s (barely learned, 1.01× below the time mean).") in weak
 
 
 def test_the_absolute_path_check_tells_paths_from_urls():

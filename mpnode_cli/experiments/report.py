@@ -33,6 +33,9 @@ REPORT = "report.md"
 FINDINGS = "findings.md"  # a hand-written analysis beside a report (why a claim fails, ...)
 INDEX = "README.md"
 _SCALE_ORDER = {"paper": 0, "small": 1, "tiny": 2}
+# The seeds a row should rest on; a cell of a run with fewer also shows a smaller scale's run
+# with more, where there is one (`rebuild_index`).
+SEEDS_WANTED = 3
 _RECIPE_ORDER = {"mpnode": 0, "paper": 1}
 
 
@@ -352,8 +355,11 @@ def rebuild_index(out: Path) -> Path:
         "Simulations for Homogeneous Systems\", NeurIPS 2022). *Ours* shows the claim's "
         "comparison on our results, from the largest scale run (`paper`, else `small`) with "
         "the paper's recipe (`--recipe paper`) and with mpnode's default (`--recipe "
-        "mpnode`), with the scale and the seeds it ran with; *holds* says whether the "
-        "paper's direction holds in each (paper recipe / mpnode recipe). A run of one seed "
+        "mpnode`), with the scale and the seeds it ran with; where that run has fewer than "
+        f"{SEEDS_WANTED} seeds and a smaller scale's has more, the cell gives that one too, "
+        "on a second line. *Holds* says whether the "
+        "paper's direction holds in each (paper recipe / mpnode recipe; each scale's "
+        "verdict, where a cell has two). A run of one seed "
         "trained one model per step and shows its two numbers: yes or **no**. A run with "
         "`--seeds S` trained every model as an ensemble of S members and shows each side "
         "as mean ± std (population) over the members: the claim holds (yes) when it holds "
@@ -374,23 +380,28 @@ def rebuild_index(out: Path) -> Path:
     for name in spec.names():
         experiment = spec.load(name)
         runs = [r for r in _runs(out, name) if r["scale"] != "tiny"]
-        latest = {recipe: next((r for r in runs if r["recipe"] == recipe), None)
-                  for recipe in ("paper", "mpnode")}
+        shown_runs = {recipe: _shown_runs([r for r in runs if r["recipe"] == recipe])
+                      for recipe in ("paper", "mpnode")}
         link = f"[{name}]({name}/{REPORT})" if runs else name
         for i, claim in enumerate(experiment.claims):
             cells, verdicts = [], []
             for recipe in ("paper", "mpnode"):
-                run = latest[recipe]
-                if run is None:
+                if not shown_runs[recipe]:
                     cells.append("not run")
                     verdicts.append("—")
                     continue
-                results = {s["id"]: s["result"] for s in run["steps"]}
-                _, shown, said = spec.verdict(claim.holds, results, experiment)
-                size = members.count(results)
-                cells.append(f"{shown} ({run['scale']}, {size} seed{'s' if size > 1 else ''})")
-                verdicts.append(said)
-                weak += _weak(name, claim, recipe, results)
+                cell, said_all = [], []
+                for run in shown_runs[recipe]:
+                    results = {s["id"]: s["result"] for s in run["steps"]}
+                    _, shown, said = spec.verdict(claim.holds, results, experiment)
+                    size = members.count(results)
+                    where = f"{run['scale']}, {size} seed{'s' if size > 1 else ''}"
+                    cell.append(f"{shown} ({where})")
+                    said_all.append(said if len(shown_runs[recipe]) == 1
+                                    else f"{run['scale']}: {said}")
+                    weak += _weak(name, claim, recipe, results, run["scale"])
+                cells.append("<br>".join(cell))
+                verdicts.append("; ".join(said_all))
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
     lines += ["", *_coverage(out)]
@@ -439,14 +450,34 @@ def _coverage(out: Path) -> list[str]:
     return lines
 
 
-def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any]) -> list[str]:
-    """A line for the index if `claim`'s verdict under `recipe` rests on runs that did not
-    learn or barely learned."""
+def _shown_runs(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The runs of one recipe that the index shows, largest scale first (`runs` in
+    `_runs`' order): the largest scale's; and where that one has fewer than
+    `SEEDS_WANTED` seeds, also the run of a smaller scale with the most seeds, if it has
+    more, so that a row gives a mean ± std where one was measured."""
+    if not runs:
+        return []
+    first = runs[0]
+    size = members.count({s["id"]: s["result"] for s in first["steps"]})
+    if size >= SEEDS_WANTED:
+        return [first]
+    counted = [(members.count({s["id"]: s["result"] for s in r["steps"]}), r)
+               for r in runs[1:]]
+    more = [(n, r) for n, r in counted if n > size]
+    if not more:
+        return [first]
+    return [first, max(more, key=lambda pair: pair[0])[1]]
+
+
+def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any],
+          scale: str) -> list[str]:
+    """A line for the index if `claim`'s verdict under `recipe` at `scale` rests on runs
+    that did not learn or barely learned."""
     notes = spec.learning_notes(claim.holds, results)
     if not notes:
         return []
     runs = ", ".join(f"{step} ({note})" for step, note in notes.items())
-    return [f"- {name}, `--recipe {recipe}`: {claim.claim}: {runs}."]
+    return [f"- {name}, `--scale {scale} --recipe {recipe}`: {claim.claim}: {runs}."]
 
 
 def _claim(claim: spec.Claim, results: dict[str, Any],
