@@ -2,7 +2,11 @@
 ± std and spread, simulate's `hidden/ensemble_std`, `--member K` and the exported member.
 
 Every number is checked against the members rolled out one by one as single models (each
-built from its own exported checkpoint) and numpy's mean, std and corrcoef over them.
+built from its own exported checkpoint) and numpy's mean, std and corrcoef over them. The
+ensemble is trained in float64: its members run through stacked weights and the references
+through plain ones, whose float32 round-off differs enough to flip an adaptive step's
+accept or reject now and then, after which two solves differ by about the solver's tolerance
+(1e-4), not by round-off.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ def ens(tmp_path_factory):
     generate(GenerateConfig(system="gene", grid=4, topology="ba", trajectories=16, t_end=2.0,
                             dt=0.1, out=big))
     train(TrainConfig(dataset=own, run_dir=root / "run", batch_size=16, lr=1e-2, epochs=20,
-                      plots=False, seeds=S))
+                      plots=False, seeds=S, dtype="float64"))
     return SimpleNamespace(root=root, own=own, big=big,
                            path=checkpoint_path(root / "run", "best"))
 
@@ -56,13 +60,13 @@ def member_rollouts(ckpt, data: TrajectoryData) -> np.ndarray:
     """`[S, K, T, N, D]` normalized: each member rolled out alone, as a model of its own."""
     norm = ckpt.build_normalizer()
     batch = data.take(torch.arange(len(data)))
-    x0 = norm.norm_x(batch.states[:, 0])  # (K, N, D)
+    x0 = norm.norm_x(batch.states[:, 0]).double()  # (K, N, D)
     out = []
     for k in range(ckpt.members):
         model = member_checkpoint(ckpt, k).build_model().eval()
         with torch.no_grad():
-            states = model.rollout(x0, data.time, batch.graph(), solver=rollout_solver(ckpt)
-                                   ).states
+            states = model.rollout(x0, data.time, batch.graph().double(),
+                                   solver=rollout_solver(ckpt)).states
         out.append(states.double().numpy())
     return np.stack(out)
 
@@ -138,9 +142,9 @@ def test_simulate_writes_the_members_mean_and_their_std(ens, tmp_path):
     for k in range(S):
         model = member_checkpoint(ckpt, k).build_model().eval()
         with torch.no_grad():
-            states = model.rollout(norm.norm_x(torch.from_numpy(x0)),
+            states = model.rollout(norm.norm_x(torch.from_numpy(x0)).double(),
                                    torch.arange(21, dtype=torch.float64) * 0.1,
-                                   torch.from_numpy(adjacency).float().expand(5, -1, -1),
+                                   torch.from_numpy(adjacency).double().expand(5, -1, -1),
                                    solver=rollout_solver(ckpt)).states
         physical.append(states.double().numpy() * std + mean)  # (K, T, N, D)
     physical = np.stack(physical)

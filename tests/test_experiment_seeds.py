@@ -264,15 +264,15 @@ def test_a_row_of_one_seed_at_the_paper_scale_also_shows_the_seeded_smaller_run(
 
     _record(tmp_path, "messages-pendulum", {first: run(0.3), second: run(0.1)}, "paper")
     alone = rebuild_index(tmp_path).read_text()
-    row = next(line for line in alone.splitlines() if "(paper, 1 seed)" in line)
+    row = next(line for line in alone.splitlines() if "0.3 < 0.1 (paper, 1 seed)" in line)
     assert "<br>" not in row and row.endswith("| — / **no** |")
 
     seeded = {step: {**run(sum(m) / 3), "members": [run(x) for x in m]}
               for step, m in ((first, [0.1, 0.2, 0.3]), (second, [0.4, 0.5, 0.6]))}
     _record(tmp_path, "messages-pendulum", seeded, "small")
     index = rebuild_index(tmp_path).read_text()
-    row = next(line for line in index.splitlines() if "(paper, 1 seed)" in line)
-    assert "0.3 < 0.1 (paper, 1 seed)<br>0.2 ± 0.08165 < 0.5 ± 0.08165 (small, 3 seeds)" in row
+    row = next(line for line in index.splitlines() if "0.3 < 0.1 (paper, 1 seed)" in line)
+    assert "0.3 < 0.1 (paper, 1 seed)<br>0.2 ± 0.082 < 0.5 ± 0.082 (small, 3 seeds)" in row
     assert row.endswith("| — / paper: **no**; small: yes (holds for 3 of 3 members) |")
 
 
