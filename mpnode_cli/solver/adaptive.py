@@ -203,8 +203,12 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
     record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
     fused = shaped is not None and not compile
     ts_xp, stops_xp = xp.arrays(ts, stops_pad)
+    # The dense outputs' sums in numpy only where autograd does not record the step: the
+    # recorded step (`fused=False`) needs torch's to differentiate, and the two kinds of
+    # step agree bit for bit.
+    lanes = TorchOps if record else xp
     if fused:
-        tape = StepTape(tab, y, shape, record, n_out)
+        tape = StepTape(tab, y, shape, record, n_out, lanes)
         start_outputs(tape, y)
         consts = Constants(tab, ctrl, None, tape, ts_xp, stops_xp, stops.numel(), rtol, atol,
                            max_steps, block, xp)
@@ -213,7 +217,7 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
         consts = Constants(tab, ctrl, Stages(tab.stages, batch, y.shape[1], y, not record),
                            None, ts_xp, stops_xp, stops.numel(), rtol, atol, max_steps, block,
                            xp)
-        steps = RecordedSteps(y, ts, tab, xp)
+        steps = RecordedSteps(y, ts, tab, xp, lanes)
     # Stop for compaction when few enough rows still run and enough could be dropped.
     keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP) if block
                 else -1)
@@ -399,8 +403,9 @@ class RecordedSteps:
     once at the end (one gather in the backward pass instead of one full-size copy per
     step); a spare column at index T takes the writes of masked-out lanes."""
 
-    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau, xp: Ops):
-        self.n_out, self.out = ts.numel(), OutputTimes.of(ts, tab, xp)
+    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau, xp: Ops,
+                 lanes: Ops):
+        self.n_out, self.out, self.lanes = ts.numel(), OutputTimes.of(ts, tab, xp), lanes
         self.cols = [torch.zeros(y.shape[0], 1, dtype=torch.long, device=y.device)]
         self.vals = [y.unsqueeze(1)]
 
@@ -415,7 +420,7 @@ class RecordedSteps:
                                                                     state.out_idx, width))
             coef = coef.to(step.y.dtype)
             self.cols.append(torch.where(valid, cols, self.n_out))
-            self.vals.append(step.y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, step.hk))
+            self.vals.append(self.lanes.lanes(coef, step.hk, step.y))
         return state
 
     def result(self, y0: torch.Tensor, state: State) -> torch.Tensor:

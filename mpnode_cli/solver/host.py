@@ -77,6 +77,25 @@ class TorchOps:
         return coef.permute(1, 2, 0)
 
     @staticmethod
+    def lanes(coef, hk, y):
+        """`[B, W, F]` tensor, the dense-output lanes y + Σ_i coef[b, w, i]·hk[i, b], as the
+        recorded step computes them (differentiable).
+
+        Args: coef `[B, W, s]`; hk `[s, B, F]` the stages h·k_i; y `[B, F]`.
+        """
+        return y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, hk)
+
+    @staticmethod
+    def write_lanes(out, rows, coef, hk, y):
+        """`out[rows] = lanes(coef, hk, y)` (`out`: `[R, F]`, rows `[B·W]` int64), in place,
+        outside autograd; equal to `lanes` bit for bit."""
+        # (B, s, F): a sample-major copy of the stages, against bmm's slow path for a
+        # batch stride smaller than the row stride (measured: ~0.1 ms a training step).
+        values = torch.bmm(coef, hk.transpose(0, 1).contiguous())  # (B, W, F)
+        values += y[:, None]
+        out.index_copy_(0, rows, values.view(-1, out.shape[1]))
+
+    @staticmethod
     def flags(*xs):
         """One int64 array of each `[B]` array's max (a bool's any) and any scalars after
         them: what the loop reads in its one sync (`.tolist()`)."""
@@ -140,8 +159,29 @@ class NumpyOps:
         return (powers.T @ interp_t.T).reshape(*theta.shape, -1)
 
     @staticmethod
+    def lanes(coef, hk, y):
+        """Not differentiable: for a step that autograd does not record."""
+        coef, hk, y = NumpyOps.arrays(coef, hk, y)
+        return torch.from_numpy(_lanes(coef, hk, y))
+
+    @staticmethod
+    def write_lanes(out, rows, coef, hk, y):
+        out, rows, coef, hk, y = NumpyOps.arrays(out, rows, coef, hk, y)
+        out[rows] = _lanes(coef, hk, y).reshape(-1, out.shape[1])
+
+    @staticmethod
     def flags(*xs):
         return np.array([x.max() if x.ndim else x for x in xs], dtype=np.int64)
+
+
+def _lanes(coef: np.ndarray, hk: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """`NumpyOps.lanes`' arrays."""
+    # One small product per sample on the strided (B, s, F) view of the stages: no copy,
+    # and faster than torch's copy and bmm for few lanes (5× for one lane a sample, 1.4×
+    # for 13: bmm loops over small products element by element).
+    values = np.matmul(coef, hk.transpose(1, 0, 2))  # (B, W, F)
+    values += y[:, None]
+    return values
 
 
 Ops = type[TorchOps] | type[NumpyOps]
