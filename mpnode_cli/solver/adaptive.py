@@ -129,7 +129,7 @@ def initial_step(fun, t0, y, k1, rtol, atol, span, p, xp: Ops = TorchOps):
         h1 = xp.where(
             dmax <= 1e-15,
             xp.clip(h0 * 1e-3, 1e-6),
-            (0.01 / xp.clip(dmax, 1e-300)) ** (1.0 / p),
+            xp.pow(0.01 / xp.clip(dmax, 1e-300), 1.0 / p),
         )
         h = xp.minimum(xp.minimum(100 * h0, h1), span)
         h = xp.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0

@@ -96,7 +96,7 @@ class IController(StepController):
         return cls(beta1=1.0 / p)
 
     def propose(self, h, r, err_prev, accept, xp=TorchOps):
-        q = self.safety * r**-self.beta1
+        q = self.safety * xp.pow(r, -self.beta1)
         grow = xp.clip(q, self.factor_min, self.factor_max)
         shrink = xp.clip(q, self.factor_min, self.safety)
         return h * xp.where(accept, grow, shrink), err_prev
@@ -125,8 +125,8 @@ class PIController(StepController):
         return self.err_prev_floor
 
     def propose(self, h, r, err_prev, accept, xp=TorchOps):
-        q = r**-self.beta1
-        grow = xp.clip(self.safety * q * err_prev**self.beta2, self.factor_min,
+        q = xp.pow(r, -self.beta1)
+        grow = xp.clip(self.safety * q * xp.pow(err_prev, self.beta2), self.factor_min,
                        self.factor_max)
         shrink = xp.clip(self.safety * q, self.factor_min, self.safety)
         dt_next = h * xp.where(accept, grow, shrink)
