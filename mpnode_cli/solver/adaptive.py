@@ -9,9 +9,14 @@ sample that fails is frozen and marked while the others go on.
 - Dense output uses the method's free interpolant, so steps are never shortened to hit
   output times; the outputs crossed by a step are written with a bounded, static-shape
   scatter (no `nonzero`).
-- The step-size controller (`controller.py`) works on detached tensors: gradients flow
+- The step-size controller (`controller.py`) works on detached arrays: gradients flow
   through the stages and the interpolant, not through the step-size choice (a prototype
   that let r^(−1/5) into autograd produced NaN gradients near r = 0).
+- The step's small arithmetic on `[B]` vectors (`plan_step`, `control`, `dense_weights`,
+  `initial_step`) is written once against an array namespace (`host.py`): numpy views of
+  the tensors in an uncompiled CPU solve, where a torch op that small costs several times
+  a numpy op, and torch on CUDA and under `compile`. Both take the same steps bit for bit;
+  the `State` holds tensors either way.
 - Two ways through a step, with the same forward: eagerly (the default), the stages are
   `fused.py`'s autograd nodes, whose backward is written for the tableau, and the step's end
   (`fused.end_step`) selects the next state and writes the outputs it crossed into one
