@@ -298,7 +298,7 @@ def control(consts: Constants, state: State, h, t_new, land, y_new, err):
     t, dt, running, stop_idx, err_prev, n_steps, n_acc, n_nonfinite, out_idx = xp.arrays(
         state.t, state.dt, state.running, state.stop_idx, state.err_prev, state.n_steps,
         state.n_accepted, state.n_nonfinite, state.out_idx)
-    h_in = h
+    h_step = h  # the tensor, for the `Attempt`
     h, t_new, land, y, y_new, err = xp.arrays(h, t_new, land, state.y, y_new, err)
     with xp.no_grad():
         scale = xp.maximum(abs(y), abs(y_new))
@@ -338,7 +338,7 @@ def control(consts: Constants, state: State, h, t_new, land, y_new, err):
                     running_next.reshape(-1, block).any(1).sum() * block),
         flags = xp.flags(running_next, n_cross, jumped, failed, *kept)
     step = Attempt(*xp.tensors(jumped, n_cross, failed, too_many, underflow, accept), state.t,
-                   h_in, state.y)
+                   h_step, state.y)
     state = State(*xp.tensors(t_next, dt), state.y, state.k1,
                   *xp.tensors(running_next, stop_idx, stop_t, err_prev, n_steps, n_acc,
                               n_nonfinite), state.out_idx)
