@@ -9,9 +9,14 @@ sample that fails is frozen and marked while the others go on.
 - Dense output uses the method's free interpolant, so steps are never shortened to hit
   output times; the outputs crossed by a step are written with a bounded, static-shape
   scatter (no `nonzero`).
-- The step-size controller (`controller.py`) works on detached tensors: gradients flow
+- The step-size controller (`controller.py`) works on detached arrays: gradients flow
   through the stages and the interpolant, not through the step-size choice (a prototype
   that let r^(−1/5) into autograd produced NaN gradients near r = 0).
+- The step's small arithmetic on `[B]` vectors (`plan_step`, `control`, `dense_weights`,
+  `initial_step`) is written once against an array namespace (`host.py`): numpy views of
+  the tensors in an uncompiled CPU solve, where a torch op that small costs several times
+  a numpy op, and torch on CUDA and under `compile`. Both take the same steps bit for bit;
+  the `State` holds tensors either way.
 - Two ways through a step, with the same forward: eagerly (the default), the stages are
   `fused.py`'s autograd nodes, whose backward is written for the tableau, and the step's end
   (`fused.end_step`) selects the next state and writes the outputs it crossed into one
@@ -35,6 +40,7 @@ import torch
 from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import StepController
 from mpnode_cli.solver.fused import StepTape, collect_outputs, end_step, fused_stages, start_outputs
+from mpnode_cli.solver.host import Ops, TorchOps, ops_for
 from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
 from mpnode_cli.solver.solution import Status
 
@@ -68,13 +74,14 @@ class Constants(NamedTuple):
     ctrl: StepController
     stages: Stages | None  # the recorded step's stage buffer (None: fused steps)
     tape: StepTape | None  # the fused steps' buffers (None: recorded steps)
-    ts: torch.Tensor  # [T] float64 output times
-    stops_pad: torch.Tensor  # [S + 1] float64 stops, the last repeated
+    ts: object  # [T] float64 output times, an array of `ops`
+    stops_pad: object  # [S + 1] float64 stops, the last repeated, an array of `ops`
     n_stops: int
     rtol: float
     atol: float
     max_steps: int
     block: int = 0  # compaction's block of samples kept or dropped together (0: no count)
+    ops: Ops = TorchOps  # the namespace of the step's small arithmetic (`host.py`)
 
 
 class Restart(NamedTuple):
@@ -108,31 +115,30 @@ class Attempt(NamedTuple):
     rec: object = None  # the fused step's `StepRecord`, which `end_step` finishes
 
 
-def rms(x: torch.Tensor) -> torch.Tensor:
-    """`[B, F]` → `[B]` root mean square over each sample's elements, in float64."""
-    return torch.linalg.vector_norm(x, dim=1).double() / math.sqrt(x.shape[1])
-
-
-def initial_step(fun, t0, y, k1, rtol, atol, span, p):
+def initial_step(fun, t0, y, k1, rtol, atol, span, p, xp: Ops = TorchOps):
     """Hairer, Nørsett & Wanner, Solving ODEs I, §II.4: a first step size per sample.
 
-    p: the error estimate's order + 1 (5 for a 5(4) pair), as in Hairer's DOPRI5 (`IORD`).
+    p: the error estimate's order + 1 (5 for a 5(4) pair), as in Hairer's DOPRI5 (`IORD`);
+    xp: the namespace of the arithmetic (`host.py`), f's own in torch.
     """
+    t0, y, k1, span = xp.arrays(t0, y, k1, span)
     with torch.no_grad():
-        scale = atol + rtol * y.abs()
-        d0, d1 = rms(y / scale), rms(k1 / scale)
-        h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1.clamp_min(1e-300))
-        h0 = torch.minimum(h0, span)
-        y1 = y + h0.to(y.dtype)[:, None] * k1
-        d2 = rms((fun(t0 + h0, y1) - k1) / scale) / h0
-        dmax = torch.maximum(d1, d2)
-        h1 = torch.where(
+        scale = atol + rtol * abs(y)
+        d0, d1 = xp.rms(y / scale), xp.rms(k1 / scale)
+        h0 = xp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / xp.clip(d1, 1e-300))
+        h0 = xp.minimum(h0, span)
+        y1 = y + xp.astype(h0, y)[:, None] * k1
+        f1, = xp.arrays(fun(*xp.tensors(t0 + h0, y1)))
+        d2 = xp.rms((f1 - k1) / scale) / h0
+        dmax = xp.maximum(d1, d2)
+        h1 = xp.where(
             dmax <= 1e-15,
-            torch.clamp_min(h0 * 1e-3, 1e-6),
-            (0.01 / dmax.clamp_min(1e-300)) ** (1.0 / p),
+            xp.clip(h0 * 1e-3, 1e-6),
+            xp.pow(0.01 / xp.clip(dmax, 1e-300), 1.0 / p),
         )
-        h = torch.minimum(torch.minimum(100 * h0, h1), span)
-        return torch.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0
+        h = xp.minimum(xp.minimum(100 * h0, h1), span)
+        h = xp.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0
+    return xp.tensors(h)[0]
 
 
 def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
@@ -172,6 +178,7 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
     dev, f64 = y.device, torch.float64
     n_out = ts.numel()
     t0 = ts[0]
+    xp = ops_for(dev, compile)
 
     stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
     if start is not None:
@@ -182,7 +189,7 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
         n_f = torch.ones(batch, dtype=torch.long, device=dev)
         span = (ts[-1] - t0).expand(batch)
         if dt0 is None:
-            dt = initial_step(fun, t, y, k1, rtol, atol, span, p)
+            dt = initial_step(fun, t, y, k1, rtol, atol, span, p, xp)
             n_f += 1
         else:
             dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
@@ -200,16 +207,22 @@ def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
     k1 = state.k1
     record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
     fused = shaped is not None and not compile
+    ts_xp, stops_xp = xp.arrays(ts, stops_pad)
+    # The dense outputs' sums in numpy only where autograd does not record the step: the
+    # recorded step (`fused=False`) needs torch's to differentiate, and the two kinds of
+    # step agree bit for bit.
+    lanes = TorchOps if record else xp
     if fused:
-        tape = StepTape(tab, y, shape, record, n_out)
+        tape = StepTape(tab, y, shape, record, n_out, lanes)
         start_outputs(tape, y)
-        consts = Constants(tab, ctrl, None, tape, ts, stops_pad, stops.numel(), rtol, atol,
-                           max_steps, block)
-        steps = FusedSteps(tape, ts, shaped)
+        consts = Constants(tab, ctrl, None, tape, ts_xp, stops_xp, stops.numel(), rtol, atol,
+                           max_steps, block, xp)
+        steps = FusedSteps(tape, ts, shaped, xp)
     else:
         consts = Constants(tab, ctrl, Stages(tab.stages, batch, y.shape[1], y, not record),
-                           None, ts, stops_pad, stops.numel(), rtol, atol, max_steps, block)
-        steps = RecordedSteps(y, ts, tab)
+                           None, ts_xp, stops_xp, stops.numel(), rtol, atol, max_steps, block,
+                           xp)
+        steps = RecordedSteps(y, ts, tab, xp, lanes)
     # Stop for compaction when few enough rows still run and enough could be dropped.
     keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP) if block
                 else -1)
@@ -259,67 +272,77 @@ def plan_step(consts: Constants, state: State):
     """`(h, t_new, land)`, each `[B]`: the step to attempt, clipped so as not to cross the
     next stop (0 for a sample that does not run), where it ends, and whether it lands on
     the stop."""
-    with torch.no_grad():
-        to_stop = state.stop_t - state.t
-        land = state.dt >= to_stop
-        h = torch.where(state.running, torch.minimum(state.dt, to_stop), 0.0)
-        t_new = torch.where(land, state.stop_t, state.t + h)
-    return h, t_new, land
+    xp = consts.ops
+    t, dt, running, stop_t = xp.arrays(state.t, state.dt, state.running, state.stop_t)
+    with xp.no_grad():
+        to_stop = stop_t - t
+        land = dt >= to_stop
+        h = xp.where(running, xp.minimum(dt, to_stop), 0.0)
+        t_new = xp.where(land, stop_t, t + h)
+    return xp.tensors(h, t_new, land)
 
 
 def control(consts: Constants, state: State, h, t_new, land, y_new, err):
-    """Error control and bookkeeping of an attempted step, outside autograd.
+    """Error control and bookkeeping of an attempted step, outside autograd, in the
+    solve's namespace (`consts.ops`).
 
     Returns:
         `(state, flags, attempt)`: the next `State` with `y` and `k1` still the step's start
-        (the caller advances them); `flags`, a `[4]` int64 tensor (anyone still running, the
+        (the caller advances them); `flags`, a `[4]` int64 array (anyone still running, the
         most outputs one sample crossed, anyone landed on an interior stop, anyone failed;
         with `consts.block`, a fifth: the rows of the blocks still running), read by the
-        loop in its one sync; and the `Attempt`.
+        loop in its one sync (a tensor in torch; in numpy, host values already); and the
+        `Attempt`.
     """
-    _, ctrl, _, _, ts, stops_pad, n_stops, rtol, atol, max_steps, block = consts
-    (t, dt, y, k1, running, stop_idx, stop_t, err_prev, n_steps, n_acc, n_nonfinite,
-     out_idx) = state
-    with torch.no_grad():
-        scale = torch.maximum(y.abs(), y_new.abs()).mul_(rtol).add_(atol)
-        r = rms(err / scale)
+    _, ctrl, _, _, ts, stops_pad, n_stops, rtol, atol, max_steps, block, xp = consts
+    t, dt, running, stop_idx, err_prev, n_steps, n_acc, n_nonfinite, out_idx = xp.arrays(
+        state.t, state.dt, state.running, state.stop_idx, state.err_prev, state.n_steps,
+        state.n_accepted, state.n_nonfinite, state.out_idx)
+    h_step = h  # the tensor, for the `Attempt`
+    h, t_new, land, y, y_new, err = xp.arrays(h, t_new, land, state.y, y_new, err)
+    with xp.no_grad():
+        scale = xp.maximum(abs(y), abs(y_new))
+        scale *= rtol
+        scale += atol
+        r = xp.rms(err / scale)
         finite = r < math.inf  # r ≥ 0, so this is isfinite in one op instead of three
-        r = ctrl.ratio(r, finite)
+        r = ctrl.ratio(r, finite, xp)
         accept = running & (r <= 1.0)
-        dt_next, err_prev = ctrl.propose(h, r, err_prev, accept)
+        dt_next, err_prev = ctrl.propose(h, r, err_prev, accept, xp)
         landed = accept & land
         # A step clipped at a stop says little about the step size the solution allows:
         # keep the proposal it was clipped from.
-        dt_next = torch.where(landed, torch.maximum(dt_next, dt), dt_next)
-        dt = torch.where(running, dt_next, dt)
+        dt_next = xp.where(landed, xp.maximum(dt_next, dt), dt_next)
+        dt = xp.where(running, dt_next, dt)
 
-        n_cross = torch.where(accept, torch.searchsorted(ts, t_new, right=True) - out_idx, 0)
+        n_cross = xp.where(accept, xp.searchsorted(ts, t_new) - out_idx, 0)
         n_steps = n_steps + running
         n_acc = n_acc + accept
         stop_idx = stop_idx + landed
-        stop_t = stops_pad.index_select(0, stop_idx)
-        n_nonfinite = torch.where(finite, 0, n_nonfinite + running)
+        stop_t = xp.take(stops_pad, stop_idx)
+        n_nonfinite = xp.where(finite, 0, n_nonfinite + running)
         live = running & (stop_idx < n_stops)
         too_many = n_nonfinite >= _MAX_NON_FINITE_REJECTS
         # The next step would not move the clock. Checked after accepted steps too: near a
         # blow-up the step shrinks geometrically while every step is accepted, and checking
         # only rejections let such a sample take thousands of steps that advance no time.
-        t_next = torch.where(accept, t_new, t)
+        t_next = xp.where(accept, t_new, t)
         underflow = t_next + dt <= t_next
         failed = (too_many | underflow | (n_steps >= max_steps)) & live
         running_next = live ^ failed  # failed ⊆ live
         # Landing on an interior stop invalidates FSAL: f may change there (a new control).
         jumped = landed & live
-        # One [4] int64 for the loop's one sync: one stack and one amax (type promotion
-        # makes the bools 0/1), against four reductions and a stack of their results.
-        flags = torch.stack([running_next, n_cross, jumped, failed]).amax(1)
-        if block:  # and the rows of the blocks that still run, for compaction
+        kept = ()
+        if block:  # the rows of the blocks that still run, for compaction
             kept = (running_next.sum() if block == 1 else
-                    running_next.view(-1, block).any(1).sum() * block)
-            flags = torch.cat([flags, kept.view(1)])
-    state = State(t_next, dt, y, k1, running_next, stop_idx, stop_t, err_prev, n_steps,
-                  n_acc, n_nonfinite, out_idx)
-    return state, flags, Attempt(jumped, n_cross, failed, too_many, underflow, accept, t, h, y)
+                    running_next.reshape(-1, block).any(1).sum() * block),
+        flags = xp.flags(running_next, n_cross, jumped, failed, *kept)
+    step = Attempt(*xp.tensors(jumped, n_cross, failed, too_many, underflow, accept), state.t,
+                   h_step, state.y)
+    state = State(*xp.tensors(t_next, dt), state.y, state.k1,
+                  *xp.tensors(running_next, stop_idx, stop_t, err_prev, n_steps, n_acc,
+                              n_nonfinite), state.out_idx)
+    return state, flags, step
 
 
 def attempt_step(fun: RHS, consts: Constants, state: State):
@@ -343,28 +366,39 @@ def attempt_step(fun: RHS, consts: Constants, state: State):
 STEP = CompileCache(attempt_step)  # the step, compiled once per process when asked
 
 
-def dense_weights(ts: torch.Tensor, tab: StageTableau, step: Attempt, out_idx: torch.Tensor,
-                  width: int, arange_out: torch.Tensor):
+class OutputTimes(NamedTuple):
+    """What dense output needs of a solve, as arrays of its namespace `ops`."""
+
+    ops: Ops
+    ts: object  # [T] float64 output times
+    arange: object  # [T] int64 0, 1, ..., T − 1
+    interp_t: object  # [s, K] float64 the interpolant's coefficients (`StageTableau`)
+
+    @classmethod
+    def of(cls, ts: torch.Tensor, tab: StageTableau, xp: Ops) -> OutputTimes:
+        return cls(xp, *xp.arrays(ts, torch.arange(ts.numel(), device=ts.device),
+                                  tab.interp_t))
+
+
+def dense_weights(out: OutputTimes, step: Attempt, out_idx: torch.Tensor, width: int):
     """The interpolant's weights at the ≤ `width` output times each sample's step crossed.
 
     Returns:
-        `(cols [B, W], valid [B, W], coef [B, W, s])`: lane `w` of sample `b` belongs in
-        output column `cols[b, w] = out_idx[b] + w` where `valid` (`w < n_cross[b]`), and
-        is y + Σ_i coef[b, w, i]·h·k_i, coef (float64) the b_i(θ) of its time.
+        `(cols [B, W], valid [B, W], coef [B, W, s])`, arrays of `out.ops`: lane `w` of
+        sample `b` belongs in output column `cols[b, w] = out_idx[b] + w` where `valid`
+        (`w < n_cross[b]`), and is y + Σ_i coef[b, w, i]·h·k_i, coef (float64) the b_i(θ)
+        of its time.
     """
-    n_out = ts.numel()
-    w = arange_out[:width]
+    xp, ts = out.ops, out.ts
+    out_idx, n_cross, t, h = xp.arrays(out_idx, step.n_cross, step.t, step.h)
+    w = out.arange[:width]
     cols = out_idx[:, None] + w  # (B, W)
-    valid = w < step.n_cross[:, None]
-    with torch.no_grad():
-        h_safe = torch.where(step.h > 0, step.h, 1.0)
-        theta = (ts.take(cols.clamp_max(n_out - 1)) - step.t[:, None]) / h_safe[:, None]
-        theta = theta.clamp_(0.0, 1.0)  # (B, W)
-        k_max = tab.interp.shape[0]
-        powers = theta[..., None].expand(-1, -1, k_max).cumprod(-1)  # (B, W, K): θ, ..., θ^K
-        # (s, K) @ (K, B·W): the long side last, twice as fast as (B·W, K) @ (K, s).
-        coef = (tab.interp_t @ powers.view(-1, k_max).T).view(-1, *theta.shape)  # (s, B, W)
-        coef = coef.permute(1, 2, 0)  # (B, W, s): b_i(θ)
+    valid = w < n_cross[:, None]
+    with xp.no_grad():
+        h_safe = xp.where(h > 0, h, 1.0)
+        theta = (xp.take(ts, xp.clip(cols, None, ts.shape[0] - 1)) - t[:, None]) / h_safe[:, None]
+        theta = xp.clip(theta, 0.0, 1.0)  # (B, W)
+        coef = xp.interpolant(theta, out.interp_t)  # (B, W, s): b_i(θ)
     return cols, valid, coef
 
 
@@ -374,8 +408,9 @@ class RecordedSteps:
     once at the end (one gather in the backward pass instead of one full-size copy per
     step); a spare column at index T takes the writes of masked-out lanes."""
 
-    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau):
-        self.ts, self.tab, self.arange = ts, tab, torch.arange(ts.numel(), device=y.device)
+    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau, xp: Ops,
+                 lanes: Ops):
+        self.n_out, self.out, self.lanes = ts.numel(), OutputTimes.of(ts, tab, xp), lanes
         self.cols = [torch.zeros(y.shape[0], 1, dtype=torch.long, device=y.device)]
         self.vals = [y.unsqueeze(1)]
 
@@ -386,27 +421,27 @@ class RecordedSteps:
     def end(self, state: State, step: Attempt, width: int) -> State:
         """Collect the outputs the step crossed (the step has advanced the state)."""
         if width > 0:
-            cols, valid, coef = dense_weights(self.ts, self.tab, step, state.out_idx, width,
-                                              self.arange)
+            cols, valid, coef = self.out.ops.tensors(*dense_weights(self.out, step,
+                                                                    state.out_idx, width))
             coef = coef.to(step.y.dtype)
-            self.cols.append(torch.where(valid, cols, self.ts.numel()))
-            self.vals.append(step.y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, step.hk))
+            self.cols.append(torch.where(valid, cols, self.n_out))
+            self.vals.append(self.lanes.lanes(coef, step.hk, step.y))
         return state
 
     def result(self, y0: torch.Tensor, state: State) -> torch.Tensor:
         """`[B, T, F]` the outputs, NaN where none was written."""
-        return gather_outputs(self.cols, self.vals, self.ts.numel())
+        return gather_outputs(self.cols, self.vals, self.n_out)
 
 
 class FusedSteps:
     """Steps whose stages are `fused.py`'s autograd nodes; each step's end writes the
     outputs it crossed into the tape's output buffer."""
 
-    def __init__(self, tape: StepTape, ts: torch.Tensor, shaped: RHS):
+    def __init__(self, tape: StepTape, ts: torch.Tensor, shaped: RHS, xp: Ops):
         batch, dev = tape.shape[0], ts.device
-        self.tape, self.ts, self.shaped = tape, ts, shaped
-        self.arange = torch.arange(ts.numel(), device=dev)
-        self.base = torch.arange(batch, device=dev)[:, None] * ts.numel()  # (B, 1) row of col 0
+        self.tape, self.shaped, self.out = tape, shaped, OutputTimes.of(ts, tape.tab, xp)
+        # (B, 1) each sample's row of column 0 in the output buffer, an array of `xp`
+        self.base, = xp.arrays(torch.arange(batch, device=dev)[:, None] * ts.numel())
         self.spare = batch * ts.numel()  # the output buffer's spare row
 
     def attempt(self, fun: RHS, consts: Constants, state: State, compile: bool):
@@ -421,9 +456,10 @@ class FusedSteps:
         """Advance the accepted samples and write the outputs the step crossed."""
         rows = coef = None
         if width > 0:
-            cols, valid, coef = dense_weights(self.ts, self.tape.tab, step, state.out_idx, width,
-                                              self.arange)
-            rows = torch.where(valid, self.base + cols, self.spare).view(-1)  # (B·W,)
+            xp = self.out.ops
+            cols, valid, coef = dense_weights(self.out, step, state.out_idx, width)
+            rows = xp.where(valid, self.base + cols, self.spare).reshape(-1)  # (B·W,)
+            rows, coef = xp.tensors(rows, coef)
         y, k1 = end_step(step.rec, step.f_new, step.accept, rows, coef)
         return state._replace(y=y, k1=k1)
 

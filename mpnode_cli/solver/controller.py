@@ -20,16 +20,19 @@ rtol = atol = 1e-4 the I controller takes 4 steps where PI takes 5 (docs/solver.
 therefore uses I and `generate` PI (`mpnode_cli.config`).
 
 `CONTROLLERS` maps the names that `solve(controller=...)` and `SolverOptions.controller`
-accept to the classes. Controllers work on detached `[B]` float64 tensors, one value per
-sample, in pure tensor code (no host sync), so the solver's step can be compiled with them.
+accept to the classes. Controllers work on detached `[B]` float64 arrays, one value per
+sample, through the solve's array namespace (`host.py`): numpy views of the tensors on the
+CPU, or the tensors themselves in pure tensor code (no host sync), so the solver's step can
+be compiled with them.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
-import torch
+from mpnode_cli.solver.host import Ops, TorchOps
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -56,21 +59,22 @@ class StepController:
         """The controller for an error estimate of order p − 1."""
         raise NotImplementedError
 
-    def ratio(self, r: torch.Tensor, finite: torch.Tensor) -> torch.Tensor:
-        """`[B]` error ratios made safe to exponentiate: inf where not finite, floored."""
-        return torch.where(finite, r, torch.inf).clamp_min(self.r_floor)
+    def ratio(self, r, finite, xp: Ops = TorchOps):
+        """`[B]` error ratios made safe to exponentiate: inf where not finite, floored.
+        `xp` is the namespace of the arrays (`host.py`)."""
+        return xp.clip(xp.where(finite, r, math.inf), self.r_floor)
 
     def initial_history(self) -> float:
         """The history's value before the first accepted step (each sample starts with it)."""
         return 1.0
 
-    def propose(self, h: torch.Tensor, r: torch.Tensor, err_prev: torch.Tensor,
-                accept: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def propose(self, h, r, err_prev, accept, xp: Ops = TorchOps):
         """The next step size and the updated history.
 
         Args:
             h: `[B]` the step just attempted; r: `[B]` its error ratio (from `ratio`);
-            err_prev: `[B]` the history; accept: `[B]` bool, whether the step was accepted.
+            err_prev: `[B]` the history; accept: `[B]` bool, whether the step was accepted;
+            xp: their namespace (`host.py`).
 
         Returns:
             `(dt_next [B], err_prev [B])`; a rejection leaves the history as it was.
@@ -91,11 +95,11 @@ class IController(StepController):
     def for_order(cls, p: int) -> IController:
         return cls(beta1=1.0 / p)
 
-    def propose(self, h, r, err_prev, accept):
-        q = self.safety * r.pow(-self.beta1)
-        grow = q.clamp(self.factor_min, self.factor_max)
-        shrink = q.clamp(self.factor_min, self.safety)
-        return h * torch.where(accept, grow, shrink), err_prev
+    def propose(self, h, r, err_prev, accept, xp=TorchOps):
+        q = self.safety * xp.pow(r, -self.beta1)
+        grow = xp.clip(q, self.factor_min, self.factor_max)
+        shrink = xp.clip(q, self.factor_min, self.safety)
+        return h * xp.where(accept, grow, shrink), err_prev
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -120,13 +124,13 @@ class PIController(StepController):
     def initial_history(self) -> float:
         return self.err_prev_floor
 
-    def propose(self, h, r, err_prev, accept):
-        q = r.pow(-self.beta1)
-        grow = (self.safety * q * err_prev.pow(self.beta2)).clamp(self.factor_min,
-                                                                  self.factor_max)
-        shrink = (self.safety * q).clamp(self.factor_min, self.safety)
-        dt_next = h * torch.where(accept, grow, shrink)
-        return dt_next, torch.where(accept, r.clamp_min(self.err_prev_floor), err_prev)
+    def propose(self, h, r, err_prev, accept, xp=TorchOps):
+        q = xp.pow(r, -self.beta1)
+        grow = xp.clip(self.safety * q * xp.pow(err_prev, self.beta2), self.factor_min,
+                       self.factor_max)
+        shrink = xp.clip(self.safety * q, self.factor_min, self.safety)
+        dt_next = h * xp.where(accept, grow, shrink)
+        return dt_next, xp.where(accept, xp.clip(r, self.err_prev_floor), err_prev)
 
 
 CONTROLLERS: dict[str, type[StepController]] = {c.name: c for c in (PIController, IController)}

@@ -11,9 +11,10 @@ This module checks the arguments, flattens each sample's state to `[F]`, and han
 one of two loops over the same Runge–Kutta step (`runge_kutta.py`, recorded op by op by
 autograd, or `fused.py`, with a backward written for the tableau): `adaptive.py` (error
 control, dense output, an optional compiled step) or `fixed.py` (`fixed_dt`). The result
-types are in `solution.py`, the step-size controllers in `controller.py`. Given `restrict`,
-the adaptive solve compacts (`_Adaptive`): once most samples are done it restarts on the
-running ones, each from its own state, and merges their later outputs back.
+types are in `solution.py`, the step-size controllers in `controller.py`, and the adaptive
+step's small arithmetic, run in numpy on the CPU and in torch elsewhere, in `host.py`.
+Given `restrict`, the adaptive solve compacts (`_Adaptive`): once most samples are done it
+restarts on the running ones, each from its own state, and merges their later outputs back.
 """
 
 from __future__ import annotations
