@@ -35,6 +35,7 @@ import argparse
 import json
 import math
 import os
+import re
 import statistics
 import subprocess
 import sys
@@ -212,9 +213,18 @@ def write_table(args) -> None:
              "|---|---|---|---|---|---|---|---|---|"]
     behind: dict[str, dict[str, float]] = {}
     cost: dict[tuple[str, str], float] = {}
+    kept = _saved_rows(results_file(args))
     for system in args.all_systems:
         rows = {r: [x for x in (result(args, system, r, s) for s in args.all_seeds) if x]
                 for r in RECIPES}
+        if not any(rows.values()) and system in kept:
+            # No run of this system in the cache (a fresh checkout, or another machine's
+            # runs): keep its rows as the table had them rather than drop them.
+            lines += kept[system]["lines"]
+            if kept[system]["behind"]:
+                behind[system] = kept[system]["means"]
+            cost.update(kept[system]["cost"])
+            continue
         means = {r: statistics.mean(x["val"] for x in v) if v else math.nan
                  for r, v in rows.items()}
         ahead = "—"
@@ -242,6 +252,36 @@ def write_table(args) -> None:
     tmp = out.with_suffix(".md.tmp")
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(out)
+
+
+def _saved_rows(path: Path) -> dict[str, dict]:
+    """The rows of each system in an existing table (`write_table`'s format), with what
+    the notes below the table need of them: each recipe's mean validation MSE, whether
+    the paper's recipe was ahead, and the seconds per epoch of the budget's runs (the
+    budget's seconds over the mean epochs; time budget only)."""
+    if not path.exists():
+        return {}
+    saved: dict[str, dict] = {}
+    for line in path.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) != 9 or cells[1] not in RECIPES:
+            continue
+        system = cells[0].split(" (")[0]
+        if system not in SYSTEMS:
+            continue
+        entry = saved.setdefault(system, {"lines": [], "means": {}, "behind": False,
+                                          "cost": {}})
+        entry["lines"].append(line)
+        try:
+            entry["means"][cells[1]] = float(cells[4].split()[0])
+            epochs = float(cells[3].split()[0])
+        except ValueError:
+            continue
+        budget = re.search(r"Budget: ([0-9.]+) s of training", path.read_text())
+        if budget and epochs > 0:
+            entry["cost"][(system, cells[1])] = float(budget.group(1)) / epochs
+        entry["behind"] |= cells[1] == "paper" and cells[8] == "yes"
+    return saved
 
 
 def notes(behind: dict[str, dict[str, float]]) -> list[str]:
