@@ -18,7 +18,11 @@ must also hold. The table gives, per system and recipe, mean ± std over the
 seeds of the validation MSE at the budget and the test MSE, and says which recipe is ahead.
 
 Runs are cached: `--runs`/<budget>/<system>-<recipe>-s<seed>/ keeps its run folder, and a
-run that was cut off resumes (`mpnode train --resume`) where it stopped. Datasets are
+run that was cut off resumes (`mpnode train --resume`) where it stopped. Each run's numbers
+are also written beside the table (`recipes.json`, committed with it), and a table rebuilt
+where the cache lacks a run takes that run from there: seeds run on different machines or
+days add up. A system known only from the table's own rows (run before the records
+existed) keeps those rows. Datasets are
 generated once into `--data` (bench/.data, shared with bench/quality.py).
 
 Usage:
@@ -214,9 +218,19 @@ def write_table(args) -> None:
     behind: dict[str, dict[str, float]] = {}
     cost: dict[tuple[str, str], float] = {}
     kept = _saved_rows(results_file(args))
+    saved = _load_records(records_file(args))
+    records = {}
     for system in args.all_systems:
-        rows = {r: [x for x in (result(args, system, r, s) for s in args.all_seeds) if x]
-                for r in RECIPES}
+        rows = {}
+        for r in RECIPES:
+            got = []
+            for seed in sorted(set(args.all_seeds) | {k[2] for k in saved
+                                                       if k[:2] == (system, r)}):
+                x = result(args, system, r, seed) or saved.get((system, r, seed))
+                if x:
+                    got.append(x)
+                    records[(system, r, seed)] = x
+            rows[r] = got
         if not any(rows.values()) and system in kept:
             # No run of this system in the cache (a fresh checkout, or another machine's
             # runs): keep its rows as the table had them rather than drop them.
@@ -252,6 +266,37 @@ def write_table(args) -> None:
     tmp = out.with_suffix(".md.tmp")
     tmp.write_text("\n".join(lines) + "\n")
     tmp.replace(out)
+    _save_records(records_file(args), records)
+
+
+def records_file(args) -> Path:
+    """Each run's numbers beside the table (`<table>.json`), so that a table rebuilt where
+    the run cache lacks some runs (a fresh checkout, another machine) keeps them."""
+    return results_file(args).with_suffix(".json")
+
+
+def _load_records(path: Path) -> dict[tuple[str, str, int], dict]:
+    if not path.exists():
+        return {}
+    return {(r["system"], r["recipe"], r["seed"]): r["result"]
+            for r in json.loads(path.read_text())}
+
+
+def _save_records(path: Path, records: dict[tuple[str, str, int], dict]) -> None:
+    rows = [{"system": system, "recipe": recipe, "seed": seed,
+             "result": {**x, "curve": _thin(x["curve"])}}
+            for (system, recipe, seed), x in sorted(records.items())]
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(rows, indent=1) + "\n")
+    tmp.replace(path)
+
+
+def _thin(points: list, keep: int = 200) -> list:
+    """At most `keep` points of a curve, evenly spaced, its last point kept (the plot's)."""
+    if len(points) <= keep:
+        return [list(p) for p in points]
+    step = len(points) / keep
+    return [list(points[int(i * step)]) for i in range(keep - 1)] + [list(points[-1])]
 
 
 def _saved_rows(path: Path) -> dict[str, dict]:
@@ -333,8 +378,9 @@ def _fmt(value) -> str:
 
 
 def plot(args, system: str, rows: dict[str, list[dict]]) -> None:
-    """Best validation MSE against training seconds, each recipe and seed."""
-    if not any(rows.values()):
+    """Best validation MSE against training seconds, each recipe and seed (runs known only
+    from the saved records have no curve; with none, the figure is left as it is)."""
+    if not any(x["curve"] for got in rows.values() for x in got):
         return
     import matplotlib
 
@@ -343,7 +389,7 @@ def plot(args, system: str, rows: dict[str, list[dict]]) -> None:
 
     fig, ax = plt.subplots(figsize=(6, 3.6))
     for recipe, colour in zip(RECIPES, ("tab:blue", "tab:orange"), strict=True):
-        for i, got in enumerate(rows[recipe]):
+        for i, got in enumerate(x for x in rows[recipe] if x["curve"]):
             xs, ys = zip(*got["curve"], strict=True)
             ax.plot(xs, ys, color=colour, alpha=0.8, label=recipe if i == 0 else None)
     ax.set_yscale("log")
