@@ -306,8 +306,10 @@ def _saved_rows(path: Path) -> dict[str, dict]:
     budget's seconds over the mean epochs; time budget only)."""
     if not path.exists():
         return {}
+    text = path.read_text()
+    budget = re.search(r"Budget: ([0-9.]+) s of training", text)
     saved: dict[str, dict] = {}
-    for line in path.read_text().splitlines():
+    for line in text.splitlines():
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if len(cells) != 9 or cells[1] not in RECIPES:
             continue
@@ -322,7 +324,6 @@ def _saved_rows(path: Path) -> dict[str, dict]:
             epochs = float(cells[3].split()[0])
         except ValueError:
             continue
-        budget = re.search(r"Budget: ([0-9.]+) s of training", path.read_text())
         if budget and epochs > 0:
             entry["cost"][(system, cells[1])] = float(budget.group(1)) / epochs
         entry["behind"] |= cells[1] == "paper" and cells[8] == "yes"
