@@ -60,7 +60,11 @@ def fhn_reference(ds, k: int) -> np.ndarray:
     return np.stack([sol.y[:n].T, sol.y[n:].T], axis=-1)  # (T, N, 2)
 
 
-if os.environ.get("PYTEST_XDIST_WORKER"):
+if os.environ.get("MPNODE_TEST_TORCH_THREADS"):
+    # A numeric test must hold at any thread count (a reduction split over threads rounds
+    # otherwise): `MPNODE_TEST_TORCH_THREADS=2 make test` runs the suite that way.
+    torch.set_num_threads(int(os.environ["MPNODE_TEST_TORCH_THREADS"]))
+elif os.environ.get("PYTEST_XDIST_WORKER"):
     # `make test` runs two worker processes on a 2-core machine: at torch's default of one
     # thread per core they would oversubscribe it (the CLI's thread policy is the same rule).
     torch.set_num_threads(1)
