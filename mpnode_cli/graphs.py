@@ -16,7 +16,9 @@ is 10⁵ messages, against 10⁸ matrix entries). Three types carry graphs:
 - `EdgeBatch`: the graphs of B trajectories for torch (systems' and models' neighbour sums),
   each distinct graph's edges once plus which graph each trajectory runs on.
 
-Random graphs come from networkx with an explicit integer seed. The authors' graphs came
+Random graphs come from networkx with an explicit integer seed, except `s1`, which
+`mpnode_cli.s1_graph` draws with numpy (`np.random.default_rng(seed)`), in blocks of node
+pairs, so that neither networkx nor an N×N matrix is involved. The authors' graphs came
 from LightGraphs.jl (MersenneTwister streams) and cannot be reproduced from Python, which
 is why every dataset stores its adjacency (docs/systems.md).
 
@@ -36,6 +38,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mpnode_cli.s1_graph import s1_edges
 from mpnode_cli.textfiles import text_lines
 
 if TYPE_CHECKING:
@@ -60,7 +63,7 @@ MAX_NODES = 2**24
 # without newlines) is refused without reading it whole.
 _LINE_CHARS = 4096
 
-TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws")
+TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws", "s1")
 
 # Keyword arguments each topology accepts; anything else is a caller's mistake.
 _KWARGS: dict[str, tuple[str, ...]] = {
@@ -69,6 +72,7 @@ _KWARGS: dict[str, tuple[str, ...]] = {
     "er": ("p", "m_edges"),
     "ba": ("m",),
     "ws": ("k", "p"),
+    "s1": ("gamma", "beta", "mean_degree"),
 }
 
 
@@ -79,7 +83,11 @@ def make_graph(topology: str, n: int, seed: int, **kw: float) -> np.ndarray:
         topology: one of `TOPOLOGIES`: `complete`; `chain` (path 0-1-...-n-1); `er`
             Erdős–Rényi, with `p` (G(n, p)) or `m_edges` (G(n, M), exactly M edges);
             `ba` Barabási–Albert with `m` edges per new node; `ws` Watts–Strogatz with
-            ring degree `k` (k // 2 neighbours per side) and rewiring probability `p`.
+            ring degree `k` (k // 2 neighbours per side) and rewiring probability `p`;
+            `s1` the S¹ model (Serrano, Krioukov & Boguñá, PRL 100, 078701 (2008);
+            `mpnode_cli.s1_graph`) with degree exponent `gamma` > 2, clustering `beta` > 1
+            and mean hidden degree `mean_degree` = E[κ] in (0, n − 1) (near γ = 2 the
+            mean degree falls short of it at finite n; see `mpnode_cli.s1_graph`).
         n: number of nodes, at least 1.
         seed: seed of the random generators (ignored by deterministic topologies).
         **kw: the topology's parameters, as above.
@@ -91,6 +99,8 @@ def make_graph(topology: str, n: int, seed: int, **kw: float) -> np.ndarray:
         ValueError: unknown topology, missing/unexpected parameters, or parameters that
             the topology cannot satisfy at this size.
     """
+    if topology == "s1":
+        return _s1(n, seed, **kw).to_dense()
     import networkx as nx
 
     g = _nx_graph(topology, n, seed, **kw)
@@ -101,21 +111,28 @@ def make_edges(topology: str, n: int, seed: int, **kw: float) -> EdgeList:
     """The graph `make_graph` builds, as an edge list, without an `[n, n]` matrix.
 
     The same topology, size, seed and parameters give the same graph as `make_graph`
-    (networkx builds it either way); memory is O(n + E).
+    (networkx builds it either way, or `s1_edges` for `s1`); memory is O(n + E).
 
     Raises:
         ValueError: as `make_graph`.
     """
+    if topology == "s1":
+        return _s1(n, seed, **kw)
     g = _nx_graph(topology, n, seed, **kw)
     pairs = np.asarray(list(g.edges()), dtype=np.int64).reshape(-1, 2)  # [E_undirected, 2]
     return EdgeList.build(n, np.concatenate([pairs[:, 0], pairs[:, 1]]),
                           np.concatenate([pairs[:, 1], pairs[:, 0]]))
 
 
-def _nx_graph(topology: str, n: int, seed: int, **kw: float):
-    """The networkx graph of `make_graph` (arguments and errors as there)."""
-    import networkx as nx
+def _s1(n: int, seed: int, **kw: float) -> EdgeList:
+    """The `s1` graph of `make_graph`, drawn by `s1_edges` (arguments and errors as there)."""
+    _check_request("s1", n, kw)
+    gamma, beta, mean_degree = (float(_require(kw, name, "s1")) for name in _KWARGS["s1"])
+    return EdgeList.build(n, *s1_edges(n, seed, gamma, beta, mean_degree))
 
+
+def _check_request(topology: str, n: int, kw: dict[str, float]) -> None:
+    """Raise ValueError for an unknown topology, parameters it does not take, or n < 1."""
     if topology not in _KWARGS:
         raise ValueError(f"unknown topology '{topology}' (choose from: {', '.join(TOPOLOGIES)})")
     unexpected = sorted(set(kw) - set(_KWARGS[topology]))
@@ -127,6 +144,12 @@ def _nx_graph(topology: str, n: int, seed: int, **kw: float):
     if n < 1:
         raise ValueError(f"a graph needs at least 1 node, got n={n}")
 
+
+def _nx_graph(topology: str, n: int, seed: int, **kw: float):
+    """The networkx graph of `make_graph` (arguments and errors as there)."""
+    import networkx as nx
+
+    _check_request(topology, n, kw)
     if topology == "complete":
         g = nx.complete_graph(n)
     elif topology == "chain":
