@@ -22,6 +22,22 @@ def child_env(**extra: str) -> dict[str, str]:
     path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
     return {**os.environ, "PYTHONPATH": path, "OMP_NUM_THREADS": "1", **extra}
 
+def rounding_apart(steps, scale, dtype: torch.dtype = torch.float64):
+    """How far two solves that take the same steps may drift apart when their arithmetic
+    rounds differently: another batch size or composition (a matmul's blocking, a
+    vectorised against a scalar `pow`), another kernel, BLAS or thread count.
+
+    A step of an s-stage method (s ≤ 7 here) forms each stage and the update as sums of at
+    most s + 1 terms, so each path rounds a step's result by at most γ_{s+1}·|y| of its
+    own (Higham, *Accuracy and Stability of Numerical Algorithms*, 2nd ed., §4.2); two
+    paths by twice that, 16·u·|y|. The flow carries each step's deviation to the output
+    multiplied by its growth |∂y(t)/∂y(s)|. With `scale` a bound on |y| times that growth
+    over the solve, the outputs differ by at most 16·u·steps·scale (a number, or a tensor
+    of them broadcast against the outputs).
+    """
+    return 16 * torch.finfo(dtype).eps / 2 * steps * scale
+
+
 def doc_commands(text: str) -> list[list[str]]:
     """Every command of a markdown text's ```bash blocks, in order, as shell words: a line
     and its `\\`-continued lines make one command; `#` comments are dropped."""

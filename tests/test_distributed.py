@@ -145,8 +145,11 @@ def test_a_step_on_two_ranks_is_one_process_step(gene, tmp_path):
         one_step(gene, None, tmp_path / f"{name}-one.pt", batch=batch)
         two, one = (torch.load(tmp_path / f"{name}{s}.pt") for s in ("", "-one"))
         assert two["reason"] is None and one["reason"] is None
-        assert two["loss"] == pytest.approx(one["loss"], rel=1e-12), name
-        assert two["norm"] == pytest.approx(one["norm"], rel=1e-12), name
+        # Two half-batches summed against one backward over all 7: the same terms in
+        # another order. The gradient sums ~10³ row·step terms with cancellation, so its
+        # norm may move by n·u·cond ≈ 1e-12 (the loss by less): 1e-10 leaves a margin.
+        assert two["loss"] == pytest.approx(one["loss"], rel=1e-10), name
+        assert two["norm"] == pytest.approx(one["norm"], rel=1e-10), name
         assert one["norm"] > 5.0  # the clip acted, on the global norm
         for p, q, start in zip(two["params"], one["params"], one["before"], strict=True):
             torch.testing.assert_close(p, q, rtol=1e-12, atol=1e-14)
@@ -179,8 +182,11 @@ def nan_on_calls(fail_calls):
 
 
 def small(gene, run_dir, **kw) -> TrainConfig:
+    # float64: two ranks sum their gradients in another order than one process; in float32
+    # that flips an adaptive step's accept now and then, after which two runs differ by
+    # about the solver's tolerance (1e-4), the bound the runs are compared at.
     fields = {"dataset": gene, "run_dir": run_dir, "batch_size": 7, "epochs": 2,
-              "plots": False}
+              "plots": False, "dtype": "float64"}
     return TrainConfig(**(fields | kw))
 
 
@@ -239,7 +245,7 @@ def torchrun_run(gene, tmp_path_factory):
     out = subprocess.run(
         [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node",
          "2", "-m", "mpnode_cli", "train", str(gene), "--epochs", "2", "--batch-size", "7",
-         "--no-plots"],
+         "--no-plots", "--dtype", "float64"],
         cwd=cwd, env=child_env(), capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
     return cwd, out

@@ -127,7 +127,9 @@ def test_swarm_hovers_in_equilibrium(n):
     # The RA-L code's static tension m_L g / (N cos α): 4.65 N for three quads.
     torch.testing.assert_close(s, torch.full_like(s, P.m_load * P.g / (n * math.cos(alpha))))
     dy = swarm_rhs(y, w, n, P)
-    assert dy[:, : 13 * n + 6].abs().max() < 1e-11
+    # Zero up to the rounding of the cable LCP's tension, which `hover_state` solved another
+    # way (sqrt, LAPACK): ~2000 ulp of a ~5 N tension, ≈ 2e-12 on an AMD EPYC.
+    assert dy[:, : 13 * n + 6].abs().max() < 1e-10
     torch.testing.assert_close(dy[:, 13 * n + 6 :], s)  # the tension integrals grow at s
 
 

@@ -16,6 +16,7 @@ import torch
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
+from conftest import rounding_apart
 from mpnode_cli.solver import METHODS, Status, solve
 
 ADAPTIVE = [name for name, tableau in METHODS.items() if tableau.adaptive]
@@ -384,8 +385,16 @@ def test_each_sample_in_a_batch_equals_the_sample_solved_alone():
                       rtol=1e-8, atol=1e-10)
         assert alone.status[0] == sol.status[i]
         assert alone.stats["n_steps"][0] == sol.stats["n_steps"][i]
-        torch.testing.assert_close(alone.ys[0], sol.ys[i], rtol=1e-12, atol=1e-12,
-                                   equal_nan=True)
+        # A sample's arithmetic does not depend on its neighbours, but its rounding may
+        # (a vectorised against a scalar `pow`: 1.2% of float64 inputs differ in the last
+        # bit on an AMD EPYC). The growth of a deviation: at most e^{μ·t}-ish on the
+        # oscillators, and (x(t)/x(s))² on the blow-up x' = v + x² (x0 = 3): bounded by
+        # the sample's largest |x| over its start's, times that |x|.
+        size = sol.ys[i].abs().nan_to_num(0.0)
+        growth = 1 + size.amax() / y0[i].abs().amax()
+        bound = rounding_apart(sol.stats["n_steps"][i], (1 + size) * growth)
+        assert torch.equal(alone.ys[0].isnan(), sol.ys[i].isnan())
+        assert bool(((alone.ys[0] - sol.ys[i]).abs().nan_to_num(0.0) <= bound).all())
 
 
 def test_blow_up_is_marked_and_other_samples_succeed():

@@ -13,6 +13,7 @@ import pytest
 import torch
 from torch import nn
 
+from conftest import rounding_apart
 from mpnode_cli.solver import Status, solve
 from mpnode_cli.solver.options import SolverOptions
 
@@ -95,7 +96,11 @@ def test_lorenz_from_different_states_matches_scipy_and_the_uncompacted_solve(re
     assert len(restarts) == n + 1  # compact=False: one solve
     assert torch.equal(sol.stats["n_steps"], plain.stats["n_steps"])
     assert torch.equal(sol.stats["n_accepted"], plain.stats["n_accepted"])
-    torch.testing.assert_close(sol.ys, plain.ys, rtol=1e-12, atol=1e-12)
+    # Compaction changes the batch the field is evaluated on, so rounding may differ; Lorenz
+    # is chaotic (largest Lyapunov exponent ≈ 0.9, so growth ≤ e^{0.9·1.5} ≈ 4 here) on
+    # states up to ~50.
+    bound = rounding_apart(plain.stats["n_steps"][:, None, None], 50 * math.exp(0.9 * 1.5))
+    assert bool(((sol.ys - plain.ys).abs() <= bound).all())
     for i in (0, batch - 1):
         ref = solve_ivp(lambda t, y, s=float(speed[i]): s * lorenz(t, torch.tensor(y)).numpy(),
                         (0.0, 1.5),
@@ -165,7 +170,12 @@ def test_failures_and_tstops_keep_their_statuses_and_outputs(restarts):
     assert bool((sol.status[~blow] == Status.SUCCESS).all())
     for name in sol.stats:
         assert torch.equal(sol.stats[name], plain.stats[name]), name
-    torch.testing.assert_close(sol.ys, plain.ys, rtol=1e-12, atol=1e-15, equal_nan=True)
+    # The decays contract (growth 1, |y| ≤ 1); on the blow-ups y' = y² (y0 = 1) a deviation
+    # grows by (y(t)/y(s))², so the bound scales as y(t)² there.
+    size = plain.ys.abs().nan_to_num(0.0)
+    bound = rounding_apart(plain.stats["n_steps"][:, None, None], (1 + size) ** 2)
+    assert torch.equal(sol.ys.isnan(), plain.ys.isnan())
+    assert bool(((sol.ys - plain.ys).abs().nan_to_num(0.0) <= bound).all())
     exact = torch.exp(-lam[~blow, None] * ts)
     torch.testing.assert_close(sol.ys[~blow, :, 0], exact, rtol=1e-5, atol=1e-9)
     before = ts < 0.95
