@@ -13,10 +13,10 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import rounding_apart
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from conftest import rounding_apart
 from mpnode_cli.solver import METHODS, Status, solve
 
 ADAPTIVE = [name for name, tableau in METHODS.items() if tableau.adaptive]

@@ -11,9 +11,9 @@ import math
 
 import pytest
 import torch
+from conftest import rounding_apart
 from torch import nn
 
-from conftest import rounding_apart
 from mpnode_cli.solver import Status, solve
 from mpnode_cli.solver.options import SolverOptions
 
