@@ -80,6 +80,9 @@ if os.environ.get("MPNODE_TEST_TORCH_THREADS"):
     # A numeric test must hold at any thread count (a reduction split over threads rounds
     # otherwise): `MPNODE_TEST_TORCH_THREADS=2 make test` runs the suite that way.
     torch.set_num_threads(int(os.environ["MPNODE_TEST_TORCH_THREADS"]))
+    # The computing verbs set torch's threads from MPNODE_THREADS (default 1) for the rest
+    # of the process, and child processes read it too: the same count for them.
+    os.environ.setdefault("MPNODE_THREADS", os.environ["MPNODE_TEST_TORCH_THREADS"])
 elif os.environ.get("PYTEST_XDIST_WORKER"):
     # `make test` runs two worker processes on a 2-core machine: at torch's default of one
     # thread per core they would oversubscribe it (the CLI's thread policy is the same rule).
