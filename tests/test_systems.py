@@ -349,7 +349,8 @@ def test_system_graph_errors():
 
 
 def test_registry():
-    assert list(SYSTEMS) == ["pendulum", "lorenz", "gene", "kuramoto", "quadrotor"]
+    assert list(SYSTEMS) == ["pendulum", "lorenz", "gene", "kuramoto", "quadrotor",
+                             "sis", "mak", "mm", "bd", "nd"]
     for name, cls in SYSTEMS.items():
         system = get_system(name)
         assert isinstance(system, cls) and system.name == name

@@ -23,6 +23,7 @@ import math
 import sys
 from pathlib import Path
 
+from mpnode_cli.systems.barzel_barabasi import BD, MAK, MM, ND, SIS
 from mpnode_cli.systems.base import Option, System
 from mpnode_cli.systems.gene import Gene
 from mpnode_cli.systems.kuramoto import Kuramoto
@@ -33,7 +34,7 @@ from mpnode_cli.systems.quadrotor import Quadrotor
 ENTRY_POINT_GROUP = "mpnode.systems"
 
 SYSTEMS: dict[str, type[System]] = {
-    cls.name: cls for cls in (Pendulum, Lorenz, Gene, Kuramoto, Quadrotor)
+    cls.name: cls for cls in (Pendulum, Lorenz, Gene, Kuramoto, Quadrotor, SIS, MAK, MM, BD, ND)
 }
 # Systems registered from files in this process (`load_system_file`).
 _FILES: dict[str, type[System]] = {}
