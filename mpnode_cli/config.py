@@ -113,8 +113,9 @@ class GenerateConfig(BaseModel):
     Fields left `None` take the system's defaults in `resolve_config`.
 
     Attributes:
-        system: registry name (`pendulum`, `lorenz`, `gene`, `kuramoto`, `quadrotor`, or
-            a system of your own).
+        system: registry name (`mpnode_cli.systems.registry.SYSTEMS`: `pendulum`,
+            `lorenz`, `gene`, `kuramoto`, `quadrotor`, `sis`, `mak`, `mm`, `bd`, `nd`), or
+            a system of your own.
         system_file: the Python file that defines `system` when it is your own and not an
             installed entry point (`mpnode_cli.systems.registry.load_system_file`).
         params: scalar parameters and options of the system, e.g. `{"coupling": 1.0}` for

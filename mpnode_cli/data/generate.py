@@ -45,7 +45,12 @@ from mpnode_cli.data.shards import (
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
 from mpnode_cli.progress import Progress
 from mpnode_cli.systems.contract import CheckedSystem, named
-from mpnode_cli.systems.registry import grid_systems, load_system_file, system_class
+from mpnode_cli.systems.registry import (
+    grid_systems,
+    load_system_file,
+    sparse_systems,
+    system_class,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -230,7 +235,7 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         raise ValueError(
             f"system '{system.name}' needs its graph as an N×N matrix, which mpnode builds "
             f"for at most {DENSE_GRAPH_MAX_NODES} nodes, not {resolved.nodes}; systems that "
-            "run on edge lists: those with `sparse = True` (kuramoto, gene, pendulum)")
+            f"run on edge lists: {', '.join(sparse_systems())}")
     if not dry_run:
         return resolved
 

@@ -68,6 +68,12 @@ def system_class(name: str) -> type[System]:
                      "with --system-file FILE, docs/custom-systems.md)")
 
 
+def sparse_systems() -> list[str]:
+    """The built-in systems that run on edge lists (`System.sparse`), hence on graphs of
+    any size."""
+    return [name for name, cls in SYSTEMS.items() if cls.sparse]
+
+
 def grid_systems() -> list[str]:
     """The built-in systems whose nodes sit on a grid (`System.grid_layout`): those that
     take `grid`."""
