@@ -63,10 +63,18 @@ def _grid_systems() -> str:
 
 
 def _parameters() -> str:
+    """Each built-in system's parameters and defaults; the graph parameters that the
+    Barzel–Barabási family shares are named once, after them."""
+    from mpnode_cli.systems.barzel_barabasi import GRAPH_DEFAULTS, BarzelBarabasi
     from mpnode_cli.systems.registry import SYSTEMS
 
-    return "; ".join(f"{cls.name} " + ", ".join(f"{k} ({v:g})" for k, v in cls.defaults.items())
-                     for cls in SYSTEMS.values())
+    own = "; ".join(f"{cls.name} " + ", ".join(f"{k} ({v:g})" for k, v in cls.defaults.items()
+                                               if not issubclass(cls, BarzelBarabasi)
+                                               or k not in GRAPH_DEFAULTS)
+                    for cls in SYSTEMS.values())
+    family = [cls.name for cls in SYSTEMS.values() if issubclass(cls, BarzelBarabasi)]
+    return (f"{own}; and {', '.join(family)} take the graph's "
+            + ", ".join(f"{k} ({v:g})" for k, v in GRAPH_DEFAULTS.items()))
 
 
 # The declarations that take more than a line, so that the command's signature reads as
