@@ -1,48 +1,39 @@
-"""Transfer benchmark: a node model trained on small graphs, run zero-shot on larger ones.
+"""Transfer benchmark: node models trained on small graphs, run zero-shot on larger ones, and
+scored against an oracle trained on the target's own distribution.
 
-For each system, one model is trained on small graphs with `mpnode train` (the defaults, or
-the options a variant is about) and run with `mpnode zeroshot` on graphs about 2× and 4×
-larger, with higher in-degrees, and on another topology. Every MSE (normalized, t₀
-excluded) stands beside the two naive predictors on the same trajectories (hold x(0), the
-train split's time mean) and the ratio to the model's own test error; each row is the mean
-± std over `--seeds` training seeds (the data are fixed).
+Protocols (docs/transfer.md has the whole of it):
+- size: each system's small training graphs → graphs 2× and 4× larger (and another
+  topology for gene and kuramoto); the BB systems from BA 16 → 32, 64.
+- s1: Laber, Eliassi-Rad & Klein (2026): the five Barzel–Barabási systems (sis, mak, mm,
+  bd, nd) trained on 64-node S¹ graphs, zero-shot on 1024 and 4096 nodes (8192 with
+  `--n8192`), for γ = 2.1, 2.5, 3.5.
 
-Systems:
-- kuramoto: BA 10 → BA 20, BA 40, ER 20. Every dataset uses graph seed 0, so its natural
-  frequencies ω (drawn per graph seed, docs/systems.md) are the same: ω is not part of a
-  node's state, and a model can only carry it over if it is shared.
-- gene: BA 9 → BA 18, BA 36, WS 18 (mean degree about N/2, so the in-degrees grow with N).
-- pendulum: a chain of 3 → chains of 6 and 12. (From a chain of 2, where every node has one
-  neighbour, no model can learn how the springs' pull grows with a second one.)
-- lorenz: complete graphs of 3 → 6 and 12 nodes.
-- fhn: FitzHugh–Nagumo as a plug-in (`examples/fitzhugh_nagumo.py`), BA 10 → 20, 40.
-- grid: swing-equation power grids through `mpnode import` (`bench/power_grid.py`),
-  BA 10 → 20, 40, with each node's constant power as a control.
-(docs/own-systems.md describes the last two.)
-
-Variants: `default` (no options: what a user gets); on the pendulum `mlp-sum` (the paper's
-MLP update over the sum, its previous default); and on kuramoto and gene the choices the
-default was picked against: `pna` (PNA with the paper's MLP update, the previous default), `mean`
-(the paper's), and `l2s` (Learning to Simulate, CI-sized as in `bench/quality.py`, trained
-for the wall time of the `default` run of the same seed).
+Jobs: a source model per (bench, seed); for each target an oracle (the same recipe trained
+on a dataset of the target's kind with as many node-trajectories as the source's, until its
+validation stops improving for `--oracle-patience` epochs and for at least the source's wall
+time) and a zero-shot scoring; both are scored on the target's test split in physical units
+(`transfer_score.score`). Each job writes its record JSON under `--runs`; a rerun skips
+finished jobs; the table (`bench/results/transfer.md`) and the committed copy of the
+records (`bench/results/transfer.json`) are rebuilt from the records alone.
 
 Usage:
-    .venv/bin/python bench/transfer.py --plan              # the time estimate only
-    .venv/bin/python bench/transfer.py --only kuramoto,gene --variants default,pna
-    .venv/bin/python bench/transfer.py --table-only        # rebuild the table from results
-Cached results live in `--runs` (bench/.runs/transfer/<system>-<variant>-s<seed>/); the
-table is rebuilt from every cached result and written to `bench/results/transfer.md`.
+    .venv/bin/python bench/transfer.py --plan                     # core-hours, nothing runs
+    .venv/bin/python bench/transfer.py --set selection --jobs 2
+    .venv/bin/python bench/transfer.py --systems sis,mm --only-protocol s1 --gammas 2.1,2.5
+    .venv/bin/python bench/transfer.py --table-only               # rebuild from the records
+    .venv/bin/python bench/transfer.py --scale smoke --systems gene,sis --seeds 0 --gammas 2.5
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
-import statistics
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -51,330 +42,432 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-from quality import L2S_CI, ROOT, epochs_to_budget, git_commit, mpnode, schedule  # noqa: E402
+from quality import ROOT, command, git_commit, mpnode, priorities, schedule  # noqa: E402
+from transfer_specs import (  # noqa: E402
+    BB,
+    EVAL_SECONDS,
+    GAMMAS,
+    PROCESS_SECONDS,
+    SETS,
+    SYSTEMS,
+    VARIANTS,
+    Bench,
+    Data,
+    curriculum_share,
+    epoch_seconds,
+    generate_seconds,
+    s1_bench,
+    set_of,
+    size_bench,
+)
+from transfer_table import rebuild, write_json  # noqa: E402
 
-RESULTS = HERE / "results" / "transfer.md"
-FHN = ("--system-file", str(ROOT / "examples" / "fitzhugh_nagumo.py"), "--topology", "ba")
-EVAL_SECONDS = 25.0  # a job's zero-shot runs and process starts, for the plan
+FHN_FILE = ROOT / "examples" / "fitzhugh_nagumo.py"
+NEVER = 10**9  # `--stop-patience` of an oracle run: the bench applies the patience itself
+MAX_STAGES = 400  # resumes of one oracle at most
+ORACLE_EPOCHS = {"full": 4000, "smoke": 40}  # an oracle's epoch cap (the recipe's epochs)
 
 
-@dataclass(frozen=True)
-class Bench:
-    """One system's datasets and budget.
+@dataclass
+class Job:
+    """One unit of work: a dataset to generate, or a training or scoring with a record.
 
     Attributes:
-        datasets: name → `mpnode generate` arguments (or `("grid", N, K, seed,
-            graph_seed, graphs)` for `bench/power_grid.py`), the training set first.
-        targets: label ("x2", "x4", "other") → dataset name.
-        epochs: the training budget. s_per_epoch: planning estimate (one core).
-        variants: the variants run on this system.
+        name: the record's path under `--runs` without `.json` (a dataset: "gen:<name>").
+        seconds: planning estimate (one core); cap: its upper bound.
+        deps: jobs it waits for. work: does it. done: whether its output exists.
     """
 
     name: str
-    datasets: dict[str, tuple[Any, ...]]
-    targets: dict[str, str]
-    epochs: int
-    s_per_epoch: float
-    variants: tuple[str, ...] = ("default",)
+    system: str
+    seconds: float
+    deps: tuple[str, ...]
+    work: Callable[[], Any]
+    done: Callable[[], bool]
+    cap: float | None = None
 
 
-def _gen(system: str, nodes: int, topology: str, k: int, graphs: int = 1,
-         graph_seed: int = 0, seed: int = 0) -> tuple[str, ...]:
-    return (system, "--nodes", str(nodes), "--topology", topology, "--trajectories", str(k),
-            "--graphs", str(graphs), "--graph-seed", str(graph_seed), "--seed", str(seed))
+# ------------------------------------------------------------------------------ data
 
 
-COMPARED = ("default", "pna", "mean", "l2s")
-ORDER = (*COMPARED, "mlp-sum")
-BENCHES = {b.name: b for b in [
-    Bench("kuramoto", {
-        "kuramoto-ba10": _gen("kuramoto", 10, "ba", 500),
-        "kuramoto-ba20": _gen("kuramoto", 20, "ba", 100, seed=1),
-        "kuramoto-ba40": _gen("kuramoto", 40, "ba", 100, seed=2),
-        "kuramoto-er20": _gen("kuramoto", 20, "er", 100, seed=3)},
-        {"x2": "kuramoto-ba20", "x4": "kuramoto-ba40", "other": "kuramoto-er20"},
-        150, 1.0, COMPARED),
-    Bench("gene", {
-        "gene-ba9": _gen("gene", 9, "ba", 300, graphs=10),
-        "gene-ba18": _gen("gene", 18, "ba", 100, graphs=5, graph_seed=100, seed=1),
-        "gene-ba36": _gen("gene", 36, "ba", 100, graphs=5, graph_seed=200, seed=2),
-        "gene-ws18": _gen("gene", 18, "ws", 100, graphs=5, graph_seed=300, seed=3)},
-        {"x2": "gene-ba18", "x4": "gene-ba36", "other": "gene-ws18"}, 100, 0.8, COMPARED),
-    Bench("pendulum", {
-        "pendulum-chain3": _gen("pendulum", 3, "chain", 500),
-        "pendulum-chain6": _gen("pendulum", 6, "chain", 100, seed=1),
-        "pendulum-chain12": _gen("pendulum", 12, "chain", 100, seed=2)},
-        {"x2": "pendulum-chain6", "x4": "pendulum-chain12"}, 150, 4.0,
-        ("default", "mlp-sum")),
-    Bench("lorenz", {
-        "lorenz-k3": _gen("lorenz", 3, "complete", 500),
-        "lorenz-k6": _gen("lorenz", 6, "complete", 100, seed=1),
-        "lorenz-k12": _gen("lorenz", 12, "complete", 100, seed=2)},
-        {"x2": "lorenz-k6", "x4": "lorenz-k12"}, 100, 3.0),
-    Bench("fhn", {
-        "fhn-ba10": (*FHN, "--nodes", "10", "--graphs", "8", "--trajectories", "400"),
-        "fhn-ba20": (*FHN, "--nodes", "20", "--graphs", "4", "--trajectories", "100",
-                     "--seed", "1", "--graph-seed", "100"),
-        "fhn-ba40": (*FHN, "--nodes", "40", "--graphs", "4", "--trajectories", "100",
-                     "--seed", "2", "--graph-seed", "200")},
-        {"x2": "fhn-ba20", "x4": "fhn-ba40"}, 100, 1.0),
-    Bench("grid", {
-        "grid-ba10": ("grid", 10, 400, 0, 0, 8),
-        "grid-ba20": ("grid", 20, 100, 1, 100, 4),
-        "grid-ba40": ("grid", 40, 100, 2, 200, 4)},
-        {"x2": "grid-ba20", "x4": "grid-ba40"}, 100, 1.5),
-]}
-VARIANT_OPTIONS = {
-    "default": (),
-    "pna": ("--aggregate", "pna", "--update", "mlp", "--message-init", "zero"),
-    "mean": ("--aggregate", "mean", "--update", "mlp", "--message-init", "zero"),
-    "l2s": L2S_CI,
-    "mlp-sum": ("--aggregate", "sum", "--update", "mlp", "--message-init", "zero"),
-}
+def data_path(args, d: Data) -> Path:
+    return args.data / f"{d.name}.h5"
 
 
-def data_path(args, name: str) -> Path:
-    return args.data / f"{name}.h5"
-
-
-def generate(args, bench: Bench) -> None:
-    """Make the bench's datasets that are not there yet."""
+def generate(args, d: Data) -> None:
+    """Write dataset `d` (to a temporary name, renamed when complete)."""
+    path = data_path(args, d)
+    if path.is_file():
+        return
     args.data.mkdir(parents=True, exist_ok=True)
-    for name, spec in bench.datasets.items():
-        path = data_path(args, name)
-        if path.is_file():
-            continue
-        log = args.data / f"{name}.log"
-        if spec[0] == "grid":
-            from power_grid import make_dataset
+    tmp = path.with_name(f"{d.name}.partial.h5")
+    tmp.unlink(missing_ok=True)
+    if d.system == "grid":
+        from power_grid import make_dataset
 
-            _, nodes, k, seed, graph_seed, graphs = spec
-            make_dataset(path, nodes=nodes, trajectories=k, seed=seed, graph_seed=graph_seed,
-                         graphs=graphs)
-        else:
-            mpnode("generate", *spec, "--out", path, "-y", log=log)
-
-
-def in_degrees(path: Path) -> tuple[int, int]:
-    """The smallest and largest in-degree over every node of every graph in a dataset."""
-    import numpy as np
-
-    from mpnode_cli.data.dataset import TrajectoryData
-
-    degree = np.asarray(TrajectoryData.load(path).graphs.in_degree())  # (G, N)
-    return int(degree.min()), int(degree.max())
-
-
-def run_job(args, bench: Bench, variant: str, seed: int) -> dict[str, Any]:
-    """Train one model and run it zero-shot on the bench's targets; write `result.json`."""
-    folder = args.runs / f"{bench.name}-{variant}-s{seed}"
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
-    log, run = folder / "log.txt", folder / "run"
-    train = data_path(args, next(iter(bench.datasets)))
-    common = (train, "--seed", seed, "--run-dir", run, "--no-plots", *VARIANT_OPTIONS[variant])
-    clock: dict[str, float] = {}
-    budget = None
-    if variant == "l2s":  # the default run's wall time, in stages (bench/quality.py)
-        ref = json.loads((args.runs / f"{bench.name}-default-s{seed}" / "result.json")
-                         .read_text())
-        budget = ref["train_seconds"]
-        mpnode("train", *common, "--epochs", 2, log=log, clock=clock)
-        for _ in range(16):
-            more = epochs_to_budget(run, budget)
-            if more < 1:
-                break
-            done = json.loads((run / "summary.json").read_text())["epochs"]
-            mpnode("train", "--resume", run, "--epochs", done + more, log=log, clock=clock)
+        make_dataset(tmp, nodes=d.nodes, trajectories=d.k, seed=d.seed,
+                     graph_seed=d.graph_seed, graphs=d.graphs, split=d.fractions())
     else:
-        mpnode("train", *common, "--epochs", bench.epochs * args.scale, log=log, clock=clock)
+        head = (("--system-file", FHN_FILE) if d.system == "fhn" else (d.system,))
+        extra = [x for key, v in d.params for x in ("-p", f"{key}={v:g}")]
+        split = ("--split", d.fractions()) if d.counts else ()
+        mpnode("generate", *head, "--nodes", d.nodes, "--topology", d.topology,
+               "--trajectories", d.k, "--graphs", d.graphs, "--graph-seed", d.graph_seed,
+               "--seed", d.seed, *extra, *split, "--threads", 1, "--out", tmp, "-y",
+               log=args.data / f"{d.name}.log")
+    tmp.replace(path)
+
+
+# ------------------------------------------------------------------------------ jobs
+
+
+def job_name(args, bench: Bench, seed: int, what: str) -> str:
+    return f"{bench.key}/{args.variant}/s{seed}/{what}"
+
+
+def record_path(args, name: str) -> Path:
+    return args.runs / f"{name}.json"
+
+
+def read_record(args, name: str) -> dict[str, Any]:
+    return json.loads(record_path(args, name).read_text())
+
+
+def base_record(args, bench: Bench, seed: int, kind: str, label: str,
+                d: Data) -> dict[str, Any]:
+    what = kind if kind == "source" else f"{kind}-{label}"
+    return {"job": job_name(args, bench, seed, what), "kind": kind,
+            "protocol": bench.protocol, "system": bench.system, "set": set_of(bench.system),
+            "gamma": bench.gamma, "variant": args.variant, "seed": seed, "label": label,
+            "dataset": d.name, "nodes": d.nodes, "trajectories": d.split(),
+            "scale": args.scale, "date": datetime.now().isoformat(timespec="seconds"),
+            "commit": git_commit()}
+
+
+def run_state(run: Path) -> tuple[int, int, float]:
+    """(epochs done, best epoch, training seconds) of a run, from its `metrics.jsonl`:
+    the best epoch is the first of the lowest validation loss, as `mpnode train` keeps."""
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    best, best_loss = 0, math.inf
+    for row in rows:
+        loss = row.get("val_loss")
+        if loss is not None and math.isfinite(loss) and loss < best_loss:
+            best, best_loss = row["epoch"], loss
+    return rows[-1]["epoch"], best, sum(r.get("seconds") or 0.0 for r in rows)
+
+
+def stop_reason(epochs: int, best: int, seconds: float, floor: float, patience: int,
+                cap_seconds: float, cap_epochs: int) -> str | None:
+    """Why an oracle stops now: "patience" (no better validation for `patience` epochs,
+    after at least `floor` seconds, the source's wall time), "time cap", "epoch cap";
+    None: train on."""
+    if seconds >= floor and epochs - best >= patience:
+        return "patience"
+    if seconds >= cap_seconds:
+        return "time cap"
+    if epochs >= cap_epochs:
+        return "epoch cap"
+    return None
+
+
+def oracle_chunk(patience: int) -> int:
+    """Epochs an oracle trains per resume once past the source's wall time."""
+    return max(2, math.ceil(patience / 4))
+
+
+def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
+    """Train the source model (fresh) and write its record."""
+    name = job_name(args, bench, seed, "source")
+    run = args.runs / name
+    shutil.rmtree(run, ignore_errors=True)
+    run.parent.mkdir(parents=True, exist_ok=True)
+    clock: dict[str, float] = {}
+    mpnode("train", data_path(args, bench.source), "--epochs", bench.epochs, "--seed", seed,
+           "--run-dir", run, "--no-plots", "--threads", 1, *VARIANTS[args.variant],
+           log=run.parent / "log.txt", clock=clock)
     summary = json.loads((run / "summary.json").read_text())
-    targets = [data_path(args, name) for name in bench.targets.values()]
-    report = json.loads(mpnode("zeroshot", run / "checkpoints" / "best.pt", *targets,
-                               "--split", "all", "--json", log=log))
-    rows = {"own": {"mse": summary["test"]["mse"], **(summary.get("baselines") or {}),
-                    "degree": in_degrees(train)}}
-    for label, name, row in zip(bench.targets, bench.targets.values(), report["datasets"],
-                                strict=True):
-        rows[label] = {"dataset": name, "mse": row["result"]["mse"],
-                       "failed": row["result"]["failed"], **(row.get("baselines") or {}),
-                       "degree": in_degrees(data_path(args, name)),
-                       "states_outside": (row.get("extrapolation") or {}).get(
-                           "states_outside_fraction")}
-    metrics = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
-    result = {"system": bench.name, "variant": variant, "seed": seed,
-              "epochs": summary["epochs"], "best_epoch": summary["best_epoch"],
-              "train_seconds": sum(r["seconds"] for r in metrics),
-              "budget_seconds": budget, "cpu_seconds": clock.get("cpu"),
-              "process_seconds": clock.get("wall"), "model": summary["model"],
-              "options": list(VARIANT_OPTIONS[variant]), "scale": args.scale,
-              "date": datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
-              "rows": rows}
-    (folder / "result.json").write_text(json.dumps(result, indent=2) + "\n")
-    return result
+    epochs, best, seconds = run_state(run)
+    record = {**base_record(args, bench, seed, "source", "own", bench.source),
+              "epochs": epochs, "best_epoch": best, "train_seconds": seconds,
+              "cpu_seconds": clock.get("cpu"), "process_seconds": clock.get("wall"),
+              "model": summary["model"], "options": list(VARIANTS[args.variant])}
+    write_json(record_path(args, name), record)
+    return record
 
 
-# ------------------------------------------------------------------------------ the table
+def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
+    """Train the oracle of one target (resuming a run cut off before), score it on the
+    target's test split, and write its record.
+
+    It trains for at least the source's wall time, then in chunks of a quarter of the
+    patience, until its best validation is `--oracle-patience` epochs old or a cap is hit
+    (`stop_reason`); `mpnode train --stop-patience` cannot say "not before", so the run
+    itself gets a patience it never reaches."""
+    d, name = bench.targets[label], job_name(args, bench, seed, f"oracle-{label}")
+    floor = read_record(args, job_name(args, bench, seed, "source"))["train_seconds"]
+    run, log = args.runs / name, args.runs / name.rsplit("/", 1)[0] / "log.txt"
+    cap_s, cap_e = args.oracle_cap * floor, ORACLE_EPOCHS[args.scale]
+    chunk, clock = oracle_chunk(args.oracle_patience), {}
+    if not (run / "checkpoints" / "last.pt").is_file():
+        shutil.rmtree(run, ignore_errors=True)
+        mpnode("train", data_path(args, d), "--epochs", cap_e, "--time-limit", floor,
+               "--stop-patience", NEVER, "--seed", seed, "--run-dir", run, "--no-plots",
+               "--threads", 1, *VARIANTS[args.variant], log=log, clock=clock)
+    reason = None
+    for _ in range(MAX_STAGES):
+        epochs, best, seconds = run_state(run)
+        reason = stop_reason(epochs, best, seconds, floor, args.oracle_patience, cap_s, cap_e)
+        if reason:
+            break
+        target = cap_e if seconds < floor else min(epochs + chunk, cap_e)
+        mpnode("train", "--resume", run, "--epochs", target, "--time-limit",
+               floor if seconds < floor else cap_s, "--no-plots", log=log, clock=clock)
+        if run_state(run)[0] == epochs:
+            reason = "stalled"
+            break
+    epochs, best, seconds = run_state(run)
+    result = score_in_worker(run / "checkpoints" / "best.pt", data_path(args, d), None, log)
+    record = {**base_record(args, bench, seed, "oracle", label, d), "epochs": epochs,
+              "best_epoch": best, "train_seconds": seconds, "source_seconds": floor,
+              "stopped_by": reason or "stages", "patience": args.oracle_patience,
+              "cap_seconds": cap_s, "cap_epochs": cap_e, "cpu_seconds": clock.get("cpu"),
+              "process_seconds": clock.get("wall"), "score": result}
+    write_json(record_path(args, name), record)
+    return record
 
 
-def _stat(values: list[float]) -> str:
-    if not values:
-        return "—"
-    mean = statistics.fmean(values)
-    std = statistics.stdev(values) if len(values) > 1 else 0.0
-    return f"{mean:.3g} ± {std:.2g}"
+def zeroshot(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
+    """Score the source model on a target's test split ("own": its own) and write it."""
+    d = bench.source if label == "own" else bench.targets[label]
+    name = job_name(args, bench, seed, f"zeroshot-{label}")
+    source = args.runs / job_name(args, bench, seed, "source")
+    result = score_in_worker(source / "checkpoints" / "best.pt", data_path(args, d), None,
+                             source.parent / "log.txt")
+    record = {**base_record(args, bench, seed, "zeroshot", label, d), "score": result}
+    write_json(record_path(args, name), record)
+    return record
 
 
-def table(args) -> str:
-    """The markdown table of every cached result, one row per system and variant."""
-    results: dict[tuple[str, str], list[dict[str, Any]]] = {}
-    for path in sorted(args.runs.glob("*/result.json")):
-        r = json.loads(path.read_text())
-        results.setdefault((r["system"], r["variant"]), []).append(r)
-    head = ("| system | variant | seeds | train in-degree | own test | ×2: MSE (÷ own) | "
-            "×4: MSE (÷ own) | other: MSE (÷ own) | time mean own / ×2 / ×4 | "
-            "hold x(0) own / ×2 / ×4 | ×4 states outside | train s |")
-    lines = [head, "|" + "---|" * (head.count("|") - 1)]
-    for (system, variant), runs in sorted(results.items(), key=lambda kv: (
-            list(BENCHES).index(kv[0][0]), ORDER.index(kv[0][1]))):
-        own = [r["rows"]["own"]["mse"] for r in runs]
-        cells = []
-        for label in ("x2", "x4", "other"):
-            present = [r for r in runs if label in r["rows"]]
-            if not present:
-                cells.append("—")
-                continue
-            row0 = present[0]["rows"][label]
-            mses = [r["rows"][label]["mse"] for r in present]
-            ratios = [r["rows"][label]["mse"] / r["rows"]["own"]["mse"] for r in present]
-            lo, hi = row0["degree"]
-            cells.append(f"{_stat(mses)} (×{statistics.fmean(ratios):.2f}); "
-                         f"{row0['dataset']}, in-degree {lo}–{hi}")
-        base = {key: " / ".join(f"{runs[0]['rows'][lab].get(key, float('nan')):.3g}"
-                                for lab in ("own", "x2", "x4") if lab in runs[0]["rows"])
-                for key in ("time_mean", "hold_x0")}
-        outside = runs[0]["rows"].get("x4", {}).get("states_outside")
-        lo, hi = runs[0]["rows"]["own"]["degree"]
-        lines.append(
-            f"| {system} | {variant} | {len(runs)} | {lo}–{hi} | {_stat(own)} | "
-            + " | ".join(cells)
-            + f" | {base['time_mean']} | {base['hold_x0']} | "
-            + (f"{outside:.1%}" if outside is not None else "0%")
-            + f" | {statistics.fmean(r['train_seconds'] for r in runs):.0f} |")
+def score_in_worker(checkpoint: Path, dataset: Path, range_from: Path | None,
+                    log: Path) -> dict[str, Any]:
+    """`transfer_score.score` in a process of its own, on one thread."""
+    out = command([sys.executable, str(Path(__file__).resolve()), "--score", str(checkpoint),
+                   str(dataset), str(range_from or "-")], log)
+    return json.loads(out.strip().splitlines()[-1])
+
+
+# ------------------------------------------------------------------------------ planning
+
+
+def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
+    """The jobs of one bench and seed: its datasets, source, oracles and scorings."""
+    src = bench.source
+    per_epoch = epoch_seconds(bench.system, src, src)
+    train_s = bench.epochs * per_epoch * curriculum_share(bench.system, bench.epochs)
+    source = job_name(args, bench, seed, "source")
+    jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
+                lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())
+            for d in (src, *bench.targets.values())]
+
+    def recorded(name: str) -> Callable[[], bool]:
+        return lambda: record_path(args, name).is_file()
+
+    jobs.append(Job(source, bench.system, train_s + PROCESS_SECONDS, (f"gen:{src.name}",),
+                    lambda: train_source(args, bench, seed), recorded(source)))
+    for label, d in {"own": src, **bench.targets}.items():
+        name = job_name(args, bench, seed, f"zeroshot-{label}")
+        jobs.append(Job(name, bench.system, EVAL_SECONDS, (source, f"gen:{d.name}"),
+                        lambda label=label: zeroshot(args, bench, seed, label),
+                        recorded(name)))
+        if label == "own":
+            continue
+        name = job_name(args, bench, seed, f"oracle-{label}")
+        oracle_epoch = epoch_seconds(bench.system, d, src)
+        expected = max(train_s, (bench.epochs + args.oracle_patience) * oracle_epoch)
+        chunk = oracle_chunk(args.oracle_patience)
+        stages = math.ceil(max(0.0, expected - train_s) / oracle_epoch / chunk)
+        seconds = expected + (1 + stages) * PROCESS_SECONDS + EVAL_SECONDS
+        jobs.append(Job(name, bench.system, seconds, (source, f"gen:{d.name}"),
+                        lambda label=label: train_oracle(args, bench, seed, label),
+                        recorded(name), cap=max(seconds, args.oracle_cap * train_s
+                                                + (2 + stages) * PROCESS_SECONDS)))
+    return jobs
+
+
+def all_jobs(args) -> dict[str, Job]:
+    """Every job the filters select, datasets shared between benches once."""
+    smoke = args.scale == "smoke"
+    jobs: dict[str, Job] = {}
+    for seed in args.seeds:
+        for system in args.systems:
+            benches = []
+            if args.only_protocol in (None, "size"):
+                benches.append(size_bench(system, smoke))
+            if system in BB and args.only_protocol in (None, "s1"):
+                benches += [s1_bench(system, g, seed, smoke, args.n8192) for g in args.gammas]
+            for bench in benches:
+                for job in bench_jobs(args, bench, seed):
+                    jobs.setdefault(job.name, job)
+    return jobs
+
+
+def plan(args, jobs: dict[str, Job]) -> str:
+    """Core-hours per system, per set and in all (expected; the oracles' caps in
+    brackets), what is left of them, and the wall time on `--jobs` workers."""
+    def hours(selected: list[Job], left: bool = False) -> tuple[float, float]:
+        chosen = [j for j in selected if not (left and j.done())]
+        return (sum(j.seconds for j in chosen) / 3600,
+                sum(j.cap or j.seconds for j in chosen) / 3600)
+
+    lines = [f"{'core-hours':18s} {'jobs':>5s} {'expected':>9s} {'(cap)':>8s} {'left':>8s}"]
+
+    def line(label: str, selected: list[Job]) -> None:
+        exp, cap = hours(selected)
+        lines.append(f"{label:18s} {len(selected):5d} {exp:9.2f} {cap:8.2f} "
+                     f"{hours(selected, left=True)[0]:8.2f}")
+
+    for system in args.systems:
+        line(system, [j for j in jobs.values() if j.system == system])
+    for name, members in SETS.items():
+        line(f"set {name}", [j for j in jobs.values() if j.system in members])
+    line("total", list(jobs.values()))
+    left = {n: (j.seconds, tuple(d for d in j.deps if d in jobs and not jobs[d].done()))
+            for n, j in jobs.items() if not j.done()}
+    lines.append(f"wall time left on {args.jobs} workers (one thread each): about "
+                 f"{schedule(left, args.jobs) / 3600:.2f} h (expected; oracles may run up to "
+                 f"their caps, {args.oracle_cap:g}× their source's wall time)")
     return "\n".join(lines)
 
 
-def write_table(args, quiet: bool = False) -> None:
-    body = table(args)
-    if not quiet:
-        print(body)
-    if args.out:
-        text = (f"# Transfer: trained on small graphs, zero-shot on larger ones\n\n"
-                f"Written by `bench/transfer.py` on {datetime.now():%Y-%m-%d}; each row is "
-                f"mean ± std over its seeds (training seeds; the data are fixed). MSE in "
-                f"normalized units, t₀ excluded; ÷ own is the mean over seeds of the "
-                f"target's MSE over the model's own test MSE. Time mean and hold x(0) are "
-                f"the naive predictors on the same trajectories (seed 0's run). "
-                f"'×4 states outside' is the share of the ×4 target's state values outside "
-                f"the training states' range. 'train s' is the seconds of training (the "
-                f"sum of its epochs), which is also the budget each `l2s` row trains for "
-                f"(the `default` run of the same seed). {args.note}\n\n{body}\n")
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.out)
+# ------------------------------------------------------------------------------ running
 
 
-# ------------------------------------------------------------------------ out of range
+def run_jobs(args, jobs: dict[str, Job], report: Callable[[str], None]) -> list[str]:
+    """Run the jobs not done yet, `--jobs` at a time, each when its dependencies are done
+    (highest `priorities` first); a failed job's dependents are skipped. Returns the
+    failures."""
+    done = {n for n, j in jobs.items() if j.done()}
+    rank = priorities({n: (j.seconds, j.deps) for n, j in jobs.items()})
+    pending = sorted((n for n in jobs if n not in done), key=lambda n: -rank[n])
+    failed: list[str] = []
+    broken: set[str] = set()
+    running: dict[Any, str] = {}
+    with ThreadPoolExecutor(args.jobs) as pool:
+        while pending or running:
+            for name in list(pending):
+                deps = jobs[name].deps
+                if any(d in broken for d in deps):
+                    pending.remove(name)
+                    broken.add(name)
+                    failed.append(f"{name}: skipped (a dependency failed)")
+                elif len(running) < args.jobs and all(d in done for d in deps):
+                    pending.remove(name)
+                    running[pool.submit(jobs[name].work)] = name
+                    report(f"start {name}")
+            if not running:
+                break
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in finished:
+                name = running.pop(future)
+                try:
+                    future.result()
+                    done.add(name)
+                    report(f"done  {name}")
+                except Exception as exc:  # one broken job must not stop the others
+                    broken.add(name)
+                    failed.append(f"{name}: {exc}")
+                    report(f"FAIL  {name}: {exc}")
+                if not name.startswith("gen:"):
+                    report(write_table(args))
+    return failed
 
 
-def in_range_report(checkpoint: Path, dataset: Path) -> dict[str, Any]:
-    """Split a zero-shot error by whether a node's true states stay in the training range.
-
-    A node whose states leave the range its model was trained on asks the model for its
-    own dynamics where it has none; its error says nothing about the coupling's transfer.
-    Returns the share of state values outside, and the MSE (normalized, t₀ excluded) over
-    the nodes that stay inside and over those that leave, with their counts.
-    """
-    import numpy as np
-
-    from mpnode_cli.data.dataset import TrajectoryData
-    from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.predict import roll_out
-
-    ckpt, data = load_checkpoint(checkpoint), TrajectoryData.load(dataset)
-    x = data.states.double().numpy()  # (K, T, N, D)
-    pred = roll_out(ckpt, x[:, 0], data.time.numpy(), data.graphs, data.graph_index.numpy())
-    std = ckpt.build_normalizer().x_std.double().numpy()  # (D,)
-    err = ((pred.states[:, 1:] - x[:, 1:]) / std) ** 2  # (K, T-1, N, D)
-    lo, hi = np.asarray(ckpt.dataset["train_range"]["states"]).T  # (D,), (D,)
-    outside = (x < lo) | (x > hi)  # (K, T, N, D)
-    node_out = outside.any(axis=(1, 3))  # (K, N): leaves the range at some time
-    per_node = err.mean(axis=(1, 3))  # (K, N)
-    degree = np.asarray(data.graphs.in_degree())[data.graph_index.numpy()]  # (K, N)
-    return {"dataset": dataset.name, "states_outside": float(outside.mean()),
-            "mse": float(per_node.mean()),
-            "in_range_mse": float(per_node[~node_out].mean()) if (~node_out).any() else None,
-            "in_range_nodes": int((~node_out).sum()),
-            "out_of_range_mse": float(per_node[node_out].mean()) if node_out.any() else None,
-            "out_of_range_nodes": int(node_out.sum()),
-            "in_degree": [int(degree.min()), int(degree.max())],
-            "train_in_degree": ckpt.dataset["train_range"]["in_degree"]}
+def write_table(args) -> str:
+    return rebuild(args.runs, args.records, args.out, args.note)
 
 
 # ------------------------------------------------------------------------------ main
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--only", help="systems, comma-separated (default: all)")
-    p.add_argument("--variants", help="variants, comma-separated (default: each system's)")
-    p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--workers", type=int, default=2)
-    p.add_argument("--scale", type=int, default=1, help="multiply every epoch budget")
-    p.add_argument("--data", type=Path, default=HERE / ".data" / "transfer")
-    p.add_argument("--runs", type=Path, default=HERE / ".runs" / "transfer")
-    p.add_argument("--out", type=Path, default=RESULTS)
+def parse(argv) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--set", choices=(*SETS, "all"), default="all")
+    p.add_argument("--systems", help=f"comma-separated, of {','.join(SYSTEMS)} "
+                   "(default: the set's)")
+    p.add_argument("--seeds", default="0,1,2", help="training seeds, comma-separated")
+    p.add_argument("--gammas", default=",".join(map(str, GAMMAS)), help="S¹ γ values")
+    p.add_argument("--only-protocol", choices=("size", "s1"))
+    p.add_argument("--n8192", action="store_true", help="S¹: also zero-shot on 8192 nodes")
+    p.add_argument("--variant", choices=VARIANTS, default="default")
+    p.add_argument("--jobs", type=int, default=2, help="parallel workers, one thread each")
+    p.add_argument("--scale", choices=("full", "smoke"), default="full")
+    p.add_argument("--smoke", action="store_const", const="smoke", dest="scale")
+    p.add_argument("--oracle-patience", type=int, help="epochs without a better validation "
+                   "that stop an oracle (default 200, the recipe's --stop-patience; smoke 2)")
+    p.add_argument("--oracle-cap", type=float, help="an oracle stops at this many times "
+                   "its source's wall time (default 8; smoke 3)")
+    p.add_argument("--data", type=Path)
+    p.add_argument("--runs", type=Path)
+    p.add_argument("--out", type=Path, help="the table (default bench/results/transfer.md)")
+    p.add_argument("--records", type=Path, help="the committed copy of the records")
     p.add_argument("--plan", action="store_true", help="print the estimate and stop")
     p.add_argument("--table-only", action="store_true", help="rebuild the table and stop")
-    p.add_argument("--note", default="", help="a sentence for the table's header "
-                   "(say how busy the machine was)")
-    p.add_argument("--again", action="store_true",
-                   help="rerun jobs that have a result already (default: keep them)")
+    p.add_argument("--note", default="", help="a sentence for the table's header")
     p.add_argument("--in-range", nargs=2, type=Path, metavar=("CHECKPOINT", "DATASET"),
-                   help="print the zero-shot error split by nodes in and out of the "
-                   "training states' range (JSON), and stop")
+                   help="print a zero-shot error split by nodes in and out of the training "
+                   "range (JSON; transfer_score.in_range_report), and stop")
+    p.add_argument("--score", nargs=3, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    smoke = args.scale == "smoke"
+    tail = "transfer-smoke" if smoke else "transfer"
+    args.data = (args.data or HERE / ".data" / tail).resolve()
+    args.runs = (args.runs or HERE / ".runs" / tail).resolve()
+    results = args.runs if smoke else HERE / "results"  # a smoke run's never replace these
+    args.out = args.out or results / "transfer.md"
+    args.records = args.records or results / "transfer.json"
+    if args.oracle_patience is None:
+        args.oracle_patience = 2 if smoke else 200
+    if args.oracle_cap is None:
+        args.oracle_cap = 3.0 if smoke else 8.0
+    members = SYSTEMS if args.set == "all" else SETS[args.set]
+    args.systems = args.systems.split(",") if args.systems else list(members)
+    if unknown := [s for s in args.systems if s not in SYSTEMS]:
+        p.error(f"unknown system {', '.join(unknown)} (of {', '.join(SYSTEMS)})")
+    args.seeds = [int(s) for s in args.seeds.split(",")]
+    args.gammas = [float(g) for g in args.gammas.split(",")]
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse(argv)
+    if args.score:
+        from transfer_score import score
+
+        ckpt, data, range_from = args.score
+        print(json.dumps(score(Path(ckpt), Path(data),
+                               None if range_from == "-" else Path(range_from))))
+        return 0
     if args.in_range:
+        from transfer_score import in_range_report
+
         print(json.dumps(in_range_report(*args.in_range)))
         return 0
-    benches = [BENCHES[n] for n in (args.only.split(",") if args.only else BENCHES)]
-    wanted = set(args.variants.split(",")) if args.variants else None
-    jobs = [(b, v, s) for b in benches for v in b.variants if wanted is None or v in wanted
-            for s in range(args.seeds)
-            if args.again or not (args.runs / f"{b.name}-{v}-s{s}" / "result.json").is_file()]
-    estimate = {f"{b.name}-{v}-s{s}": (b.epochs * args.scale * b.s_per_epoch + EVAL_SECONDS,
-                                       (f"{b.name}-default-s{s}",) if v == "l2s" else ())
-                for b, v, s in jobs}
-    print(f"{len(jobs)} trainings, about {schedule(estimate, args.workers) / 60:.0f} min on "
-          f"{args.workers} cores (one thread each)")
+    if args.table_only:
+        print(write_table(args))
+        return 0
+    jobs = all_jobs(args)
+    print(plan(args, jobs), flush=True)
     if args.plan:
         return 0
-    if not args.table_only:
-        for bench in benches:
-            generate(args, bench)
-        first = [j for j in jobs if j[1] != "l2s"]
-        then = [j for j in jobs if j[1] == "l2s"]
-        started = time.perf_counter()
-        for batch in (first, then):
-            with ThreadPoolExecutor(args.workers) as pool:
-                for done in pool.map(lambda j: run_job(args, *j), batch):
-                    print(f"{done['system']}-{done['variant']}-s{done['seed']}: own "
-                          f"{done['rows']['own']['mse']:.4g} after "
-                          f"{time.perf_counter() - started:.0f} s", flush=True)
-                    write_table(args, quiet=True)  # what is done so far, as it lands
-    write_table(args)
-    return 0
+
+    def report(line: str) -> None:
+        print(f"[{time.strftime('%H:%M:%S')}] {line}", flush=True)
+
+    failed = run_jobs(args, jobs, report)
+    report(write_table(args))
+    for line in failed:
+        report(f"not done: {line}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
