@@ -24,6 +24,7 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "pna": ("--aggregate", "pna", "--update", "mlp", "--message-init", "zero"),
     "mean": ("--aggregate", "mean", "--update", "mlp", "--message-init", "zero"),
     "mlp-sum": ("--aggregate", "sum", "--update", "mlp", "--message-init", "zero"),
+    "linear-path": ("--linear-path",),  # the default beside a linear path per node network
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the

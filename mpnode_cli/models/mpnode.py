@@ -23,6 +23,9 @@ linear in the neighbour sum, what it learns from nodes of degree 1–8 holds at 
 messages' own dynamics see the mean, so their feedback gain does not grow with the degree.
 `message_init="learned"` starts the message states from a learned function of
 `[x_i(t₀), u_i(t₀)]` instead of zero, for coupling that acts from the first instant.
+`linear_path=True` (off by default) adds a linear map of its input beside each of these
+MLPs (`mpnode_cli.models.base.LinearPathMLP`), zero at first: where states leave the
+training range the tanh MLPs saturate, the linear path goes on linearly.
 
 Settled where the paper is vague (MPNODE.jl, exps/models.jl:92-95 and src/empde.jl): input
 order `[x, u, m̄]` and the authors' widths (hidden 32, two tanh layers, M = 3); the whole
@@ -59,7 +62,8 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             MLP; graph ("sys" or "full"); messages (False clamps incoming messages to zero,
             the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
             update ("mlp", the paper's, or "affine"); message_init ("zero", the paper's,
-            or "learned"); backend ("auto", "dense" or "scatter").
+            or "learned"); linear_path (a linear map beside each MLP, off by default);
+            backend ("auto", "dense" or "scatter").
     """
 
     kind: ClassVar[str] = "mpnode"
@@ -79,14 +83,15 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M);
             # a second one, ψ, is what a node sends: a function of its own [x, u, m].
             self.net = mlp(d + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
-                           o.activation)
-            self.emit = mlp(d + control_dim + m, o.hidden, 1, m, o.activation)
+                           o.activation, o.linear_path)
+            self.emit = mlp(d + control_dim + m, o.hidden, 1, m, o.activation, o.linear_path)
             with torch.no_grad():  # G = 0: training starts from uncoupled nodes
                 self.net[-1].weight[d + m:].zero_()
         else:
-            self.net = mlp(d + control_dim + c, o.hidden, o.layers, d + m, o.activation)
+            self.net = mlp(d + control_dim + c, o.hidden, o.layers, d + m, o.activation,
+                           o.linear_path)
         if o.message_init == "learned":
-            self.init_net = mlp(d + control_dim, o.hidden, 1, m, o.activation)
+            self.init_net = mlp(d + control_dim, o.hidden, 1, m, o.activation, o.linear_path)
         self._register_degree_statistic()
 
     def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:

@@ -83,6 +83,10 @@ class MPNODEOptions(ModelOptions):
     message_init: MessageInit = Field("zero", description=(
         "Message states at t₀: zero (the paper's) or learned, a function of the node's "
         "x(t₀), u(t₀), for coupling that acts from the start."))
+    linear_path: bool = Field(False, description=(
+        "Add a learned linear map of its input beside each MLP of the node networks, zero "
+        "at first: far outside the training range (a hub's summed input, large states) the "
+        "field then grows linearly where the MLP alone saturates."))
     backend: Backend = Field(
         "auto", description="How aggregation is computed (auto picks by graph size).")
 

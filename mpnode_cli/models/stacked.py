@@ -6,8 +6,9 @@ parameters are stacked (`[S, ...]`) and swapped into one member for the call
 ordinary weight they are torch's; with a stacked one (`weight.dim()` one more than
 torch's) the input's leading rows are member-major (member k's rows k·R … (k+1)·R − 1 of
 S·R), so `x.reshape(S, R, in)` lines each member's rows up with its weight, and the layer
-applies each member's weights to its rows as one batched matmul. Everything else a model
-does acts row by row already.
+applies each member's weights to its rows as one batched matmul (`linear` does the same
+for a weight that is a model's own parameter, as an MLP's linear path). Everything else a
+model does acts row by row already.
 
 A solve that goes on with some members' rows only (compaction, `NeuralODEModel.rollout`)
 calls its right-hand side under `StackedLayers.keep`, and the layers then take those
@@ -96,13 +97,18 @@ def stacked_layer_norm(x: torch.Tensor, shape, weight: torch.Tensor,
     return out.reshape(normed.shape)
 
 
+def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+    """`F.linear`, which also takes stacked `[S, out, in]` weights (module docstring)."""
+    if weight.dim() == 3:
+        return stacked_linear(x, _kept(weight), _kept(bias))
+    return F.linear(x, weight, bias)
+
+
 class Linear(nn.Linear):
     """`nn.Linear`, which also takes stacked `[S, out, in]` weights (module docstring)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.weight.dim() == 3:
-            return stacked_linear(x, _kept(self.weight), _kept(self.bias))
-        return F.linear(x, self.weight, self.bias)
+        return linear(x, self.weight, self.bias)
 
 
 class LayerNorm(nn.LayerNorm):
