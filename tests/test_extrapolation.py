@@ -70,11 +70,16 @@ def test_the_checkpoint_records_the_train_split_range(trained):
 
 def test_quiet_on_the_training_graphs_and_states(trained):
     ckpt = load_checkpoint(trained["ckpt"])
-    row = evaluate_checkpoint(ckpt, TrajectoryData.load(trained["chain"]), split="train")
+    data = TrajectoryData.load(trained["chain"])
+    row = evaluate_checkpoint(ckpt, data, split="train")
     assert row["extrapolation"] == {
         "in_degree": [1, 2], "train_in_degree": [1, 2], "num_nodes": [4, 4],
         "train_num_nodes": [4, 4], "outside": False, "states_outside_fraction": 0.0,
-        "note": None}
+        "note": None,
+        # node by node (tests/test_extrapolation_nodes.py): none outside
+        "node_states": "true", "trajectory_nodes": 4 * len(data.subset("train")),
+        "trajectory_nodes_outside": 0, "nodes_outside": 0, "state_outside": 0,
+        "in_degree_outside": 0, "worst": []}
     result = invoke("evaluate", trained["ckpt"], trained["chain"], "--split", "train")
     assert result.exit_code == 0, result.output
     assert "extrapolating" not in result.output

@@ -90,6 +90,7 @@ def evaluate_command(
     if row["data_note"]:
         console().print(f"note: {row['data_note']}", highlight=False)
     extrapolation_note(row)
+    extrapolated_nodes(row)
     for path in [*row["plots"], *([row["predictions"]] if row["predictions"] else [])]:
         typer.echo(f"wrote {path}")
 
@@ -125,6 +126,7 @@ def zeroshot_command(
         console().print(baselines_note(note))
     for row in rows:
         extrapolation_note(row, Path(row["dataset"]).name)
+        extrapolated_nodes(row, Path(row["dataset"]).name)
 
 
 def compare_command(
@@ -143,6 +145,20 @@ def compare_command(
         typer.echo(json.dumps(summaries, indent=2))
         return
     console().print(compare_table(summaries))
+
+
+def extrapolated_nodes(row: dict[str, Any], name: str | None = None) -> None:
+    """Print on stderr the nodes of a result (evaluate, zeroshot, simulate) outside the
+    training range, if any: a count and the worst few
+    (`mpnode_cli.training.extrapolation.node_lines`); `name` (the target's) leads the
+    count where several targets are reported."""
+    from mpnode_cli.training.extrapolation import node_lines
+
+    lines = node_lines(row.get("extrapolation"))
+    if lines and name:
+        lines[0] = f"{name}: {lines[0]}"
+    for line in lines:
+        typer.echo(line, err=True)
 
 
 def _load_checkpoint(path: Path, member: int | None = None):

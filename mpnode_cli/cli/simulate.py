@@ -63,6 +63,7 @@ def simulate_command(
     from dataclasses import asdict
 
     from mpnode_cli.cli.common import config_from, with_bar
+    from mpnode_cli.cli.evaluate import extrapolated_nodes
     from mpnode_cli.config import SimulateConfig
     from mpnode_cli.devices import torch_device
     from mpnode_cli.training.predict import PredictionFailed, simulate
@@ -91,4 +92,5 @@ def simulate_command(
     if summary.members:
         console().print(f"the states are the mean of the ensemble's {summary.members} "
                         "members; their std is hidden/ensemble_std", highlight=False)
-    extrapolation_note(asdict(summary))
+    extrapolation_note(record)
+    extrapolated_nodes(record)

@@ -97,6 +97,10 @@ class Dataset(NodeSizes):
         solver_n_f_evals: int32 `[K]`, right-hand-side evaluations of each trajectory.
         controls: `[K, T, N, U]` zero-order-hold controls, or None when U = 0.
         hidden: unobserved states besides the nodes, each `[K, T, ...]`.
+        extrapolation: uint8 `[K, N]` per-node flags of a prediction file (`mpnode
+            simulate`): bit 0 a predicted state outside the training range, bit 1 an
+            in-degree outside it (`mpnode_cli.training.extrapolation.NodeExtrapolation.flags`);
+            None (not written) otherwise.
         extra_attrs: further root attributes (e.g. `n_rejected`, `n_failed`).
         mpnode_version, created_utc: filled in by the writer when None.
     """
@@ -118,6 +122,7 @@ class Dataset(NodeSizes):
     solver_n_f_evals: np.ndarray | None = None
     controls: np.ndarray | None = None
     hidden: dict[str, np.ndarray] = field(default_factory=dict)
+    extrapolation: np.ndarray | None = None
     extra_attrs: dict[str, Any] = field(default_factory=dict)
     mpnode_version: str | None = None
     created_utc: str | None = None
@@ -260,6 +265,8 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None,
     n_f_evals = np.zeros(k) if ds.solver_n_f_evals is None else ds.solver_n_f_evals
     f.create_dataset("solver/status", data=np.asarray(status, dtype=np.int8))
     f.create_dataset("solver/n_f_evals", data=np.asarray(n_f_evals, dtype=np.int32))
+    if ds.extrapolation is not None:
+        f.create_dataset("extrapolation", data=np.asarray(ds.extrapolation, dtype=np.uint8))
 
 
 def _check_shapes(ds: Dataset) -> None:
@@ -275,6 +282,8 @@ def _check_shapes(ds: Dataset) -> None:
         expected["controls"] = (ds.controls, (k, t, n, len(ds.control_names)))
     for name, value in ds.hidden.items():
         expected[f"hidden/{name}"] = (value, (k, t, *value.shape[2:]))
+    if ds.extrapolation is not None:
+        expected["extrapolation"] = (ds.extrapolation, (k, n))
     if ds.graphs.num_nodes != n:
         raise ValueError(f"the graphs have {ds.graphs.num_nodes} nodes, the states {n}")
     for name, (array, shape) in expected.items():
@@ -355,6 +364,7 @@ def read_dataset(path: str | Path) -> Dataset:
             solver_n_f_evals=f["solver/n_f_evals"][()] if "solver/n_f_evals" in f else None,
             controls=f["controls"][()] if has_controls else None,
             hidden={name: v[()] for name, v in f["hidden"].items()} if "hidden" in f else {},
+            extrapolation=f["extrapolation"][()] if "extrapolation" in f else None,
             extra_attrs={key: v for key, v in attrs.items() if key not in _ROOT_ATTRS},
             mpnode_version=attrs["mpnode_version"],
             created_utc=attrs["created_utc"],

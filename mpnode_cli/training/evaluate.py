@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
@@ -490,8 +491,9 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         baselines_note (where the time mean came from), plots, predictions (the file
         written, or None), data_note (when the dataset itself holds a model's
         predictions rather than ground truth), and extrapolation (the split against the
-        checkpoint's training range, `Extrapolation.to_dict`; None for a checkpoint
-        without one).
+        checkpoint's training range, as a whole and node by node by the true states,
+        `Extrapolation.to_dict`, its worst nodes' `trajectory` their row in the file;
+        None for a checkpoint without one).
 
     Raises:
         ValueError: incompatible per-node sizes, or an empty split.
@@ -502,7 +504,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     subset = data.subset(split)
     if len(subset) == 0:
         raise ValueError(f"{data.path.name} has no trajectories in its {split} split")
-    beyond = data_extrapolation(ckpt, subset)
+    beyond = data_extrapolation(ckpt, subset, trajectory=np.asarray(_file_indices(data, split)))
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
     options = {"solver": rollout_solver(ckpt), "device": device}
     passes = 1 if save_predictions is None else 2

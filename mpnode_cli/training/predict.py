@@ -14,6 +14,10 @@ any h5py reader take them as they take data:
   members) in physical units;
 - `solver/status` and `solver/n_f_evals` the rollouts' (RHS evaluations: the maximum
   within each trajectory's batch);
+- `extrapolation [K, N]` (simulate, for a checkpoint that records its training range):
+  uint8 per-node flags, bit 0 (`STATE_OUTSIDE`) a predicted state outside the training
+  range at some sample, bit 1 (`IN_DEGREE_OUTSIDE`) an in-degree outside the training
+  in-degrees (`mpnode_cli.training.extrapolation.NodeExtrapolation.flags`);
 - `system`, `state_names` and `control_names` are those of the checkpoint's training data,
   so that `evaluate` takes the file without `--allow-other-system`;
 - the root attribute `prediction` (JSON) says what made the file: the checkpoint's path and
@@ -37,7 +41,7 @@ import torch
 
 from mpnode_cli.config import stored_solver, train_solver
 from mpnode_cli.data.generate import Estimate, check_memory
-from mpnode_cli.data.hdf5 import Dataset, fingerprint, write_dataset
+from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, fingerprint, write_dataset
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.models.base import model_dtype
 from mpnode_cli.models.ensemble import EnsembleRollout
@@ -164,11 +168,34 @@ def _batch_graph(graphs: Graphs, graph_index: np.ndarray, device):
     return graphs.batch(graph_index, device)
 
 
+def check_finished(pred: Predicted) -> None:
+    """Raise `PredictionFailed` when some rollout did not finish or is not finite."""
+    failed = np.flatnonzero((pred.status != 0)
+                            | ~np.isfinite(pred.states).reshape(len(pred.states), -1).all(1))
+    if len(failed):
+        from mpnode_cli.solver import Status
+
+        first = Status(int(pred.status[failed[0]])) if pred.status[failed[0]] else None
+        why = f" ({first.name}: {first.message})" if first is not None else ""
+        raise PredictionFailed(
+            f"{len(failed)} of {len(pred.status)} rollouts did not finish (the first: "
+            f"trajectory {int(failed[0])}{why}); their predictions are not finite, so no "
+            "file was written")
+
+
+def _in_blocks(states: np.ndarray):
+    """`[K, T, N, D]` predictions as tensors of a few trajectories each (views, no copy),
+    for `mpnode_cli.training.extrapolation.extrapolation`."""
+    rows = max(1, BLOCK_VALUES // max(int(np.prod(states.shape[1:])), 1))
+    return (torch.from_numpy(states[start:start + rows])
+            for start in range(0, len(states), rows))
+
+
 def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarray,
                       graphs: Graphs, graph_index: np.ndarray, controls: np.ndarray | None = None,
                       split: np.ndarray | None = None, config: dict[str, Any],
                       source: dict[str, Any], dtype: str = "float32",
-                      overwrite: bool = False) -> Path:
+                      overwrite: bool = False, node_flags: np.ndarray | None = None) -> Path:
     """Write predictions as an `mpnode-dataset` file (see the module docstring).
 
     Args:
@@ -184,21 +211,13 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         source: what the rollouts started from (JSON-able), stored in `prediction`.
         dtype: storage dtype of states, messages and controls.
         overwrite: replace an existing regular file.
+        node_flags: uint8 `[K, N]` the nodes outside the training range, stored as
+            `extrapolation` (`NodeExtrapolation.flags`), or None (not stored).
 
     Raises:
         PredictionFailed: some rollouts did not finish (nothing is written).
     """
-    failed = np.flatnonzero((pred.status != 0)
-                            | ~np.isfinite(pred.states).reshape(len(pred.states), -1).all(1))
-    if len(failed):
-        from mpnode_cli.solver import Status
-
-        first = Status(int(pred.status[failed[0]])) if pred.status[failed[0]] else None
-        why = f" ({first.name}: {first.message})" if first is not None else ""
-        raise PredictionFailed(
-            f"{len(failed)} of {len(pred.status)} rollouts did not finish (the first: "
-            f"trajectory {int(failed[0])}{why}); their predictions are not finite, so no "
-            "file was written")
+    check_finished(pred)
     k = len(pred.states)
     used, graph_index = np.unique(np.asarray(graph_index), return_inverse=True)
     graphs = graphs.take(used)
@@ -232,6 +251,7 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         hidden=hidden, graphs=graphs, graph_index=graph_index,
         split=np.full(k, 2, dtype=np.uint8) if split is None else np.asarray(split, np.uint8),
         solver_status=pred.status, solver_n_f_evals=pred.n_f_evals,
+        extrapolation=node_flags,
         extra_attrs={"prediction": json.dumps(record, sort_keys=True),
                      "fingerprint": fingerprint(states, graphs, graph_index, time)},
     )
@@ -246,7 +266,8 @@ class SimulateSummary:
         path: the prediction file. trajectories, samples, nodes: K, T, N.
         graphs: distinct graphs. n_f_evals: vector-field evaluations, summed over
             trajectories. seconds: wall time of the rollouts.
-        extrapolation: the graphs against the checkpoint's training range
+        extrapolation: the graphs and the predicted states against the checkpoint's
+            training range, as a whole and node by node
             (`mpnode_cli.training.extrapolation.Extrapolation.to_dict`), or None for a
             checkpoint without one.
         members: S of an ensemble whose mean was written (with `hidden/ensemble_std`);
@@ -329,6 +350,8 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
     pred = roll_out(ckpt, x0, ts, graphs, graph_index, controls,
                     batch_size=config.batch_size, device=config.device, progress=progress)
     seconds = clock.perf_counter() - start
+    check_finished(pred)
+    beyond = extrapolation(ckpt, graphs, graph_index, _in_blocks(pred.states), predicted=True)
     sources = {name: {"path": str(Path(path).resolve()), "sha256": file_sha256(path)}
                for name in ("x0", "adjacency", "edge_list", "controls")
                if (path := getattr(config, name)) is not None}
@@ -337,8 +360,8 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
                       controls=controls, config={"verb": "simulate", **resolved,
                                                  "topology": _topology(config)},
                       source=sources, dtype=config.dtype,
-                      overwrite=True)  # over the reservation `simulate` made
-    beyond = extrapolation(ckpt, graphs, graph_index)
+                      overwrite=True,  # over the reservation `simulate` made
+                      node_flags=None if beyond is None else beyond.nodes.flags)
     return SimulateSummary(path=out, trajectories=k, samples=len(ts), nodes=n,
                            graphs=len(graphs), n_f_evals=int(pred.n_f_evals.sum()),
                            seconds=seconds,
