@@ -243,6 +243,7 @@ class ImportConfig(BaseModel):
         seed: seed of the split (`numpy.random.default_rng([seed, 1])`, as generate).
         dtype: storage dtype of `states` and `controls`.
         out: output file (default `datasets/<states file stem>.h5`).
+        periodic: the state names that are angles (the dataset's `periodic_states`).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -259,6 +260,7 @@ class ImportConfig(BaseModel):
     seed: int = Field(0, ge=0, le=SEED_MAX)
     dtype: Literal["float32", "float64"] = "float32"
     out: Path | None = None
+    periodic: list[str] = Field(default_factory=list)
 
     _parse_split = field_validator("split", mode="before")(_split_fractions)
     _check_split = field_validator("split")(_valid_split)

@@ -47,7 +47,7 @@ def test_the_file_holds_edges_and_reads_everywhere(trained):
     data = trained["data"]
     with h5py.File(data) as f:
         assert "graph/adjacency" not in f
-        assert f.attrs["format_version"] == 2
+        assert f.attrs["format_version"] == 3
         edges, counts = f["graph/edges"][()], f["graph/num_edges"][()]
     a = make_graph("ba", N, seed=0, m=5)  # the default graph seed's BA graph, m = 5
     assert counts.tolist() == [int(a.sum())]

@@ -265,7 +265,7 @@ def test_cli_generates_every_system(tmp_path, monkeypatch, system):
 
     info = runner.invoke(app, ["info", str(files[0])])
     assert info.exit_code == 0, info.output
-    assert system in info.stdout and "mpnode-dataset v2" in info.stdout
+    assert system in info.stdout and "mpnode-dataset v3" in info.stdout
 
 
 def test_cli_preset_config_file_and_options_layer(tmp_path):

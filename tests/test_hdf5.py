@@ -1,4 +1,4 @@
-"""Dataset files (format v2): round trip, atomic writes, and refusal of foreign or newer files."""
+"""Dataset files (format v3): round trip, atomic writes, and refusal of foreign or newer files."""
 
 from __future__ import annotations
 
@@ -73,10 +73,11 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(back.solver_n_f_evals, ds.solver_n_f_evals)
 
 
-def test_layout_matches_format_v2(tmp_path):
+def test_layout_matches_format_v3(tmp_path):
     path = write_dataset(tmp_path / "d.h5", _dataset())
     with h5py.File(path) as f:
-        assert f.attrs["format"] == "mpnode-dataset" and f.attrs["format_version"] == 2
+        assert f.attrs["format"] == "mpnode-dataset" and f.attrs["format_version"] == 3
+        assert json.loads(f.attrs["periodic_states"]) == []
         assert (f.attrs["num_nodes"], f.attrs["node_dim"], f.attrs["control_dim"]) == (N, D, U)
         assert json.loads(f.attrs["state_names"]) == ["a", "b"]
         assert json.loads(f.attrs["config"])["system"] == "toy"
@@ -145,8 +146,8 @@ def test_interrupted_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
 def test_newer_version_is_rejected(tmp_path):
     path = write_dataset(tmp_path / "d.h5", _dataset())
     with h5py.File(path, "a") as f:
-        f.attrs["format_version"] = 3
-    with pytest.raises(DatasetFormatError, match=r"version 3, newer.*upgrade mpnode"):
+        f.attrs["format_version"] = 4
+    with pytest.raises(DatasetFormatError, match=r"version 4, newer.*upgrade mpnode"):
         read_dataset(path)
     with pytest.raises(DatasetFormatError, match="newer"):
         read_header(path)
@@ -275,8 +276,8 @@ def test_version_1_files_read_with_their_edges(tmp_path, n):
         counts = np.array([np.count_nonzero(m) for m in mats], np.int64)
         as_read = as_written = senders.tobytes() + receivers.tobytes() + counts.tobytes()
     assert TrajectoryData.load(path).fingerprint == expected(as_read)
-    # Written again, it is a version-2 file of the same data (matrices now stored as uint8).
+    # Written again, it is a version-3 file of the same data (matrices now stored as uint8).
     again = write_dataset(tmp_path / "v2.h5", ds)
     with h5py.File(again) as f:
-        assert f.attrs["format_version"] == 2 and ("graph/adjacency" in f) == (n <= 256)
+        assert f.attrs["format_version"] == 3 and ("graph/adjacency" in f) == (n <= 256)
     assert TrajectoryData.load(again).fingerprint == expected(as_written)

@@ -35,6 +35,10 @@ def import_command(
         "else x0, x1, ...)."),
     control_names: str | None = typer.Option(
         None, help="Comma-separated names of the U controls (default u0, u1, ...)."),
+    periodic: list[str] | None = typer.Option(
+        None, "--periodic", help="A state that is an angle (mod 2π), by name; repeat for "
+        "more. Recorded as the dataset's periodic_states (docs/dataset-format.md).",
+        show_default=False),
     split: str | None = typer.Option(
         None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."),
     seed: int | None = typer.Option(None, help="Seed of the split (default 0)."),

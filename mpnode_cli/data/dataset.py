@@ -153,7 +153,8 @@ class TrajectoryData(NodeSizes):
             fingerprint=fingerprint(states, ds.graphs, ds.graph_index, ds.time),
             attrs={"topology": topology, "config": ds.config, "dt": ds.dt,
                    "recipe": _recipe(ds.extra_attrs.get("recipe")),
-                   "prediction": ds.extra_attrs.get("prediction")})
+                   "prediction": ds.extra_attrs.get("prediction"),
+                   "periodic_states": tuple(ds.periodic_states)})
 
     def __len__(self) -> int:
         return self.states.shape[0]

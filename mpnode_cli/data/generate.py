@@ -498,6 +498,7 @@ def _write(system: CheckedSystem, config: GenerateConfig, out: Path, ts: torch.T
         dt=config.dt,
         state_names=system.state_names,
         control_names=system.control_names,
+        periodic_states=tuple(system.periodic_states),
         seed=config.seed,
         # A single file's config has no `shard` field: it reads as it did before shards.
         config=config.model_dump(mode="json", exclude=set() if config.shard else {"shard"}),

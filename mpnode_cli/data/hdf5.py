@@ -1,4 +1,4 @@
-"""Dataset files, format "mpnode-dataset" version 2: writer and reader (reads version 1).
+"""Dataset files, format "mpnode-dataset" version 3: writer and reader (reads 1 and 2).
 
 The layout is documented field by field in `docs/dataset-format.md`. In short: root
 attributes describe the system and carry the resolved generate config; `states [K, T, N, D]`
@@ -7,7 +7,9 @@ holds the trajectories (one HDF5 chunk per trajectory); the graphs are edge list
 `graph/adjacency [G, N, N]` for graphs of at most `DENSE_GRAPH_MAX_NODES` nodes, and
 `graph_index [K]` says which graph each trajectory ran on; `params/` holds the system's
 parameters; `split [K]` assigns trajectories to train/validation/test. Version 1 stored
-only `graph/adjacency`; its edge lists are derived when it is read.
+only `graph/adjacency`; its edge lists are derived when it is read. Version 3 added the
+root attribute `periodic_states` (JSON list of the state names that are angles, mod 2π);
+a version 1 or 2 file reads with none (the attribute's default, `OPTIONAL_ATTRS`).
 
 Writes are atomic: the file is written under a temporary name in the target folder and
 renamed when complete, so an interrupted run (Ctrl-C included) leaves nothing at the target.
@@ -18,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -32,7 +35,7 @@ from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 from mpnode_cli.progress import Progress
 
 FORMAT = "mpnode-dataset"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 SPLIT_NAMES: tuple[str, ...] = ("train", "validation", "test")
 
 # Root attributes every file must have, and those a file may leave out (with the value a
@@ -42,7 +45,7 @@ REQUIRED_ATTRS: tuple[str, ...] = (
     "format", "format_version", "system", "num_nodes", "node_dim", "dt", "state_names")
 OPTIONAL_ATTRS: dict[str, Any] = {
     "control_dim": 0, "control_names": "[]", "seed": None, "config": "{}",
-    "mpnode_version": None, "created_utc": None}
+    "mpnode_version": None, "created_utc": None, "periodic_states": "[]"}
 _ROOT_ATTRS = frozenset(REQUIRED_ATTRS) | frozenset(OPTIONAL_ATTRS)
 # Values per block when trajectories are read or written a block at a time (64 MB of
 # float64): a file larger than memory passes through in pieces.
@@ -79,6 +82,8 @@ class Dataset(NodeSizes):
         dt: sample spacing.
         state_names: `[D]` names of a node's state components.
         control_names: `[U]` names of a node's control components (empty if none).
+        periodic_states: the names among `state_names` that are angles (mod 2π), in state
+            order; empty for none (and for every file before format version 3).
         seed: seed of the initial states and split (None when the file does not say).
         config: the resolved generate config (JSON-compatible dict; empty when the file
             holds none, e.g. data that mpnode did not generate).
@@ -126,6 +131,7 @@ class Dataset(NodeSizes):
     extra_attrs: dict[str, Any] = field(default_factory=dict)
     mpnode_version: str | None = None
     created_utc: str | None = None
+    periodic_states: tuple[str, ...] = ()
 
     @property
     def num_trajectories(self) -> int:
@@ -228,6 +234,7 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None,
             "dt": float(ds.dt),
             "state_names": json.dumps(list(ds.state_names)),
             "control_names": json.dumps(list(ds.control_names)),
+            "periodic_states": json.dumps(list(ds.periodic_states)),
             "config": json.dumps(ds.config, sort_keys=True),
             "mpnode_version": ds.mpnode_version or __version__,
             "created_utc": ds.created_utc or datetime.now(UTC).isoformat(timespec="seconds"),
@@ -291,6 +298,9 @@ def _check_shapes(ds: Dataset) -> None:
             raise ValueError(f"{name} has shape {np.shape(array)}, expected {shape}")
     if len(ds.state_names) != d:
         raise ValueError(f"{len(ds.state_names)} state names for node_dim {d}")
+    if not set(ds.periodic_states) <= set(ds.state_names):
+        raise ValueError(f"periodic_states {list(ds.periodic_states)} are not all among the "
+                         f"state names {list(ds.state_names)}")
     if k and not 0 <= int(np.min(ds.graph_index)) <= int(np.max(ds.graph_index)) < len(
         ds.graphs
     ):
@@ -368,6 +378,7 @@ def read_dataset(path: str | Path) -> Dataset:
             extra_attrs={key: v for key, v in attrs.items() if key not in _ROOT_ATTRS},
             mpnode_version=attrs["mpnode_version"],
             created_utc=attrs["created_utc"],
+            periodic_states=tuple(json.loads(attrs["periodic_states"])),
         )
 
 
@@ -384,7 +395,7 @@ def read_header(path: str | Path) -> dict[str, Any]:
     """
     with _open(path) as f:
         attrs = _root_attrs(f)
-        for key in ("state_names", "control_names"):
+        for key in ("state_names", "control_names", "periodic_states"):
             attrs[key] = json.loads(attrs[key])
         attrs["config"] = _config(attrs["config"])
         shapes: dict[str, tuple[tuple[int, ...], str]] = {}
@@ -550,6 +561,12 @@ def _root_attrs(f: h5py.File) -> dict[str, Any]:
     if missing:
         raise DatasetFormatError(f"{f.filename} lacks root attributes: {', '.join(missing)}")
     return {**OPTIONAL_ATTRS, **attrs}
+
+
+def periodic_dims(state_names: Sequence[str], periodic_states: Sequence[str]
+                  ) -> tuple[int, ...]:
+    """The indices (in state order) of the `periodic_states` among `state_names`."""
+    return tuple(i for i, name in enumerate(state_names) if name in set(periodic_states))
 
 
 def _py(value: Any) -> Any:

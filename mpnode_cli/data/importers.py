@@ -116,6 +116,7 @@ def _import(config: ImportConfig, out: Path, progress: Progress | None) -> Impor
                                "u", config.controls)
     elif config.control_names:
         raise ValueError("--control-names given without --controls")
+    periodic = periodic_names(config.periodic, names)
     split = split_trajectories(k, config.split, config.seed)
     stored = _Cast(states, config.dtype)
     digest = fingerprint(stored, graphs, graph_index, time, rows=_rows(states),
@@ -132,7 +133,7 @@ def _import(config: ImportConfig, out: Path, progress: Progress | None) -> Impor
         system="custom", dt=config.dt, state_names=names, control_names=control_names,
         seed=config.seed, config=provenance, time=time, states=stored,
         controls=None if controls is None else controls.astype(config.dtype),
-        graphs=graphs, graph_index=graph_index, split=split,
+        graphs=graphs, graph_index=graph_index, split=split, periodic_states=periodic,
         extra_attrs={"fingerprint": digest}),
         overwrite=True,  # over the reservation `import_arrays` made
         progress=pass_of(progress, 2, 3))
@@ -382,6 +383,21 @@ def _time(given: np.ndarray | None, dt: float, t: int, path: Path) -> np.ndarray
         raise ValueError(f"{path}: time steps by {steps[i]:g} between samples {i} and {i + 1}, "
                          f"but --dt is {dt:g}; samples must be evenly spaced by dt")
     return given[0] + np.arange(t) * dt
+
+
+def periodic_names(given: list[str], names: tuple[str, ...]) -> tuple[str, ...]:
+    """`--periodic` names, checked: each a state name, none twice (in state order).
+
+    Raises:
+        ValueError: a name that is not one of `names`, or one given twice (one line).
+    """
+    for name in given:
+        if name not in names:
+            raise ValueError(f"--periodic {name!r} is not a state name (states: "
+                             f"{', '.join(names)})")
+    if len(set(given)) != len(given):
+        raise ValueError(f"--periodic names a state twice: {', '.join(given)}")
+    return tuple(name for name in names if name in given)
 
 
 def _names(given: list[str] | None, found: tuple[str, ...] | None, size: int, what: str,

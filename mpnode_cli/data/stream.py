@@ -93,7 +93,8 @@ class StreamedTrajectories:
             control_names=tuple(attrs["control_names"]), fingerprint=digest,
             attrs={"topology": topology, "config": config, "dt": attrs["dt"],
                    "recipe": _recipe(attrs.get("recipe")),
-                   "prediction": attrs.get("prediction")})
+                   "prediction": attrs.get("prediction"),
+                   "periodic_states": tuple(attrs["periodic_states"])})
 
     def __len__(self) -> int:
         return len(self.rows)

@@ -142,6 +142,7 @@ class _Checker:
             self.problem(f"states has shape {states.shape}: a dataset needs at least one "
                          "trajectory, two samples, one node and one state")
         names = self._names(attrs, "state_names", d, "node_dim")
+        self._periodic(attrs, names)
         u = self._controls(attrs, k, t, n)
         self._attrs(attrs, n, d, u)
         g = self._graph(k, n, attrs.get("format_version"))
@@ -218,6 +219,23 @@ class _Checker:
         if len(names) != size:
             self.problem(f"{key} has {len(names)} names but {dim} is {size}")
         return names
+
+    def _periodic(self, attrs: dict[str, Any], state_names: list[str]) -> None:
+        """`periodic_states` (format version 3; absent: none): state names, each once."""
+        raw = attrs.get("periodic_states")
+        try:
+            periodic = json.loads(raw) if isinstance(raw, str) else None
+        except ValueError:
+            periodic = None
+        if not isinstance(periodic, list) or not all(isinstance(x, str) for x in periodic):
+            self.problem(f"periodic_states must be a JSON list of state names, got {raw!r}")
+            return
+        unknown = [name for name in periodic if name not in state_names]
+        if unknown or len(set(periodic)) != len(periodic):
+            self.problem(f"periodic_states {periodic} must name distinct states among "
+                         f"state_names {state_names}")
+        if periodic:
+            self.summary["periodic_states"] = periodic
 
     def _controls(self, attrs: dict[str, Any], k: int, t: int, n: int) -> int:
         names = self._names(attrs, "control_names", len(_json_list(attrs["control_names"])),

@@ -125,6 +125,11 @@ class System(ABC):
     Class attributes:
         name: registry name (`mpnode generate NAME`, the dataset's `system`).
         state_names: `[D]` names of a node's state components.
+        periodic_states: the names among `state_names` that are angles, whose dynamics are
+            2π-periodic in them (Kuramoto's phases, a pendulum's θ). Datasets record them
+            (`periodic_states`, docs/dataset-format.md); MP-NODE's `--periodic embed` feeds
+            its networks (sin θ, cos θ) for them, and `--wrap-angles` measures their errors
+            mod 2π. Empty (the default): no state is an angle.
         control_names: `[U]` names of a node's controls (none for an autonomous system).
         topologies: the `mpnode_cli.graphs.make_graph` topologies it runs on;
             default_topology and default_nodes: the graph without options.
@@ -147,6 +152,7 @@ class System(ABC):
 
     name: ClassVar[str]
     state_names: ClassVar[tuple[str, ...]]
+    periodic_states: ClassVar[tuple[str, ...]] = ()
     control_names: ClassVar[tuple[str, ...]] = ()
     topologies: ClassVar[tuple[str, ...]]
     default_topology: ClassVar[str]

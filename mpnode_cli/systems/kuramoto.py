@@ -38,6 +38,8 @@ class Kuramoto(System):
 
     name: ClassVar[str] = "kuramoto"
     state_names: ClassVar[tuple[str, ...]] = ("theta1", "theta2", "theta3")
+    # Every component is a phase: the field depends on them through sin and cos only.
+    periodic_states: ClassVar[tuple[str, ...]] = ("theta1", "theta2", "theta3")
     topologies: ClassVar[tuple[str, ...]] = ("ba", "er", "ws")
     default_topology: ClassVar[str] = "ba"
     default_nodes: ClassVar[int] = 10

@@ -45,6 +45,8 @@ class Pendulum(System):
 
     name: ClassVar[str] = "pendulum"
     state_names: ClassVar[tuple[str, ...]] = ("theta", "theta_dot")
+    # θ is an angle (the field has it only in sin θ and cos θ); θ̇ is not.
+    periodic_states: ClassVar[tuple[str, ...]] = ("theta",)
     topologies: ClassVar[tuple[str, ...]] = ("chain",)
     default_topology: ClassVar[str] = "chain"
     default_nodes: ClassVar[int] = 2

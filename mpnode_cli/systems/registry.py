@@ -232,6 +232,8 @@ def _wrong_declaration(cls: type[System]) -> str | None:
          "a dict of train-config fields that JSON can hold"),
         ("sparse", lambda v: isinstance(v, bool), "True or False"),
     ]
+    checks.append(("periodic_states", lambda v: names(v) and len(set(v)) == len(v) and set(
+        v) <= set(cls.state_names), "a tuple of distinct names among its state_names"))
     for attr, ok, what in checks:
         value = getattr(cls, attr)
         if not ok(value):

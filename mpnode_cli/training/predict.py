@@ -246,6 +246,7 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         state_names=tuple(ckpt.dataset.get("state_names")
                           or (f"x{i}" for i in range(states.shape[-1]))),
         control_names=tuple(ckpt.dataset.get("control_names") or ()),
+        periodic_states=tuple(ckpt.dataset.get("periodic_states") or ()),
         seed=None, config={**config, "solver": record["solver"]}, time=time, states=states,
         controls=None if controls is None else np.asarray(controls).astype(dtype),
         hidden=hidden, graphs=graphs, graph_index=graph_index,
