@@ -134,3 +134,142 @@ def test_a_dataset_whose_periodic_states_are_not_state_names_is_refused(arrays):
 def test_wrapped_difference_reference_constants():
     """numpy's own: atan2(sin π, cos π) is π (to rounding), the reference below leans on."""
     assert abs(abs(math.atan2(math.sin(math.pi), math.cos(math.pi))) - math.pi) < 1e-15
+
+
+# --- 3. Model: (sin θ, cos θ) in place of θ ---------------------------------------------
+
+def _periodic_model(dims=(0,), members: int = 1, **options):
+    import torch
+
+    from mpnode_cli.models.registry import build_model
+
+    torch.manual_seed(0)
+    config = {"node_dim": 2, "control_dim": 0, "periodic": "embed", "periodic_dims": list(dims),
+              **options}
+    if members > 1:
+        config["members"] = members
+    return build_model("mpnode", config).double()
+
+
+@pytest.mark.parametrize("options", [{}, {"update": "affine", "message_init": "learned"},
+                                     {"linear_path": True, "aggregate": "sum"}])
+def test_a_periodic_models_field_is_invariant_to_a_turn(options):
+    import torch
+
+    model = _periodic_model(**options)
+    g = torch.Generator().manual_seed(1)
+    z = torch.randn(3, 4, 2 + model.message_dim, generator=g, dtype=torch.float64) * 20
+    adjacency = torch.ones(3, 4, 4, dtype=torch.float64)
+    f = model.vector_field(adjacency)
+    t = torch.zeros(3, dtype=torch.float64)
+    turned = z.clone()
+    turned[..., 0] += 2 * math.pi
+    with torch.no_grad():
+        a, b = f(t, z), f(t, turned)
+        m0a = model.initial_messages(z[..., :2], None)
+        m0b = model.initial_messages(turned[..., :2], None)
+    # sin and cos of θ and θ + 2π differ by rounding: about u·|θ + 2π| each, u = 2⁻⁵³,
+    # carried through weights of size ≈ 1 (Glorot) and a few layers: a margin of 10⁴.
+    u = torch.finfo(torch.float64).eps / 2
+    tol = 1e4 * u * float(turned[..., 0].abs().max() + 1)
+    assert float((a - b).abs().max()) <= tol
+    assert float((m0a - m0b).abs().max()) <= tol
+    # ... while θ̇ and the messages do matter: the other component is no angle.
+    other = z.clone()
+    other[..., 1] += 2 * math.pi
+    with torch.no_grad():
+        assert float((f(t, other) - a).abs().max()) > 1e-6
+
+
+def test_periodic_off_is_todays_model_and_embed_widens_the_input():
+    from mpnode_cli.models.registry import build_model
+
+    off = build_model("mpnode", {"node_dim": 2, "control_dim": 0})
+    assert "periodic_dims" not in off.config and off.options.periodic == "off"
+    on = _periodic_model()
+    assert on.net[0].in_features == off.net[0].in_features + 1  # sin θ and cos θ for θ
+    assert on.config["periodic_dims"] == [0]
+    again = build_model("mpnode", on.config)
+    assert again.periodic_dims == (0,) and again.config == on.config
+    with pytest.raises(ValueError, match="declares none"):
+        build_model("mpnode", {"node_dim": 2, "control_dim": 0, "periodic": "embed"})
+
+
+def test_an_ensemble_of_periodic_models_rolls_out_like_its_members():
+    import torch
+
+    from mpnode_cli.models.ensemble import Ensemble
+
+    torch.manual_seed(0)
+    members = [_periodic_model() for _ in range(2)]
+    for k, m in enumerate(members):
+        torch.manual_seed(k)
+        for p in m.parameters():
+            p.data.normal_(0, 0.3)
+    ensemble = Ensemble(members).double()
+    x0 = torch.randn(2, 3, 2, dtype=torch.float64) * 5
+    ts = torch.linspace(0, 0.3, 4, dtype=torch.float64)
+    adjacency = torch.ones(2, 3, 3, dtype=torch.float64)
+    with torch.no_grad():
+        out = ensemble.rollout(x0, ts, adjacency)
+        alone = torch.stack([m.rollout(x0, ts, adjacency).states for m in members])
+    torch.testing.assert_close(out.states, alone.mean(0), rtol=1e-6, atol=1e-6)
+
+
+# --- 2b/3. Checkpoints record the periodic states; a version 6 file reads with none -------
+
+@pytest.fixture(scope="module")
+def kuramoto_run(tmp_path_factory):
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import generate
+
+    root = tmp_path_factory.mktemp("periodic")
+    data = generate(GenerateConfig(system="kuramoto", nodes=6, trajectories=6, t_end=0.2,
+                                   dt=0.05, out=root / "k.h5")).path
+    result = invoke("train", data, "--epochs", 1, "--batch-size", 6, "--no-plots",
+                    "--periodic", "embed", "--hidden", 8, "--run-dir", root / "run")
+    assert result.exit_code == 0, result.output
+    return {"data": data, "run": root / "run",
+            "checkpoint": root / "run" / "checkpoints" / "best.pt"}
+
+
+def test_a_periodic_run_records_its_angles_and_leaves_them_unscaled(kuramoto_run):
+    from mpnode_cli.training.checkpoint import load_checkpoint
+
+    ckpt = load_checkpoint(kuramoto_run["checkpoint"])
+    assert ckpt.dataset["periodic_states"] == ["theta1", "theta2", "theta3"]
+    assert ckpt.model_config["periodic"] == "embed"
+    assert ckpt.model_config["periodic_dims"] == [0, 1, 2]
+    assert ckpt.normalizer["x_mean"] == [0.0, 0.0, 0.0]
+    assert ckpt.normalizer["x_std"] == [1.0, 1.0, 1.0]
+    assert ckpt.build_model().periodic_dims == (0, 1, 2)
+    result = invoke("evaluate", kuramoto_run["checkpoint"], kuramoto_run["data"], "--json")
+    assert result.exit_code == 0, result.output
+
+
+def test_periodic_embed_on_a_dataset_without_angles_is_one_line(user_files, tmp_path):
+    line = one_line_error(invoke("train", user_files["data"], "--epochs", 1, "--no-plots",
+                                 "--periodic", "embed", "--run-dir", tmp_path / "r"))
+    assert "declares no periodic states" in line, line
+
+
+def test_a_version_6_checkpoint_reads_with_no_periodic_states(user_files, tmp_path):
+    import torch
+
+    from mpnode_cli.training.checkpoint import FORMAT_VERSION, load_checkpoint
+
+    assert FORMAT_VERSION == 7
+    raw = torch.load(user_files["checkpoint"], weights_only=True)
+    assert raw["format_version"] == 7 and raw["dataset"]["periodic_states"] == []
+    # What version 6 wrote: the same, less the periodic states.
+    raw["format_version"] = 6
+    del raw["dataset"]["periodic_states"]
+    torch.save(raw, tmp_path / "v6.pt")
+    ckpt = load_checkpoint(tmp_path / "v6.pt")
+    assert ckpt.dataset["periodic_states"] == []
+    assert ckpt.build_model().config == raw["model_config"]
+    result = invoke("simulate", tmp_path / "v6.pt", "--x0", user_files["x0"], "--adjacency",
+                    user_files["adjacency"], "--t-end", 0.2, "--dt", 0.1, "--out",
+                    tmp_path / "p.h5")
+    assert result.exit_code == 0, result.output
+    assert read_dataset(tmp_path / "p.h5").periodic_states == ()

@@ -55,6 +55,17 @@ class Normalizer:
             u_mean, u_std = _moments(controls)
         return Normalizer(x_mean, x_std, u_mean, u_std)
 
+    def unscaled(self, dims: Sequence[int]) -> Normalizer:
+        """This normalization with the state components `dims` left as they are (mean 0,
+        std 1): angles whose sin and cos a model takes (MP-NODE's `periodic="embed"`)
+        stay in radians."""
+        if not dims:
+            return self
+        index = torch.as_tensor(list(dims), dtype=torch.long)
+        x_mean, x_std = self.x_mean.clone(), self.x_std.clone()
+        x_mean[index], x_std[index] = 0.0, 1.0
+        return Normalizer(x_mean, x_std, self.u_mean, self.u_std)
+
     def to_dict(self) -> dict[str, list[float]]:
         return {name: getattr(self, name).tolist()
                 for name in ("x_mean", "x_std", "u_mean", "u_std")}

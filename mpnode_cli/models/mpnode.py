@@ -26,6 +26,11 @@ messages' own dynamics see the mean, so their feedback gain does not grow with t
 `linear_path=True` (off by default) adds a linear map of its input beside each of these
 MLPs (`mpnode_cli.models.base.LinearPathMLP`), zero at first: where states leave the
 training range the tanh MLPs saturate, the linear path goes on linearly.
+`periodic="embed"` (off by default) feeds the networks (sin θ, cos θ) in place of each
+state θ the dataset declares periodic (`periodic_dims`, the indices in the model's config):
+an unwrapped angle drifts without bound, and the field, 2π-periodic in it, is then learned
+on a bounded input. The ODE state keeps θ; training leaves those components unnormalized
+(mean 0, std 1: `mpnode_cli.training.setup`), so the model's θ is in radians.
 
 Settled where the paper is vague (MPNODE.jl, exps/models.jl:92-95 and src/empde.jl): input
 order `[x, u, m̄]` and the authors' widths (hidden 32, two tanh layers, M = 3); the whole
@@ -39,7 +44,8 @@ adaptive step size (the authors' batch shared one).
 
 from __future__ import annotations
 
-from typing import ClassVar
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar, Self
 
 import torch
 
@@ -63,7 +69,9 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
             update ("mlp", the paper's, or "affine"); message_init ("zero", the paper's,
             or "learned"); linear_path (a linear map beside each MLP, off by default);
-            backend ("auto", "dense" or "scatter").
+            periodic ("off" or "embed"); backend ("auto", "dense" or "scatter").
+        periodic_dims: the state indices that are angles (the dataset's periodic states);
+            used only with `periodic="embed"`, which needs at least one.
     """
 
     kind: ClassVar[str] = "mpnode"
@@ -71,28 +79,65 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
     Options: ClassVar[type[MPNODEOptions]] = MPNODEOptions
 
     def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
-                 options: MPNODEOptions | None = None):
+                 options: MPNODEOptions | None = None, periodic_dims: Sequence[int] = ()):
         super().__init__(node_dim, control_dim, num_nodes, options)
         o = self.options
+        self.periodic_dims = tuple(sorted({int(i) for i in periodic_dims})
+                                   ) if o.periodic == "embed" else ()
+        if o.periodic == "embed" and not self.periodic_dims:
+            raise ValueError("periodic embed needs the periodic states' indices (the dataset "
+                             "declares none)")
+        if any(not 0 <= i < node_dim for i in self.periodic_dims):
+            raise ValueError(f"periodic_dims {list(self.periodic_dims)} outside the "
+                             f"{node_dim} states")
+        self._angles = list(self.periodic_dims)
+        self._plain = [i for i in range(node_dim) if i not in self.periodic_dims]
         self.message_dim, self.graph, self.messages = o.message_dim, o.graph, o.messages
         self.aggregate, self.backend = o.aggregate, o.backend
         self.update, self.message_init = o.update, o.message_init
         c = channels(o.aggregate, o.message_dim)
         d, m = node_dim, o.message_dim
+        e = d + len(self.periodic_dims)  # the networks' state inputs: sin and cos per angle
         if o.update == "affine":
             # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M);
             # a second one, ψ, is what a node sends: a function of its own [x, u, m].
-            self.net = mlp(d + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
+            self.net = mlp(e + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
                            o.activation, o.linear_path)
-            self.emit = mlp(d + control_dim + m, o.hidden, 1, m, o.activation, o.linear_path)
+            self.emit = mlp(e + control_dim + m, o.hidden, 1, m, o.activation, o.linear_path)
             with torch.no_grad():  # G = 0: training starts from uncoupled nodes
                 self.net[-1].weight[d + m:].zero_()
         else:
-            self.net = mlp(d + control_dim + c, o.hidden, o.layers, d + m, o.activation,
+            self.net = mlp(e + control_dim + c, o.hidden, o.layers, d + m, o.activation,
                            o.linear_path)
         if o.message_init == "learned":
-            self.init_net = mlp(d + control_dim, o.hidden, 1, m, o.activation, o.linear_path)
+            self.init_net = mlp(e + control_dim, o.hidden, 1, m, o.activation, o.linear_path)
         self._register_degree_statistic()
+
+    @property
+    def config(self) -> dict[str, Any]:
+        """Sizes and options, and `periodic_dims` when the angles are embedded."""
+        config = super().config
+        return config | {"periodic_dims": list(self.periodic_dims)} if self.periodic_dims \
+            else config
+
+    @classmethod
+    def from_config(cls, config: Mapping[str, Any]) -> Self:
+        """`NeuralModel.from_config`, with `periodic_dims` (absent: none)."""
+        config = dict(config)
+        dims = config.pop("periodic_dims", ())
+        sizes = {k: config[k] for k in ("node_dim", "control_dim", "num_nodes") if k in config}
+        if "node_dim" not in sizes:
+            raise ValueError(f"model '{cls.kind}' config lacks node_dim")
+        given = {k: v for k, v in config.items() if k not in sizes}
+        return cls(**sizes, options=cls.Options.parse(given, cls.kind), periodic_dims=dims)
+
+    def embed(self, x: torch.Tensor) -> torch.Tensor:
+        """The networks' view of the states `x [..., D]`: `[x_plain, sin θ, cos θ]`
+        `[..., D + P]` with the P periodic components θ; x itself when there are none."""
+        if not self.periodic_dims:
+            return x
+        angles = x[..., self._angles]
+        return torch.cat([x[..., self._plain], torch.sin(angles), torch.cos(angles)], dim=-1)
 
     def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
         """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]`, z = [x; m] per node: eqs. (3)–(5)
@@ -109,6 +154,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
                 x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
                 if not self.messages:
                     m = torch.zeros_like(m)
+                x = self.embed(x)
                 parts = [x, u(t).to(z.dtype)] if u is not None else [x]
                 return self.net(torch.cat([*parts, aggregate(m)], dim=-1))
 
@@ -121,6 +167,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
+            x = self.embed(x)
             own = torch.cat([x, u(t).to(z.dtype)], dim=-1) if u is not None else x
             if self.messages:
                 sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
@@ -143,7 +190,8 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         """m(t₀) `[B, N, M]`: zero (the paper's), or the learned function of `[x0, u0]`."""
         if self.message_init == "zero":
             return x0.new_zeros(*x0.shape[:-1], self.message_dim)
-        inputs = torch.cat([x0, u0.to(x0.dtype)], dim=-1) if u0 is not None else x0
+        e0 = self.embed(x0)
+        inputs = torch.cat([e0, u0.to(x0.dtype)], dim=-1) if u0 is not None else e0
         return self.init_net(inputs)
 
     def initial_state(self, x0: torch.Tensor, u0: torch.Tensor | None) -> torch.Tensor:

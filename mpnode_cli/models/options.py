@@ -25,6 +25,7 @@ Backend = Literal["auto", "dense", "scatter"]
 GraphMode = Literal["sys", "full"]
 Update = Literal["mlp", "affine"]
 MessageInit = Literal["zero", "learned"]
+Periodic = Literal["off", "embed"]
 
 # Upper bounds on sizes: far beyond what the paper's systems need (widths of 32 to 128),
 # and small enough that a typo (`--hidden 10000000`) is refused rather than exhausting memory.
@@ -87,6 +88,11 @@ class MPNODEOptions(ModelOptions):
         "Add a learned linear map of its input beside each MLP of the node networks, zero "
         "at first: far outside the training range (a hub's summed input, large states) the "
         "field then grows linearly where the MLP alone saturates."))
+    periodic: Periodic = Field("off", description=(
+        "States the dataset declares periodic (angles, its periodic_states): embed feeds "
+        "the node networks (sin θ, cos θ) in place of θ (the ODE state stays θ, in radians: "
+        "the normalizer leaves those components unscaled); off feeds θ as every other "
+        "state. Off by default until the bench decides."))
     backend: Backend = Field(
         "auto", description="How aggregation is computed (auto picks by graph size).")
 

@@ -1,4 +1,4 @@
-"""Checkpoint files, format "mpnode-checkpoint" version 6: everything to rebuild a model.
+"""Checkpoint files, format "mpnode-checkpoint" version 7: everything to rebuild a model.
 
 A checkpoint is one `torch.save` of a plain dict — tensors, numbers, strings, lists and
 dicts only — so `torch.load(path, weights_only=True)` reads it without unpickling code.
@@ -14,9 +14,10 @@ Fields of the dict:
     normalizer: `Normalizer.to_dict()` of the training normalization.
     train_config: the resolved `TrainConfig` (JSON form).
     dataset: fingerprint, path, system, num_nodes, node_dim, control_dim, state_names,
-        control_names, topology of the training dataset, and train_range, what its train
-        split spans (`mpnode_cli.training.extrapolation.TrainRange.to_dict`: in-degree,
-        node count, each state's range), which `evaluate`, `zeroshot` and `simulate`
+        control_names, periodic_states, topology of the training dataset, and
+        train_range, what its train split spans
+        (`mpnode_cli.training.extrapolation.TrainRange.to_dict`: in-degree, node count,
+        each state's range), which `evaluate`, `zeroshot` and `simulate`
         compare their graphs and states with.
     epoch: epochs completed.
     optimizer: `optimizer.state_dict()`.
@@ -45,6 +46,11 @@ Version 6 added ensembles (`mpnode train --seeds S`, `mpnode_cli.models.ensemble
 `members.k.`, their optimizer one parameter group per member and their `loop` a `members`
 list of each member's counters. A version 5 file is a model of one member and reads as it
 is; an older mpnode would refuse the ensemble's `members` option, hence the new version.
+Version 7 added the training dataset's `periodic_states` to `dataset` (and to each of
+`dataset["datasets"]`), and MP-NODE's `periodic` option, whose `embed` puts the periodic
+states' indices in `model_config` as `periodic_dims`; a version 6 file reads with no
+periodic states (`_upgrade_v6`). An older mpnode would refuse the option, and would measure
+the errors of a run trained with `wrap_angles` without wrapping, hence the new version.
 `dataset["train_range"]` came later without a new version: a file without it only goes
 without the extrapolation warning, and an older mpnode that ignores it computes the same.
 
@@ -70,7 +76,7 @@ if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 
 
 class CheckpointFormatError(ValueError):
@@ -284,6 +290,8 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
         payload["train_config"] = upgrade_solver_fields(payload["train_config"])
     if version < 5 and isinstance(payload.get("train_config"), dict):
         payload["train_config"] = pin_stored_solver(payload["train_config"])
+    if version < 7:
+        _upgrade_v6(payload)
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],
@@ -318,6 +326,16 @@ def _upgrade_v2(payload: dict[str, Any]) -> None:
             "step_noise" in train_config):
         config.setdefault("step_noise", train_config["step_noise"])
     payload["train_config"] = upgrade_train_fields(train_config)
+
+
+def _upgrade_v6(payload: dict[str, Any]) -> None:
+    """Version 6 → 7 in place: datasets of then had no periodic states."""
+    facts = payload.get("dataset")
+    if isinstance(facts, dict):
+        facts.setdefault("periodic_states", [])
+        for each in facts.get("datasets") or []:
+            if isinstance(each, dict):
+                each.setdefault("periodic_states", [])
 
 
 # Facts about the training dataset that evaluate, zeroshot and finetune rely on.
@@ -438,6 +456,12 @@ def _dataset_facts(facts: Any, d: int) -> list[str]:
             isinstance(name, str) for name in names):
         problems.append(f"the training dataset's state_names must be {d} names (the "
                         f"model's node_dim), got {names!r:.60}")
+    periodic = facts.get("periodic_states", [])
+    if not isinstance(periodic, list | tuple) or not all(
+            isinstance(name, str) and isinstance(names, list | tuple) and name in names
+            for name in periodic):
+        problems.append(f"the training dataset's periodic_states must be names among its "
+                        f"state_names, got {periodic!r:.60}")
     if facts.get("train_range") is not None:  # absent in checkpoints older than the record
         from mpnode_cli.training.extrapolation import TrainRange
 

@@ -246,6 +246,8 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
         lambda: Path(config.run_dir or runs.default_run_dir(config.datasets, kind)))
     config = config.model_copy(update={"run_dir": run_dir})
     normalizer = _normalizer(config, source, renormalize, train_sets)
+    # Embedded angles stay in radians: the model takes their sin and cos.
+    normalizer = normalizer.unscaled(model.config.get("periodic_dims") or ())
     parent_sha = last.parent_sha256 if last else (
         file_sha256(config.init_checkpoint) if parent else None)
 
@@ -306,8 +308,31 @@ def _architecture(config: TrainConfig, source: Checkpoint | None, finetune: bool
         return source.model_kind, source.model_config
     data = datas[0]
     _check_one_size(config.model, datas)
+    periodic = {}
+    if config.model_options.get("periodic") == "embed":
+        periodic = {"periodic_dims": list(_periodic_dims(datas, config.datasets))}
     return config.model, {"node_dim": data.node_dim, "control_dim": data.control_dim,
-                          "num_nodes": data.num_nodes, **config.model_options}
+                          "num_nodes": data.num_nodes, **config.model_options, **periodic}
+
+
+def _periodic_dims(datas: list, paths: list[Path]) -> tuple[int, ...]:
+    """The state indices the datasets declare periodic, for `--periodic embed`.
+
+    Raises:
+        ValueError: a dataset that declares none, or datasets that declare different ones.
+    """
+    from mpnode_cli.data.hdf5 import periodic_dims
+
+    found = [periodic_dims(d.state_names, d.attrs.get("periodic_states") or ())
+             for d in datas]
+    for dims, path in zip(found, paths, strict=True):
+        if not dims:
+            raise ValueError(f"--periodic embed: {path} declares no periodic states (a "
+                             "system's periodic_states, or mpnode import --periodic NAME)")
+        if dims != found[0]:
+            raise ValueError(f"--periodic embed: {path} declares other periodic states "
+                             f"than {paths[0]}")
+    return found[0]
 
 
 def _build(kind: str, model_config: dict[str, Any]) -> torch.nn.Module:
@@ -414,7 +439,8 @@ def _dataset_facts(data, path: Path) -> dict[str, Any]:
     return {"fingerprint": data.fingerprint, "path": str(path), "system": data.system,
             "num_nodes": data.num_nodes, "node_dim": data.node_dim,
             "control_dim": data.control_dim, "state_names": list(data.state_names),
-            "control_names": list(data.control_names), "topology": data.attrs.get("topology")}
+            "control_names": list(data.control_names), "topology": data.attrs.get("topology"),
+            "periodic_states": list(data.attrs.get("periodic_states") or ())}
 
 
 def _check_one_size(kind: str, datas: list) -> None:
