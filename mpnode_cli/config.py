@@ -370,6 +370,11 @@ class TrainConfig(BaseModel):
     clip: float = Field(500.0, gt=0, description="Global gradient-norm clip.")
     patience: int = Field(50, ge=1, description=(
         "Plateau schedule: epochs without validation gain before the lr halves."))
+    wrap_angles: bool = Field(False, description=(
+        "Take the training loss and every error (validation, evaluate, zeroshot, the "
+        "baselines) of the states the dataset declares periodic mod 2π, as the wrapped "
+        "difference atan2(sin Δ, cos Δ); off: plain differences, as before. Off by default "
+        "so that every existing number stays as it was."))
     noise: float = Field(1e-4, ge=0, description=(
         "Std of Gaussian noise on the normalized training states (inputs and targets "
         "alike), fresh every batch."))

@@ -273,3 +273,62 @@ def test_a_version_6_checkpoint_reads_with_no_periodic_states(user_files, tmp_pa
                     tmp_path / "p.h5")
     assert result.exit_code == 0, result.output
     assert read_dataset(tmp_path / "p.h5").periodic_states == ()
+
+
+# --- 4. Errors mod 2π -------------------------------------------------------------------
+
+def test_the_wrapped_difference_of_a_turn_is_zero_and_of_half_a_turn_is_pi():
+    import torch
+
+    from mpnode_cli.training.losses import Angles, difference, mse_loss
+
+    theta = torch.linspace(-30, 30, 61, dtype=torch.float64)
+    angles = Angles((0,))
+    x = torch.stack([theta, theta], dim=-1)  # component 0 an angle, 1 not
+    turned = x + 2 * math.pi
+    d = difference(turned, x, angles)
+    u = torch.finfo(torch.float64).eps / 2
+    # θ + 2π − θ is 2π up to the rounding of θ + 2π (u·|θ + 2π|); wrapping leaves that.
+    assert float(d[:, 0].abs().max()) <= 4 * u * float(turned.abs().max())
+    torch.testing.assert_close(d[:, 1], torch.full_like(theta, 2 * math.pi))
+    half = difference(x + math.pi, x, angles)[:, 0].abs()
+    torch.testing.assert_close(half, torch.full_like(theta, math.pi), rtol=0,
+                               atol=8 * u * float(turned.abs().max()))
+    # In normalized units (std 0.5 rad per unit), the wrapped error is a turn's too.
+    scaled = Angles((0,), torch.tensor([0.5, 3.0], dtype=torch.float64))
+    dn = difference(x / 0.5 + 2 * math.pi / 0.5, x / 0.5, scaled)
+    assert float(dn[:, 0].abs().max()) <= 1e-12
+    # mse of [θ + π] against θ (t₀ excluded): π² on the angle, mean with the other's 0.
+    pred = x[None, :, None, :].clone()
+    target = pred.clone()
+    pred[..., 0] += math.pi
+    loss = mse_loss(pred, target, angles)
+    assert abs(float(loss) - math.pi**2 / 2) <= 1e-9
+    assert abs(float(mse_loss(pred, target)) - math.pi**2 / 2) <= 1e-9  # plain: the same
+    pred[..., 0] += 2 * math.pi  # 3π: wrapped π again, plain 3π
+    assert abs(float(mse_loss(pred, target, angles)) - math.pi**2 / 2) <= 1e-9
+    assert abs(float(mse_loss(pred, target)) - 9 * math.pi**2 / 2) <= 1e-9
+
+
+def test_wrapping_needs_both_the_declaration_and_the_opt_in():
+    import torch
+
+    from mpnode_cli.training.losses import run_angles
+
+    facts = {"state_names": ["theta", "w"], "periodic_states": ["theta"]}
+    std = torch.tensor([2.0, 1.0])
+    assert run_angles(False, facts, std) is None
+    assert run_angles(True, {"state_names": ["theta", "w"]}, std) is None
+    angles = run_angles(True, facts, std)
+    assert angles.dims == (0,) and angles.scale.tolist() == [2.0, 1.0]
+
+
+def test_a_run_with_wrap_angles_reports_wrapped_errors(kuramoto_run, tmp_path):
+    from mpnode_cli.training.checkpoint import load_checkpoint
+
+    result = invoke("train", kuramoto_run["data"], "--epochs", 1, "--batch-size", 6,
+                    "--no-plots", "--wrap-angles", "--hidden", 8, "--run-dir", tmp_path / "w")
+    assert result.exit_code == 0, result.output
+    ckpt = load_checkpoint(tmp_path / "w" / "checkpoints" / "best.pt")
+    assert ckpt.train_config["wrap_angles"] is True
+    assert invoke("evaluate", tmp_path / "w", kuramoto_run["data"], "--json").exit_code == 0

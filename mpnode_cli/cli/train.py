@@ -59,7 +59,7 @@ _PANELS = {
     DATA: ("renormalize", "allow_other_system", "trajectories", "stream"),
     RECIPE: ("recipe", "loss", "epochs", "batch_size", "even_batches", "lr", "min_lr",
              "schedule", "patience", "stop_patience", "time_limit", "clip", "noise",
-             "max_bad_steps", "val_batch_size", "seed", "seeds"),
+             "max_bad_steps", "val_batch_size", "seed", "seeds", "wrap_angles"),
     CURRICULUM: ("horizon_curriculum", "curriculum_start", "curriculum_epochs"),
     SOLVER: _SOLVER,
     RUN: ("run_dir", "resume", "config_file", "device", "dtype", "threads", "plots",

@@ -108,7 +108,7 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
     loss, and the best checkpoint's validation MSE beside the naive predictors."""
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.evaluate import baseline_mse, train_reference
+    from mpnode_cli.training.evaluate import baseline_mse, checkpoint_angles, train_reference
     from mpnode_cli.training.run import read_config, read_metrics, read_summary
 
     summary = read_summary(run_dir)
@@ -118,7 +118,9 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
     best = load_checkpoint(Path(run_dir) / "checkpoints" / "best.pt")
     dataset = TrajectoryData.load(data)
     reference, _ = train_reference(best, dataset)
-    val = baseline_mse(reference, dataset.subset("validation"), best.build_normalizer())
+    normalizer = best.build_normalizer()
+    val = baseline_mse(reference, dataset.subset("validation"), normalizer,
+                       checkpoint_angles(best, normalizer))
     test = summary.get("test") or {}
     result = {
         "model": summary["model"], "loss": summary["loss"], "epochs": summary["epochs"],

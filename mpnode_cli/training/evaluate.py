@@ -33,7 +33,7 @@ from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.extrapolation import data_extrapolation
-from mpnode_cli.training.losses import huber_loss
+from mpnode_cli.training.losses import Angles, difference, huber_loss, run_angles
 from mpnode_cli.training.predict import roll_out, rollout_solver, write_predictions
 
 
@@ -125,16 +125,18 @@ class _Sums:
         self.huber, self.ok, self.failed = 0.0, 0, 0
 
     def add(self, pred: torch.Tensor, x: torch.Tensor, good: torch.Tensor,
-            normalizer: Normalizer) -> None:
-        """One batch: `pred, x: [B, T, N, D]` normalized, `good: [B]` bool (CPU)."""
+            normalizer: Normalizer, angles: Angles | None = None) -> None:
+        """One batch: `pred, x: [B, T, N, D]` normalized, `good: [B]` bool (CPU); `angles`:
+        components compared mod 2π (`mpnode_cli.training.losses.difference`)."""
         self.failed += int((~good).sum())
         if not good.any():
             return
         pred, x = pred[good.to(pred.device)], x[good.to(x.device)]
         self.ok += len(pred)
-        self.sq_time += (pred - x).pow(2).double().sum(dim=(0, 2, 3)).cpu()
-        self.huber += float(huber_loss(pred, x).double()) * len(pred)
-        phys_err = normalizer.denorm_x(pred) - normalizer.denorm_x(x)
+        self.sq_time += difference(pred, x, angles).pow(2).double().sum(dim=(0, 2, 3)).cpu()
+        self.huber += float(huber_loss(pred, x, angles=angles).double()) * len(pred)
+        phys_err = difference(normalizer.denorm_x(pred), normalizer.denorm_x(x),
+                              None if angles is None else angles.physical())
         self.sq_phys += phys_err[:, 1:].pow(2).double().sum(dim=(0, 1, 2)).cpu()
 
     def combined(self, combine: Callable[[torch.Tensor], torch.Tensor] | None) -> None:
@@ -166,7 +168,7 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
              batch_size: int = 128, solver: SolverOptions | None = None,
              device: str | torch.device = "cpu",
              combine: Callable[[torch.Tensor], torch.Tensor] | None = None,
-             progress: Progress | None = None) -> EvalResult:
+             progress: Progress | None = None, angles: Angles | None = None) -> EvalResult:
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
@@ -183,6 +185,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
             the error sums of all parts (`[S]` float64 → `[S]`, e.g. an all-reduce), so
             that the result is the whole split's; RHS evaluations are then the parts' sum.
         progress: called after each batch with the trajectories rolled out and K.
+        angles: state components whose errors are taken mod 2π (`run_angles`; None:
+            plain differences).
 
     Returns:
         An `EvalResult`; errors are NaN when every rollout failed (or `data` is empty).
@@ -204,16 +208,16 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
             if progress is not None:
                 progress(done, k)
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
-            sums.add(out.states, x, good, normalizer)
+            sums.add(out.states, x, good, normalizer, angles)
             if getattr(out, "members", None) is None:
                 continue
             members = members or [_Sums(t, d) for _ in out.members]
             for sum_k, pred_k, status_k in zip(members, out.members, out.member_status,
                                                strict=True):
                 ok_k = (status_k == 0).cpu() & torch.isfinite(pred_k).flatten(1).all(1).cpu()
-                sum_k.add(pred_k, x, ok_k, normalizer)
+                sum_k.add(pred_k, x, ok_k, normalizer, angles)
             spreads.append(out.spread[:, 1:].flatten(1).mean(1)[good.to(x.device)].cpu())
-            errors.append((out.states - x)[:, 1:].pow(2).flatten(1).mean(1).sqrt()[
+            errors.append(difference(out.states, x, angles)[:, 1:].pow(2).flatten(1).mean(1).sqrt()[
                 good.to(x.device)].cpu())
     model.train(was_training)
     sums.combined(combine)
@@ -309,9 +313,16 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
                       messages=messages, status=out.status.cpu(), spread=spread)
 
 
+def checkpoint_angles(ckpt, normalizer: Normalizer) -> Angles | None:
+    """The components a checkpoint's errors take mod 2π: its training dataset's periodic
+    states when it was trained with `wrap_angles` (`run_angles`), else None."""
+    return run_angles(bool(ckpt.train_config.get("wrap_angles", False)), ckpt.dataset,
+                      normalizer.x_std)
+
+
 def baseline_mse(train: TrajectoryData | StreamedTrajectories | Sequence[TrajectoryData],
                  data: TrajectoryData | StreamedTrajectories,
-                 normalizer: Normalizer) -> dict[str, float]:
+                 normalizer: Normalizer, angles: Angles | None = None) -> dict[str, float]:
     """The MSE of two naive predictors on `data`, in `evaluate`'s units.
 
     Both are measured as `EvalResult.mse` is: normalized units, t₀ excluded, the mean over
@@ -331,6 +342,7 @@ def baseline_mse(train: TrajectoryData | StreamedTrajectories | Sequence[Traject
             data: the trajectories to score; physical units both, in memory or streamed
             (then read a block of trajectories at a time).
         normalizer: the training normalization.
+        angles: state components compared mod 2π, as `evaluate` takes them.
 
     Returns:
         `{"hold_x0": float, "time_mean": float}`, NaN where undefined (empty `data` or
@@ -355,9 +367,9 @@ def baseline_mse(train: TrajectoryData | StreamedTrajectories | Sequence[Traject
     count = 0
     for block in in_blocks(data):
         x = normalizer.norm_x(block.states.double())  # (B, T, N, D)
-        hold += float((x[:, 1:] - x[:, :1]).pow(2).sum())
+        hold += float(difference(x[:, 1:], x[:, :1], angles).pow(2).sum())
         if pred is not None:
-            time_mean += float((x[:, 1:] - pred[None, 1:, None, :]).pow(2).sum())
+            time_mean += float(difference(x[:, 1:], pred[None, 1:, None, :], angles).pow(2).sum())
         count += x[:, 1:].numel()
     return {"hold_x0": hold / count,
             "time_mean": time_mean / count if pred is not None else math.nan}
@@ -508,10 +520,11 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
     options = {"solver": rollout_solver(ckpt), "device": device}
     passes = 1 if save_predictions is None else 2
+    angles = checkpoint_angles(ckpt, normalizer)
     result = evaluate(model, subset, normalizer, batch_size=batch_size,
-                      progress=pass_of(progress, 0, passes), **options)
+                      progress=pass_of(progress, 0, passes), angles=angles, **options)
     train, note = train_reference(ckpt, data)
-    baselines = jsonable(baseline_mse(train, subset, normalizer))
+    baselines = jsonable(baseline_mse(train, subset, normalizer, angles))
     plots: list[str] = []
     if plot_dir is not None:
         from mpnode_cli.report.plots import plot_error_vs_time, plot_rollout

@@ -50,6 +50,7 @@ and `warning` (text: something the user asked for that the run does otherwise, e
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import os
 import shutil
@@ -71,7 +72,7 @@ from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint
 from mpnode_cli.training.checkpointer import Checkpointer
 from mpnode_cli.training.evaluate import EvalResult, evaluate, evaluate_datasets, pooled
-from mpnode_cli.training.losses import LOSSES
+from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.recipe import resolve_config
 from mpnode_cli.training.schedule import LRSchedule
 from mpnode_cli.training.setup import Progress, Run, load_data, set_up
@@ -190,7 +191,9 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
     their own order, batch b of every member in one step. Returns the epoch's step
     statistics (`horizon`: the longest dataset's; an ensemble's each member's too)."""
     start = time.perf_counter()
-    config, world, loss_fn = run.config, run.world, LOSSES[run.config.loss]
+    config, world = run.config, run.world
+    loss_fn = functools.partial(LOSSES[config.loss], angles=run_angles(
+        config.wrap_angles, run.facts, run.normalizer.x_std))
     horizons = [_horizon(config, epoch, t.time.numel()) for t in run.train_sets]
     times = [t.time[:h].to(run.device) for t, h in zip(run.train_sets, horizons, strict=True)]
     active = run.active()
@@ -423,8 +426,9 @@ def _validate(run: Run) -> tuple[EvalResult, list[EvalResult]]:
     """The pooled validation result (the loss that selects the best epoch) and each
     dataset's; each rank rolls out its part, and the error sums are added over ranks."""
     world = run.world
+    angles = run_angles(run.config.wrap_angles, run.facts, run.normalizer.x_std)
     each = [evaluate(run.model, part, run.normalizer, batch_size=run.config.val_batch_size,
-                     solver=run.config.solver, device=run.device,
+                     solver=run.config.solver, device=run.device, angles=angles,
                      combine=world.sum if world.size > 1 else None) for part in run.val_parts]
     return pooled(each, [d.num_nodes for d in run.datas]), each
 

@@ -1,28 +1,92 @@
-"""Rollout losses. Inputs are `[B, T, N, D]` normalized states; t₀ is excluded (it is given)."""
+"""Rollout losses, and the one state difference every loss and error measure takes.
+
+Inputs are `[B, T, N, D]` normalized states; t₀ is excluded (it is given). Where a run
+wraps angles (`TrainConfig.wrap_angles` on a dataset that declares periodic states), the
+difference of a periodic component is the wrapped one, atan2(sin Δ, cos Δ) ∈ (−π, π] of
+the physical angles (an angle is only defined mod 2π); every other component's is plain.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 
-def huber_loss(pred: torch.Tensor, target: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
+@dataclass(frozen=True)
+class Angles:
+    """The state components whose differences are taken mod 2π.
+
+    Attributes:
+        dims: their indices among the D states.
+        scale: `[D]` radians per unit of the states compared (the normalizer's `x_std` for
+            normalized states), or None for physical states (radians).
+    """
+
+    dims: tuple[int, ...]
+    scale: torch.Tensor | None = None
+
+    def physical(self) -> Angles:
+        """The same components, for states in physical units."""
+        return Angles(self.dims)
+
+
+def difference(pred: torch.Tensor, target: torch.Tensor,
+               angles: Angles | None = None) -> torch.Tensor:
+    """`pred − target` `[..., D]`; for the components of `angles`, the wrapped difference
+    atan2(sin Δ, cos Δ) of the angles in radians, back in the states' units."""
+    diff = pred - target
+    if angles is None or not angles.dims:
+        return diff
+    index = torch.as_tensor(angles.dims, dtype=torch.long, device=diff.device)
+    scale = (torch.ones((), dtype=diff.dtype, device=diff.device) if angles.scale is None
+             else angles.scale.to(diff).index_select(0, index))
+    radians = diff.index_select(-1, index) * scale
+    wrapped = torch.atan2(torch.sin(radians), torch.cos(radians)) / scale
+    return diff.index_copy(-1, index, wrapped)
+
+
+def run_angles(wrap: bool, facts: Mapping[str, Any], x_std: torch.Tensor | None
+               ) -> Angles | None:
+    """The `Angles` of a run: the training dataset's periodic states (`facts`: a
+    checkpoint's `dataset` record) when it wraps angles, else None (plain differences).
+
+    Args:
+        wrap: `TrainConfig.wrap_angles`.
+        facts: `state_names` and `periodic_states` (absent: none).
+        x_std: the normalizer's `[D]` std (the errors are taken in normalized units).
+    """
+    names: Sequence[str] = facts.get("state_names") or ()
+    periodic = set(facts.get("periodic_states") or ())
+    dims = tuple(i for i, name in enumerate(names) if name in periodic)
+    if not wrap or not dims:
+        return None
+    return Angles(dims, None if x_std is None else x_std.detach().clone())
+
+
+def huber_loss(pred: torch.Tensor, target: torch.Tensor, delta: float = 1.0,
+               angles: Angles | None = None) -> torch.Tensor:
     """The authors' "Huber along time", `time_series_huber` (MPNODE.jl `src/losses.jl:56-62`).
 
     Huber(δ) per element, summed over time (t₁…t_T) and features, averaged over
-    trajectories × nodes.
+    trajectories × nodes. `angles`: components compared mod 2π (`difference`).
     """
-    err = (pred[:, 1:] - target[:, 1:]).abs()  # (B, T-1, N, D)
+    err = difference(pred[:, 1:], target[:, 1:], angles).abs()  # (B, T-1, N, D)
     quad = torch.clamp(err, max=delta)
     per_elem = 0.5 * quad**2 + delta * (err - quad)
     return per_elem.sum(dim=(1, 3)).mean()
 
 
-def mse_loss(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def mse_loss(pred: torch.Tensor, target: torch.Tensor,
+             angles: Angles | None = None) -> torch.Tensor:
     """Mean squared error over every predicted element (t₁…t_T, nodes, features, batch).
 
-    This is also the paper's "test error" when taken in normalized units.
+    This is also the paper's "test error" when taken in normalized units. `angles`:
+    components compared mod 2π (`difference`).
     """
-    return (pred[:, 1:] - target[:, 1:]).pow(2).mean()
+    return difference(pred[:, 1:], target[:, 1:], angles).pow(2).mean()
 
 
 LOSSES = {"huber": huber_loss, "mse": mse_loss}
