@@ -34,7 +34,7 @@ import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -306,6 +306,10 @@ def all_jobs(args) -> dict[str, Job]:
             if system in BB and args.only_protocol in (None, "s1"):
                 benches += [s1_bench(system, g, seed, smoke, args.n8192) for g in args.gammas]
             for bench in benches:
+                if args.targets:  # the "own" scoring stays; only the chosen targets
+                    bench = replace(bench, targets={label: d for label, d in
+                                                    bench.targets.items()
+                                                    if label in args.targets})
                 for job in bench_jobs(args, bench, seed):
                     jobs.setdefault(job.name, job)
     return jobs
@@ -398,6 +402,9 @@ def parse(argv) -> argparse.Namespace:
     p.add_argument("--gammas", default=",".join(map(str, GAMMAS)), help="S¹ γ values")
     p.add_argument("--only-protocol", choices=("size", "s1"))
     p.add_argument("--n8192", action="store_true", help="S¹: also zero-shot on 8192 nodes")
+    p.add_argument("--targets", type=lambda s: set(s.split(",")), default=None,
+                   help="only these targets, comma-separated labels (x2, x4, other, n1024, "
+                   "n4096, n8192; default: all)")
     p.add_argument("--variant", choices=VARIANTS, default="default")
     p.add_argument("--jobs", type=int, default=2, help="parallel workers, one thread each")
     p.add_argument("--scale", choices=("full", "smoke"), default="full")

@@ -192,8 +192,10 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
     statistics (`horizon`: the longest dataset's; an ensemble's each member's too)."""
     start = time.perf_counter()
     config, world = run.config, run.world
-    loss_fn = functools.partial(LOSSES[config.loss], angles=run_angles(
-        config.wrap_angles, run.facts, run.normalizer.x_std))
+    angles = run_angles(config.wrap_angles, run.facts, run.normalizer.x_std)
+    # Bound only when angles wrap: a loss is otherwise called loss(pred, target).
+    loss_fn = (LOSSES[config.loss] if angles is None
+               else functools.partial(LOSSES[config.loss], angles=angles))
     horizons = [_horizon(config, epoch, t.time.numel()) for t in run.train_sets]
     times = [t.time[:h].to(run.device) for t, h in zip(run.train_sets, horizons, strict=True)]
     active = run.active()
