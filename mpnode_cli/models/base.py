@@ -113,6 +113,9 @@ class NeuralModel(nn.Module, metaclass=abc.ABCMeta):
             sizes["num_nodes"] = self.num_nodes
         return sizes | self.options.model_dump()
 
+    # The config keys that go to the constructor as they are; every other key is an option.
+    constructor_keys: ClassVar[tuple[str, ...]] = ("node_dim", "control_dim", "num_nodes")
+
     @classmethod
     def from_config(cls, config: Mapping[str, Any]) -> Self:
         """The model of a `config` dict (sizes and options; options left out: defaults).
@@ -120,7 +123,7 @@ class NeuralModel(nn.Module, metaclass=abc.ABCMeta):
         Raises:
             ValueError: no `node_dim`, or an option this model refuses.
         """
-        sizes = {k: config[k] for k in ("node_dim", "control_dim", "num_nodes") if k in config}
+        sizes = {k: config[k] for k in cls.constructor_keys if k in config}
         if "node_dim" not in sizes:
             raise ValueError(f"model '{cls.kind}' config lacks node_dim")
         given = {k: v for k, v in config.items() if k not in sizes}

@@ -44,8 +44,8 @@ adaptive step size (the authors' batch shared one).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any, ClassVar, Self
+from collections.abc import Sequence
+from typing import Any, ClassVar
 
 import torch
 
@@ -77,6 +77,8 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
     kind: ClassVar[str] = "mpnode"
     transferable: ClassVar[bool] = True
     Options: ClassVar[type[MPNODEOptions]] = MPNODEOptions
+    constructor_keys: ClassVar[tuple[str, ...]] = (*NeuralODEModel.constructor_keys,
+                                                    "periodic_dims")
 
     def __init__(self, node_dim: int, control_dim: int = 0, num_nodes: int | None = None,
                  options: MPNODEOptions | None = None, periodic_dims: Sequence[int] = ()):
@@ -119,17 +121,6 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         config = super().config
         return config | {"periodic_dims": list(self.periodic_dims)} if self.periodic_dims \
             else config
-
-    @classmethod
-    def from_config(cls, config: Mapping[str, Any]) -> Self:
-        """`NeuralModel.from_config`, with `periodic_dims` (absent: none)."""
-        config = dict(config)
-        dims = config.pop("periodic_dims", ())
-        sizes = {k: config[k] for k in ("node_dim", "control_dim", "num_nodes") if k in config}
-        if "node_dim" not in sizes:
-            raise ValueError(f"model '{cls.kind}' config lacks node_dim")
-        given = {k: v for k, v in config.items() if k not in sizes}
-        return cls(**sizes, options=cls.Options.parse(given, cls.kind), periodic_dims=dims)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         """The networks' view of the states `x [..., D]`: `[x_plain, sin θ, cos θ]`
