@@ -34,7 +34,7 @@ import` takes (states.npz with `states [K, T, N, 2]` and `time [T]`, controls.np
 1]`, adjacency.npy `[K, N, N]`, one graph per trajectory, so a dataset may hold several
 graphs) and runs `python -m mpnode_cli import` on them. Graph g (of `graphs`) is the `ba`
 graph `mpnode generate --topology ba --graph-seed S` builds for seed S + g with m edges per
-new node (`mpnode_cli.graphs.make_graph`), and trajectories are spread over the graphs in
+new node (`mpnode_cli.topologies.make_graph`), and trajectories are spread over the graphs in
 contiguous blocks, as `mpnode generate --graphs` spreads them. The physical parameters are
 not stored in the dataset (an imported file records only its inputs' paths and sha256):
 they are written beside the arrays as `power_grid.json` (`--keep-arrays DIR` keeps them).
@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpnode_cli.graphs import make_graph
+from mpnode_cli.topologies import make_graph
 
 ROOT = Path(__file__).resolve().parent.parent
 

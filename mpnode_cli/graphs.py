@@ -1,4 +1,4 @@
-"""Graph topologies as adjacency matrices or edge lists, and the graphs of a dataset.
+"""Graphs as adjacency matrices or edge lists, edge-list files, and the graphs of a dataset.
 
 Convention (used by every dataset and model): `A[i, j] = 1` iff node j sends a message to
 node i, i.e. row i lists the senders of receiver i. All generated graphs are undirected, so
@@ -16,14 +16,7 @@ is 10⁵ messages, against 10⁸ matrix entries). Three types carry graphs:
 - `EdgeBatch`: the graphs of B trajectories for torch (systems' and models' neighbour sums),
   each distinct graph's edges once plus which graph each trajectory runs on.
 
-Random graphs come from networkx with an explicit integer seed, except `s1`, which
-`mpnode_cli.s1_graph` draws with numpy (`np.random.default_rng(seed)`), in blocks of node
-pairs, so that neither networkx nor an N×N matrix is involved. The authors' graphs came
-from LightGraphs.jl (MersenneTwister streams) and cannot be reproduced from Python, which
-is why every dataset stores its adjacency (docs/systems.md).
-
-networkx is imported inside the functions that need it, so that importing this module (and
-the system registry, which imports it) stays cheap for the CLI.
+The random topologies that make these graphs are `mpnode_cli.topologies`.
 """
 
 from __future__ import annotations
@@ -38,7 +31,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mpnode_cli.s1_graph import s1_edges
 from mpnode_cli.textfiles import text_lines
 
 if TYPE_CHECKING:
@@ -62,133 +54,6 @@ MAX_NODES = 2**24
 # The longest line of an edge list: `i j w` lines are short, so a longer one (a binary file
 # without newlines) is refused without reading it whole.
 _LINE_CHARS = 4096
-
-TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws", "s1")
-
-# Keyword arguments each topology accepts; anything else is a caller's mistake.
-_KWARGS: dict[str, tuple[str, ...]] = {
-    "complete": (),
-    "chain": (),
-    "er": ("p", "m_edges"),
-    "ba": ("m",),
-    "ws": ("k", "p"),
-    "s1": ("gamma", "beta", "mean_degree"),
-}
-
-
-def make_graph(topology: str, n: int, seed: int, **kw: float) -> np.ndarray:
-    """Build an undirected graph and return its adjacency matrix.
-
-    Args:
-        topology: one of `TOPOLOGIES`: `complete`; `chain` (path 0-1-...-n-1); `er`
-            Erdős–Rényi, with `p` (G(n, p)) or `m_edges` (G(n, M), exactly M edges);
-            `ba` Barabási–Albert with `m` edges per new node; `ws` Watts–Strogatz with
-            ring degree `k` (k // 2 neighbours per side) and rewiring probability `p`;
-            `s1` the S¹ model (Serrano, Krioukov & Boguñá, PRL 100, 078701 (2008);
-            `mpnode_cli.s1_graph`) with degree exponent `gamma` > 2, clustering `beta` > 1
-            and mean hidden degree `mean_degree` = E[κ] in (0, n − 1) (near γ = 2 the
-            mean degree falls short of it at finite n; see `mpnode_cli.s1_graph`).
-        n: number of nodes, at least 1.
-        seed: seed of the random generators (ignored by deterministic topologies).
-        **kw: the topology's parameters, as above.
-
-    Returns:
-        uint8 `[n, n]`, symmetric, zero diagonal.
-
-    Raises:
-        ValueError: unknown topology, missing/unexpected parameters, or parameters that
-            the topology cannot satisfy at this size.
-    """
-    if topology == "s1":
-        return _s1(n, seed, **kw).to_dense()
-    import networkx as nx
-
-    g = _nx_graph(topology, n, seed, **kw)
-    return nx.to_numpy_array(g, nodelist=range(n), dtype=np.uint8)
-
-
-def make_edges(topology: str, n: int, seed: int, **kw: float) -> EdgeList:
-    """The graph `make_graph` builds, as an edge list, without an `[n, n]` matrix.
-
-    The same topology, size, seed and parameters give the same graph as `make_graph`
-    (networkx builds it either way, or `s1_edges` for `s1`); memory is O(n + E).
-
-    Raises:
-        ValueError: as `make_graph`.
-    """
-    if topology == "s1":
-        return _s1(n, seed, **kw)
-    g = _nx_graph(topology, n, seed, **kw)
-    pairs = np.asarray(list(g.edges()), dtype=np.int64).reshape(-1, 2)  # [E_undirected, 2]
-    return EdgeList.build(n, np.concatenate([pairs[:, 0], pairs[:, 1]]),
-                          np.concatenate([pairs[:, 1], pairs[:, 0]]))
-
-
-def _s1(n: int, seed: int, **kw: float) -> EdgeList:
-    """The `s1` graph of `make_graph`, drawn by `s1_edges` (arguments and errors as there)."""
-    _check_request("s1", n, kw)
-    gamma, beta, mean_degree = (float(_require(kw, name, "s1")) for name in _KWARGS["s1"])
-    return EdgeList.build(n, *s1_edges(n, seed, gamma, beta, mean_degree))
-
-
-def _check_request(topology: str, n: int, kw: dict[str, float]) -> None:
-    """Raise ValueError for an unknown topology, parameters it does not take, or n < 1."""
-    if topology not in _KWARGS:
-        raise ValueError(f"unknown topology '{topology}' (choose from: {', '.join(TOPOLOGIES)})")
-    unexpected = sorted(set(kw) - set(_KWARGS[topology]))
-    if unexpected:
-        accepted = ", ".join(_KWARGS[topology]) or "none"
-        raise ValueError(
-            f"topology '{topology}' does not take {', '.join(unexpected)} (accepted: {accepted})"
-        )
-    if n < 1:
-        raise ValueError(f"a graph needs at least 1 node, got n={n}")
-
-
-def _nx_graph(topology: str, n: int, seed: int, **kw: float):
-    """The networkx graph of `make_graph` (arguments and errors as there)."""
-    import networkx as nx
-
-    _check_request(topology, n, kw)
-    if topology == "complete":
-        g = nx.complete_graph(n)
-    elif topology == "chain":
-        g = nx.path_graph(n)
-    elif topology == "er":
-        g = _erdos_renyi(n, seed, **kw)
-    elif topology == "ba":
-        m = int(_require(kw, "m", topology))
-        if not 1 <= m < n:
-            raise ValueError(f"Barabási–Albert needs 1 <= m < n, got m={m}, n={n}")
-        g = nx.barabasi_albert_graph(n, m, seed=seed)
-    else:  # ws
-        k, p = int(_require(kw, "k", topology)), float(_require(kw, "p", topology))
-        if not 0 <= k < n or not 0.0 <= p <= 1.0:
-            raise ValueError(f"Watts–Strogatz needs 0 <= k < n and 0 <= p <= 1, got k={k}, p={p}")
-        g = nx.watts_strogatz_graph(n, k, p, seed=seed)
-    return g
-
-
-def _erdos_renyi(n: int, seed: int, p: float | None = None, m_edges: int | None = None):
-    import networkx as nx
-
-    if (p is None) == (m_edges is None):
-        raise ValueError("topology 'er' takes exactly one of p (G(n, p)) or m_edges (G(n, M))")
-    if p is not None:
-        if not 0.0 <= p <= 1.0:
-            raise ValueError(f"Erdős–Rényi edge probability must be in [0, 1], got p={p}")
-        return nx.gnp_random_graph(n, p, seed=seed)
-    max_edges = n * (n - 1) // 2
-    if not 0 <= int(m_edges) <= max_edges:
-        raise ValueError(f"G(n, M) with n={n} holds 0..{max_edges} edges, got m_edges={m_edges}")
-    return nx.gnm_random_graph(n, int(m_edges), seed=seed)
-
-
-def _require(kw: dict[str, float], name: str, topology: str) -> float:
-    if name not in kw:
-        raise ValueError(f"topology '{topology}' needs parameter {name}")
-    return kw[name]
-
 
 def read_edge_list(path: str | Path, *, directed: bool = False) -> np.ndarray:
     """`read_edges` as a uint8 `[n, n]` adjacency matrix (zero diagonal; symmetric unless

@@ -166,8 +166,9 @@ def test_aggregation_from_edges_is_permutation_equivariant(how):
 
 def test_large_graphs_aggregate_without_a_matrix():
     """1 000 nodes: the scatter path runs from the edges; asking for matrices is refused."""
-    from mpnode_cli.graphs import Graphs, make_edges
+    from mpnode_cli.graphs import Graphs
     from mpnode_cli.models.aggregate import full_graph
+    from mpnode_cli.topologies import make_edges
 
     chain = make_edges("chain", 1000, seed=0)
     edges = Graphs.from_edge_lists(1000, [chain]).batch([0, 0])

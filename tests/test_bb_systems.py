@@ -14,9 +14,10 @@ from scipy.integrate import solve_ivp
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.graphs import TOPOLOGIES, Graphs, make_graph
+from mpnode_cli.graphs import Graphs
 from mpnode_cli.solver import solve
 from mpnode_cli.systems import get_system
+from mpnode_cli.topologies import TOPOLOGIES, make_graph
 
 NAMES = ["sis", "mak", "mm", "bd", "nd"]
 RNG_SEED = 20130813

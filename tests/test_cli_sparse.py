@@ -15,7 +15,8 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, make_graph
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES
+from mpnode_cli.topologies import make_graph
 
 runner = CliRunner()
 N = 300

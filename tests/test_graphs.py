@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpnode_cli.graphs import TOPOLOGIES, edges, make_graph, read_edge_list
+from mpnode_cli.graphs import edges, read_edge_list
+from mpnode_cli.topologies import TOPOLOGIES, make_graph
 
 # One valid parameter set per topology.
 CASES = {
@@ -187,7 +188,7 @@ def test_read_edge_list_errors(tmp_path, text, message):
 
 @pytest.mark.parametrize("topology", TOPOLOGIES)
 def test_make_edges_is_make_graph_without_the_matrix(topology):
-    from mpnode_cli.graphs import make_edges
+    from mpnode_cli.topologies import make_edges
 
     a = make_graph(topology, 12, seed=7, **CASES[topology])
     e = make_edges(topology, 12, seed=7, **CASES[topology])
@@ -229,7 +230,8 @@ def test_edge_batch_lays_graphs_out_over_the_batch():
 
 
 def test_graphs_refuse_matrices_above_the_threshold():
-    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, Graphs, make_edges
+    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, Graphs
+    from mpnode_cli.topologies import make_edges
 
     n = DENSE_GRAPH_MAX_NODES + 1
     graphs = Graphs.from_edge_lists(n, [make_edges("chain", n, seed=0)])

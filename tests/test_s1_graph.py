@@ -15,8 +15,9 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from mpnode_cli.graphs import EdgeList, edges, make_edges, make_graph
+from mpnode_cli.graphs import EdgeList, edges
 from mpnode_cli.s1_graph import s1_edges, s1_hidden
+from mpnode_cli.topologies import make_edges, make_graph
 
 PARAMS = {"gamma": 2.5, "beta": 2.0, "mean_degree": 4.0}
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
-from mpnode_cli.graphs import make_graph
 from mpnode_cli.solver import solve
 from mpnode_cli.systems import SYSTEMS, System, get_system
 from mpnode_cli.systems.base import NeighbourSum
+from mpnode_cli.topologies import make_graph
 
 RNG_SEED = 20221029
 
@@ -573,7 +573,8 @@ def test_rhs_on_edges_equals_dense_and_the_loop(name, shared):
 def test_trajectories_on_edges_equal_the_dense_ones(name):
     """A whole solve from edges (scatter sums) and from the matrix (GEMMs): the same
     trajectories up to rounding, on a Barabási–Albert graph of 40 nodes."""
-    from mpnode_cli.graphs import Graphs, make_edges
+    from mpnode_cli.graphs import Graphs
+    from mpnode_cli.topologies import make_edges
 
     rng = np.random.default_rng(RNG_SEED)
     system = get_system(name)

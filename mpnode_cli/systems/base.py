@@ -43,7 +43,8 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch, EdgeList, make_edges, make_graph
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch, EdgeList
+from mpnode_cli.topologies import make_edges, make_graph
 
 if TYPE_CHECKING:
     import torch
@@ -131,7 +132,7 @@ class System(ABC):
             its networks (sin θ, cos θ) for them, and `--wrap-angles` measures their errors
             mod 2π. Empty (the default): no state is an angle.
         control_names: `[U]` names of a node's controls (none for an autonomous system).
-        topologies: the `mpnode_cli.graphs.make_graph` topologies it runs on;
+        topologies: the `mpnode_cli.topologies.make_graph` topologies it runs on;
             default_topology and default_nodes: the graph without options.
         defaults: scalar parameters and their default values (written as attributes of
             the dataset's `params` group; given as `-p NAME=VALUE`).
