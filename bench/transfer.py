@@ -279,7 +279,7 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
         jobs.append(Job(name, bench.system, EVAL_SECONDS, (source, f"gen:{d.name}"),
                         lambda label=label: zeroshot(args, bench, seed, label),
                         recorded(name)))
-        if label == "own":
+        if label == "own" or args.no_oracles:
             continue
         name = job_name(args, bench, seed, f"oracle-{label}")
         oracle_epoch = epoch_seconds(bench.system, d, src)
@@ -406,6 +406,8 @@ def parse(argv) -> argparse.Namespace:
                    help="only these targets, comma-separated labels (x2, x4, other, n1024, "
                    "n4096, n8192; default: all)")
     p.add_argument("--variant", choices=VARIANTS, default="default")
+    p.add_argument("--no-oracles", action="store_true", help="train no oracles: a variant's "
+                   "zero-shot rows are then set against the default variant's oracles")
     p.add_argument("--jobs", type=int, default=2, help="parallel workers, one thread each")
     p.add_argument("--scale", choices=("full", "smoke"), default="full")
     p.add_argument("--smoke", action="store_const", const="smoke", dest="scale")

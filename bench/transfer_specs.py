@@ -25,6 +25,12 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "mean": ("--aggregate", "mean", "--update", "mlp", "--message-init", "zero"),
     "mlp-sum": ("--aggregate", "sum", "--update", "mlp", "--message-init", "zero"),
     "linear-path": ("--linear-path",),  # the default beside a linear path per node network
+    # Candidates for node networks that extrapolate (docs/transfer.md, "Variants"): an
+    # unbounded activation (Xu et al. 2021: ReLU MLPs extrapolate linearly, tanh saturates),
+    # and both.
+    "relu": ("--activation", "relu"),
+    "relu-linear-path": ("--activation", "relu", "--linear-path"),
+    "softplus": ("--activation", "softplus"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the

@@ -90,6 +90,10 @@ def grouped(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[int
             src = sources.get((*key[:4], seed))
             if src:
                 kinds.setdefault("source", {})[seed] = src
+    for key, kinds in groups.items():  # a variant run with --no-oracles: the default's
+        default = groups.get((*key[:3], "default", key[4]), {}).get("oracle")
+        if key[3] != "default" and "oracle" not in kinds and default:
+            kinds["oracle"], kinds["borrowed"] = default, {}
     return dict(sorted(groups.items(), key=lambda kv: _order(kv[0])))
 
 
@@ -162,7 +166,8 @@ def headline_row(key: tuple, kinds: dict[str, dict[int, dict]]) -> str:
     cells = [
         set_of(system), system, protocol + (f" γ={gamma:g}" if gamma else ""),
         variant, label, where, str(len(zs) or len(oracle)),
-        ratio_cell(zs, oracle) if label != "own" else "—",
+        (ratio_cell(zs, oracle) + ("†" if "borrowed" in kinds else "")) if label != "own"
+        else "—",
         _pm([s["mse"] for s in z]), _pm([s["skill"] for s in z]),
         _pm([s["mse"] for s in o]), _pm([s["skill"] for s in o]),
         _pm([s["hold_x0"] / s["time_mean"] if s["time_mean"] else None for s in base]),
@@ -249,6 +254,9 @@ def page(records: dict[str, dict[str, Any]], note: str = "") -> str:
              INTRO.format(count=len(records), when=_dates(records.values()), note=note), "",
              HEAD, "|" + "---|" * (HEAD.count("|") - 1)]
     lines += [headline_row(key, kinds) for key, kinds in groups.items()]
+    if any("borrowed" in kinds for kinds in groups.values()):
+        lines += ["", "† A variant trained without oracles (`--no-oracles`): its oracle columns "
+                  "are the default variant's oracles of the same target."]
     scales = sorted({r.get("scale", "?") for r in records.values()})
     if scales != ["full"]:
         lines += ["", f"Scales present: {', '.join(scales)} (smoke rows are not results)."]

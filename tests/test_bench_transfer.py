@@ -175,6 +175,18 @@ def test_table_from_records(tmp_path):
     assert "| 8–15 | 1 | 0.5 ± 0.14 | 0.1 ± 0 | 5 |" in text
 
 
+def test_a_variant_without_oracles_is_set_against_the_defaults(tmp_path):
+    degree = np.array([1, 2, 3, 9, 20])
+    oracle = _record("oracle", 0, epochs=400, best_epoch=200, train_seconds=300.0,
+                     stopped_by="patience", score=_score(0.1, 2.0, degree))
+    variant = {**_record("zeroshot", 0, score=_score(0.3, 2.0, degree)),
+               "variant": "relu", "job": "size/gene/relu/s0/zeroshot-x4"}
+    text = tt.page({r["job"]: r for r in (oracle, variant)})
+    row = next(line for line in text.splitlines() if "| relu | x4 |" in line)
+    assert "**3**†" in row  # 0.3 ÷ the default's 0.1
+    assert "default variant's oracles" in text
+
+
 def test_merged_records_prefer_local(tmp_path):
     old = _record("zeroshot", 0, score=_score(1.0, 2.0, np.array([1, 2])))
     new = {**old, "score": _score(0.5, 2.0, np.array([1, 2]))}

@@ -219,7 +219,7 @@ def test_gradcheck_where_compaction_triggers(fused, monkeypatch, restarts):
     import mpnode_cli.solver.adaptive as adaptive
 
     monkeypatch.setattr(adaptive, "COMPACT_MIN_DROP", 1)  # compact a batch of 4
-    ts = torch.tensor([0.0, 0.2, 0.5], dtype=torch.float64)
+    ts = torch.tensor([0.0, 0.1, 0.25], dtype=torch.float64)
     y0 = torch.tensor([[0.3, -0.7], [1.1, 0.2], [0.5, 0.5], [-0.4, 0.9]], dtype=torch.float64,
                       requires_grad=True)
     theta = torch.tensor([1.0, 3.0, 40.0, 90.0], dtype=torch.float64, requires_grad=True)
@@ -229,11 +229,14 @@ def test_gradcheck_where_compaction_triggers(fused, monkeypatch, restarts):
 
     def run(y0, theta):
         return solve(field(theta), y0, ts, restrict=lambda i: field(theta[i]), fused=fused,
-                     rtol=1e-10, atol=1e-12).ys
+                     rtol=1e-8, atol=1e-10).ys
 
     run(y0, theta)
     assert len(restarts) >= 2
-    assert torch.autograd.gradcheck(run, (y0, theta), eps=1e-6, atol=1e-6, rtol=1e-4)
+    # fast_mode checks vᵀJu for random u, v (one backward, a directional difference)
+    # instead of every entry of J: a wrong compacted gradient still shows in vᵀJu.
+    assert torch.autograd.gradcheck(run, (y0, theta), eps=1e-6, atol=1e-6, rtol=1e-4,
+                                    fast_mode=True)
 
 
 def test_float32_compaction_is_the_same_solve_to_its_precision(restarts):
