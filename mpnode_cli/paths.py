@@ -18,6 +18,15 @@ A verb that writes a file or a folder checks first that it can (`check_output_fi
 - **Only regular files replaced.** What sits at the target (if anything) must be a
   regular file that `--force` may replace. A symlink, a folder, a device or a pipe is
   never replaced: the user meant something else, and replacing it would be hard to undo.
+  A file the verb wrote itself (an index it rebuilds: `mine`, its first bytes) is
+  replaced without `--force`; anyone else's is the user's, and refused.
+- **Replaceable, checked up front.** A file that `--force` will replace must be one the
+  final rename can replace: not immutable or append-only (`chattr +i`, `+a`), not another
+  user's in a sticky folder. This is checked before the work, and a rename that fails
+  anyway is one line (`OutputError`), with the temporary removed.
+- **Named as a path.** An output given as an empty string, or (for a file) ending in `/`,
+  is refused (`output_arg`): "" would mean the current folder, and `newdir/` a folder, not
+  the file the verb writes.
 """
 
 from __future__ import annotations
@@ -29,6 +38,14 @@ import tempfile
 import uuid
 from collections.abc import Iterable
 from pathlib import Path
+
+# Inode flags that forbid replacing a file by a rename (linux/fs.h: FS_IMMUTABLE_FL,
+# FS_APPEND_FL), read with the FS_IOC_GETFLAGS ioctl (`_IOR('f', 1, long)` on 64 bits).
+_IMMUTABLE, _APPEND_ONLY, _GETFLAGS = 0x10, 0x20, 0x80086601
+
+
+class OutputError(ValueError):
+    """An output that cannot be written where it was asked (one line for the user)."""
 
 # POSIX's limits where the filesystem does not say (`os.pathconf`): one name, one path.
 NAME_MAX, PATH_MAX = 255, 4096
@@ -56,7 +73,8 @@ def describe(path: Path) -> str | None:
 
 
 def check_output_file(path: str | Path, *, overwrite: bool,
-                      inputs: Iterable[str | Path | None] = ()) -> None:
+                      inputs: Iterable[str | Path | None] = (), mine: bytes | None = None
+                      ) -> None:
     """Refuse an output file that could not be written, before the work that makes it.
 
     Args:
@@ -64,12 +82,15 @@ def check_output_file(path: str | Path, *, overwrite: bool,
         overwrite: whether an existing regular file may be replaced (`--force`).
         inputs: the files the verb reads (None entries are skipped); the output may be
             none of them.
+        mine: how a file this verb wrote begins (an index it rebuilds); an existing file
+            that begins so is replaced without `overwrite`.
 
     Raises:
-        FileExistsError: a regular file exists there and `overwrite` is False.
+        FileExistsError: a regular file exists there, `overwrite` is False, and it is not
+            the verb's own (`mine`).
         ValueError: a name or path too long, one of `inputs`, something other than a
-            regular file there, or a folder that cannot be made or written in (one line
-            saying which).
+            regular file there, a file the rename could not replace, or a folder that
+            cannot be made or written in (one line saying which).
     """
     path = Path(path)
     check_length(path, room=_TEMP_ROOM)
@@ -78,9 +99,62 @@ def check_output_file(path: str | Path, *, overwrite: bool,
         raise ValueError(f"{path} is {other}: mpnode only replaces regular files, even with "
                          "--force; choose another output path")
     check_not_input(path, inputs)
-    if path.exists() and not overwrite:
-        raise FileExistsError(_exists(path))
+    if path.exists():
+        if not (overwrite or (mine is not None and _begins(path, mine))):
+            raise FileExistsError(_exists(path, mine is not None))
+        check_replaceable(path)
     check_writable_dir(path.parent)
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Refuse an existing file that a rename could not replace: immutable or append-only
+    (`chattr +i`, `chattr +a`), or another user's in a sticky folder (as /tmp) — what the
+    kernel's rename refuses beyond the folder's own permission (which
+    `check_writable_dir` proves).
+
+    Raises:
+        OutputError: one line naming the file and why.
+    """
+    path = Path(path)
+    flags = _inode_flags(path)
+    if flags & (_IMMUTABLE | _APPEND_ONLY):
+        how = "immutable" if flags & _IMMUTABLE else "append-only"
+        raise OutputError(f"cannot replace {path}: it is {how} (lsattr shows it; chattr "
+                          f"-{'i' if flags & _IMMUTABLE else 'a'} lifts it); choose another "
+                          "output path")
+    try:
+        own, folder = os.lstat(path), os.stat(path.parent)
+    except OSError:
+        return
+    uid = os.geteuid() if hasattr(os, "geteuid") else 0
+    if folder.st_mode & stat.S_ISVTX and uid not in (0, own.st_uid, folder.st_uid):
+        raise OutputError(f"cannot replace {path}: it is another user's, in a folder where "
+                          "only a file's owner may replace it; choose another output path")
+
+
+def output_arg(text: str | Path | None, option: str, *, folder: bool = False
+               ) -> Path | None:
+    """A path given on the command line for an output, as the verb takes it.
+
+    Args:
+        text: what was typed (None: not given).
+        option: its name, for the message (`--out`).
+        folder: whether it names a folder (a trailing `/` is then just a folder).
+
+    Raises:
+        OutputError: an empty path (it would be the current folder), or a file's path
+            that ends in `/` (a folder, where the verb writes a file).
+    """
+    if text is None:
+        return None
+    raw = os.fspath(text)
+    if not raw.strip():
+        raise OutputError(f"{option} is empty: give a path (. for the current folder)"
+                          if folder else f"{option} is empty: give the file's path")
+    if not folder and raw.endswith(("/", os.sep)):
+        raise OutputError(f"{option} {raw} ends in '/', a folder: give the file's name "
+                          f"too, e.g. {raw}data.h5")
+    return Path(raw)
 
 
 class Reservation:
@@ -288,18 +362,52 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
-def _exists(path: Path) -> str:
+def _exists(path: Path, foreign: bool = False) -> str:
     """Why an existing output is refused without `--force`: an empty file is most likely
-    another run's reservation, and saying so beats a bare "exists"."""
+    another run's reservation, and saying so beats a bare "exists"; a `foreign` one is a
+    file the verb would have written itself, but did not."""
     try:
         empty = path.stat().st_size == 0
     except OSError:
         empty = False
+    if foreign:
+        return (f"{path} already exists and mpnode did not write it: move it away, or choose "
+                "another output folder")
     if empty:
         return (f"{path} already exists and is empty: another mpnode run may be writing it "
                 "(or one was killed before it finished); wait for it, or use --force to "
                 "replace it")
     return f"{path} already exists (use --force to overwrite)"
+
+
+def _begins(path: Path, start: bytes) -> bool:
+    """Whether the file at `path` begins with `start` (False if it cannot be read)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(start)) == start
+    except OSError:
+        return False
+
+
+def _inode_flags(path: Path) -> int:
+    """The file's inode flags (`lsattr`), 0 where the system or filesystem has none."""
+    try:
+        import array
+        import fcntl
+    except ImportError:  # not POSIX
+        return 0
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | os.O_NONBLOCK)
+    except OSError:
+        return 0
+    try:
+        buf = array.array("l", [0])
+        fcntl.ioctl(fd, _GETFLAGS, buf, True)
+        return int(buf[0])
+    except OSError:  # a filesystem without flags (tmpfs on old kernels, NFS, ...)
+        return 0
+    finally:
+        os.close(fd)
 
 
 def _same_file(a: Path, b: Path) -> bool:

@@ -18,7 +18,7 @@ from typer.core import TyperCommand
 
 from mpnode_cli import __version__
 from mpnode_cli.cli.check import check_command
-from mpnode_cli.cli.common import fail, hide_flag_types
+from mpnode_cli.cli.common import ascii_fallback, fail, hide_flag_types
 from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
 from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
 from mpnode_cli.cli.generate import generate_command
@@ -62,6 +62,7 @@ def _root(
     ),
 ) -> None:
     """mpnode: message-passing neural ODEs for homogeneous networked systems."""
+    ascii_fallback()  # before any verb prints (`main` did it for help and usage errors)
     ctx.meta[_THREADS] = threads
 
 
@@ -98,6 +99,7 @@ app.add_typer(experiment_app, name="experiment")
 
 
 def main() -> None:
+    ascii_fallback()
     app()
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console, error_message, fail
+from mpnode_cli.cli.common import console, error_message, fail, output_parser
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -31,7 +31,8 @@ def check_command(
         "own."),
     out: Path | None = typer.Option(
         None, "--out", metavar="FILE", show_default=False,
-        help="Where --member's checkpoint goes (.pt)."),
+        help="Where --member's checkpoint goes (.pt; a path ending in / is refused).",
+        parser=output_parser("--out")),
     force: bool = typer.Option(False, "--force", help="Overwrite an existing --out file."),
 ) -> None:
     """Check a dataset or checkpoint: shapes, indices, attributes, finite values, format."""

@@ -136,11 +136,61 @@ def speaks() -> bool:
 def console(stderr: bool = False):
     """A rich console. Written to a pipe or a file, its lines are never wrapped (rich would
     break them at 80 columns, and a path or a suggested command in two is useless to
-    copy); tables stay as wide as their content."""
+    copy); tables fit `mpnode_cli.report.tables.PIPE_WIDTH` columns there all the same.
+    On a stream that cannot encode mpnode's characters (`ascii_fallback`), rich draws
+    its tables with ASCII."""
     from rich.console import Console
 
+    ascii_fallback()
     probe = Console(stderr=stderr)
     return probe if probe.is_terminal else Console(stderr=stderr, width=_UNWRAPPED)
+
+
+def ascii_fallback() -> None:
+    """Make stdout and stderr survive any terminal: where one cannot encode the characters
+    mpnode prints (×, —, ≥, ... under `LC_ALL=C PYTHONIOENCODING=ascii`), it writes them
+    as ASCII (`x`, `--`, `>=`; `?` for any other) instead of raising UnicodeEncodeError.
+    The one place that decides; called before a verb prints (`mpnode_cli.cli.app`)."""
+    import sys
+
+    from mpnode_cli.terminal import ASCII_ERRORS, register_ascii_errors
+
+    register_ascii_errors()
+    for stream in (sys.stdout, sys.stderr):
+        encoding = getattr(stream, "encoding", None) or "utf-8"
+        try:
+            _SAMPLE.encode(encoding)
+        except UnicodeEncodeError:
+            if hasattr(stream, "reconfigure"):
+                stream.reconfigure(errors=ASCII_ERRORS)
+        except LookupError:  # an encoding Python does not know: leave the stream alone
+            pass
+
+
+# Characters mpnode prints that a stream must encode to be left as it is.
+_SAMPLE = "×—…≥±→"
+
+
+def output_parser(option: str, *, folder: bool = False) -> Callable[[Any], Any]:
+    """The `parser` of an output path option (`typer.Option(..., parser=...)`): the path as
+    typed, refused in one line (exit 2) when empty or, for a file, ending in `/`
+    (`mpnode_cli.paths.output_arg`), before typer turns it into a `Path` (which drops the
+    slash).
+
+    Args:
+        option: the option's name, for the message (`--out`).
+        folder: whether it names a folder.
+    """
+
+    def parse(text: Any) -> Any:
+        from mpnode_cli.paths import output_arg
+
+        try:
+            return output_arg(text, option, folder=folder)
+        except ValueError as exc:
+            fail(str(exc))
+
+    return parse
 
 
 # Columns of a console that is not a terminal: wider than any line mpnode prints.
@@ -218,9 +268,22 @@ def with_bar(description: str, work: Callable[[Callable], T], *, quiet: bool, st
         fail(error_message(exc))
     except failures as exc:
         fail(str(exc), code=1)
+    except MemoryError as exc:  # numpy's _ArrayMemoryError too; the writes left nothing
+        fail(out_of_memory(exc, description))
     except KeyboardInterrupt as exc:
         typer.echo(f"Interrupted ({signal_name(exc)}): {stopped}", err=True)
         raise typer.Exit(code=exit_code(exc)) from None
+
+
+def out_of_memory(exc: MemoryError, doing: str) -> str:
+    """One line for a `MemoryError`: the step that ran out (`doing`, or the step the error
+    names itself, as `mpnode_cli.training.predict` does), what numpy could not allocate,
+    and that nothing was written."""
+    said = str(exc).strip()
+    step = said if said.startswith("out of memory") else f"out of memory while {doing}"
+    detail = "" if said.startswith("out of memory") or not said else f" ({said})"
+    return (f"{step}{detail}; nothing was written: use a smaller job (fewer trajectories or "
+            "samples), or a machine with more memory")
 
 
 def hide_flag_types() -> None:

@@ -26,6 +26,7 @@ from mpnode_cli.cli.common import (
     error_message,
     extrapolation_note,
     fail,
+    output_parser,
 )
 
 _SPLITS = "train, validation, test or all"
@@ -41,14 +42,16 @@ def evaluate_command(
     split: str = typer.Option("test", help=f"Which trajectories: {_SPLITS}."),
     plot: bool = typer.Option(False, "--plot", help="Draw the Fig. 2 rollout and error plots."),
     plot_dir: Path | None = typer.Option(
-        None, help="Where plots go (default <run>/plots beside the checkpoint)."),
+        None, help="Where plots go (default <run>/plots beside the checkpoint).",
+        parser=output_parser("--plot-dir", folder=True)),
     json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
     batch_size: int = typer.Option(128, help="Trajectories per rollout."),
     device: str = typer.Option("cpu", help="cpu or cuda."),
     allow_other_system: bool = _OTHER_SYSTEM,
     save_predictions: Path | None = typer.Option(
         None, metavar="FILE", help="Write the split's predictions (physical units, messages "
-        "under hidden/messages) as an mpnode dataset file."),
+        "under hidden/messages) as an mpnode dataset file (a file's path: not one ending in "
+        "/).", parser=output_parser("--save-predictions")),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing --save-predictions file."),
     member: int | None = MEMBER,

@@ -15,7 +15,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import THREADS, console, error_message, fail
+from mpnode_cli.cli.common import THREADS, console, error_message, fail, output_parser
 
 experiment_app = typer.Typer(
     help="The paper's experiments, one command each, with reports beside the paper's numbers.",
@@ -97,10 +97,13 @@ def run_command(
         "epochs)."),
     recipe: str = typer.Option(
         "mpnode", help="Training recipe: mpnode (default; alias ours) or paper."),
-    out: Path = typer.Option(Path("reports"), help="Where reports go (<out>/<name>/report.md)."),
+    out: Path = typer.Option(
+        Path("reports"), help="Where reports go (<out>/<name>/report.md, and the index "
+        "<out>/README.md: a README.md there that mpnode did not write is refused).",
+        parser=output_parser("--out", folder=True)),
     work: Path = typer.Option(
         Path("runs/experiments"), help="Step folders (datasets, runs); finished steps found "
-        "here are reused."),
+        "here are reused.", parser=output_parser("--work", folder=True)),
     jobs: int = typer.Option(
         1, "--jobs", "-j", metavar="N",
         help="Processes running steps side by side, each on --threads threads: a step "
@@ -136,12 +139,27 @@ def run_command(
         # Both folders are written: --work by every step, --out after the last.
         check_output_folder(work)
         check_output_folder(out / experiment.name)
-    except ValueError as exc:
+        _check_reports(out, experiment.name)
+    except (FileExistsError, ValueError) as exc:
         fail(error_message(exc))
     command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
                           _RECIPES[recipe], "--seeds", str(seeds), *_given_paths(out, work),
                           *(["--jobs", str(jobs)] if jobs > 1 else [])])
     _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs, seeds)
+
+
+def _check_reports(out: Path, name: str) -> None:
+    """The files `write_report` rewrites (`<out>/README.md`, `<out>/<name>/report.md`) may
+    be there only as mpnode wrote them: a user's own README.md is never replaced.
+
+    Raises:
+        FileExistsError, ValueError: one line (`mpnode_cli.paths.check_output_file`).
+    """
+    from mpnode_cli.experiments.report import INDEX, INDEX_TITLE, REPORT
+    from mpnode_cli.paths import check_output_file
+
+    check_output_file(out / INDEX, overwrite=False, mine=INDEX_TITLE.encode())
+    check_output_file(out / name / REPORT, overwrite=False, mine=f"# {name}: ".encode())
 
 
 def _given_paths(out: Path, work: Path) -> list[str]:

@@ -21,6 +21,7 @@ from mpnode_cli.cli.common import (
     THREADS,
     confirm_size,
     console,
+    output_parser,
     solver_option,
     split_by_name,
     warn,
@@ -106,7 +107,8 @@ _EDGE_LIST = typer.Option(
 _OUT = typer.Option(
     None, "--out", "-o",
     help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5); with "
-    "--shard, the name its shards are named after."
+    "--shard, the name its shards are named after. A path ending in / is refused: name "
+    "the file.", parser=output_parser("--out"),
 )
 _SHARD = typer.Option(
     None, metavar="i/n",
@@ -180,7 +182,7 @@ def generate_command(
         config = _layered_config(preset, config_file, system_file, options)
     except ValueError as exc:
         _usage_error(_message(exc))
-    _run(config, force, yes, json_out)
+    _run(config, force, yes, json_out, config_file)
 
 
 def _command_line(given: dict[str, Any], solver: dict[str, Any], param: list[str],
@@ -275,8 +277,10 @@ def _with_system_options(command):
 generate_command = _with_system_options(generate_command)
 
 
-def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
-    """Check the job and its output, generate with a progress bar, then print the summary."""
+def _run(config: Any, force: bool, yes: bool, json_out: bool,
+         config_file: Path | None = None) -> None:
+    """Check the job and its output (never one of its inputs, `config_file` included),
+    generate with a progress bar, then print the summary."""
     from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
 
     from mpnode_cli.data.generate import (
@@ -294,7 +298,7 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         config = resolve_config(config, dry_run=False)
         _confirm_size(config, yes)
         check_output_file(output_path(config), overwrite=force,
-                          inputs=generate_inputs(config))
+                          inputs=(*generate_inputs(config), config_file))
         config = resolve_config(config)
     except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))

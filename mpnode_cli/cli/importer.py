@@ -11,7 +11,8 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console, warn
+from mpnode_cli.cli.common import console, output_parser, warn
+from mpnode_cli.terminal import suggested
 
 
 def import_command(
@@ -43,7 +44,9 @@ def import_command(
         None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."),
     seed: int | None = typer.Option(None, help="Seed of the split (default 0)."),
     dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
-    out: Path | None = typer.Option(None, help="Output file (default datasets/<states>.h5)."),
+    out: Path | None = typer.Option(
+        None, help="Output file (default datasets/<states>.h5); a path ending in / is "
+        "refused: name the file.", parser=output_parser("--out")),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
     json_out: bool = typer.Option(
@@ -80,5 +83,5 @@ def import_command(
         f"{summary.node_dim} states"
         + (f", {summary.control_dim} controls" if summary.control_dim else "")
         + f", {summary.graphs} graph{'s' * (summary.graphs > 1)}", highlight=False)
-    console().print(f"fingerprint {summary.fingerprint}; check it with: mpnode check "
-                    f"{summary.path}", highlight=False)
+    console().print(f"fingerprint {summary.fingerprint}; check it with: "
+                    f"{suggested('check', Path(summary.path))}", highlight=False, markup=False)

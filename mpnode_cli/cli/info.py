@@ -9,6 +9,8 @@ from typing import Any
 
 import typer
 
+from mpnode_cli.cli.common import output_parser
+
 
 def info_command(
     path: Path = typer.Argument(..., metavar="FILE", help="An mpnode dataset (.h5)."),
@@ -18,7 +20,8 @@ def info_command(
         "for predictions that hold them)."),
     trajectory: int = typer.Option(0, help="The trajectory --plot draws."),
     plot_dir: Path | None = typer.Option(
-        None, help="Where the plot goes (default plots/ beside FILE)."),
+        None, help="Where the plot goes (default plots/ beside FILE).",
+        parser=output_parser("--plot-dir", folder=True)),
 ) -> None:
     """Print a dataset's summary (after checking the file, as `mpnode check` does)."""
     import json

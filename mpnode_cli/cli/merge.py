@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console
+from mpnode_cli.cli.common import console, output_parser
 
 
 def merge_command(
@@ -23,7 +23,8 @@ def merge_command(
         "generate --shard writes), in any order."),
     out: Path = typer.Option(
         ..., "--out", "-o", show_default=False,
-        help="The merged dataset file: the file generate without --shard would write."),
+        help="The merged dataset file: the file generate without --shard would write (a "
+        "path ending in / is refused: name the file).", parser=output_parser("--out")),
     virtual: bool = typer.Option(
         False, "--virtual",
         help="Write an HDF5 virtual dataset that reads the trajectories from the shards "

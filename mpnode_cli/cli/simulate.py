@@ -23,6 +23,7 @@ from mpnode_cli.cli.common import (
     error_message,
     extrapolation_note,
     fail,
+    output_parser,
 )
 
 
@@ -44,7 +45,8 @@ def simulate_command(
     controls: Path | None = typer.Option(
         None, help="Controls [K, T, N, U] in physical units (zero-order hold), .npy."),
     out: Path | None = typer.Option(
-        None, help="Output file (default predictions/<x0 file name>.h5)."),
+        None, help="Output file (default predictions/<x0 file name>.h5); a path ending in / "
+        "is refused: name the file.", parser=output_parser("--out")),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
     batch_size: int | None = typer.Option(None, help="Trajectories per rollout (128)."),

@@ -39,6 +39,7 @@ from mpnode_cli.cli.common import (
 from mpnode_cli.config import TrainConfig, train_solver
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.terminal import suggested
 from mpnode_cli.threads import applied_threads
 from mpnode_cli.training.recipe import CURRICULUM_MIN_SAMPLES, recipe_values
 from mpnode_cli.training.resume import resumable_options
@@ -338,8 +339,8 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
         if not speaks():
             raise typer.Exit(code=exit_code(exc.cause)) from None
         typer.echo(f"Interrupted ({signal_name(exc.cause)}): saved {exc.run_dir}/checkpoints/"
-                   f"last.pt (epoch {exc.epoch}); continue with: mpnode train --resume "
-                   f"{exc.run_dir}", err=True)
+                   f"last.pt (epoch {exc.epoch}); continue with: "
+                   f"{suggested('train', '--resume', Path(exc.run_dir))}", err=True)
         raise typer.Exit(code=exit_code(exc.cause)) from None
     except KeyboardInterrupt as exc:
         if speaks():

@@ -45,6 +45,7 @@ def atomic_path(path: str | Path) -> Iterator[tuple[Path, Callable[[], None]]]:
     Raises:
         KeyboardInterrupt: a signal during the write (after the rename unless `check()`
             raised it first).
+        mpnode_cli.paths.OutputError: the rename was refused (the temporary is removed).
     """
     from mpnode_cli.paths import temp_beside
     from mpnode_cli.signals import deferred_signals
@@ -54,10 +55,22 @@ def atomic_path(path: str | Path) -> Iterator[tuple[Path, Callable[[], None]]]:
     try:
         with deferred_signals() as pending:
             yield tmp, pending.check
-            os.replace(tmp, path)
+            _rename(tmp, path)
     except BaseException:  # an interrupt too: never leave a half-written temp behind
         tmp.unlink(missing_ok=True)
         raise
+
+
+def _rename(tmp: Path, path: Path) -> None:
+    """`tmp` onto `path`; a refusal (a file made immutable since the writer checked it, a
+    folder gone read-only) is one line, `mpnode_cli.paths.OutputError`."""
+    from mpnode_cli.paths import OutputError
+
+    try:
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise OutputError(f"cannot write {path}: {exc.strerror or exc} (nothing was "
+                          "written)") from None
 
 
 def atomic_text(path: str | Path, text: str) -> Path:

@@ -36,6 +36,7 @@ from mpnode_cli.data.hdf5 import (
 )
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.progress import Progress
+from mpnode_cli.terminal import suggested
 
 # Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
 _BLOCK_VALUES = 1 << 26
@@ -80,7 +81,7 @@ def require_valid(path: str | Path) -> None:
     report = check_dataset(path)
     if not report.ok:
         more = len(report.problems) - 1
-        tail = f" (and {more} more: mpnode check {path})" if more else ""
+        tail = f" (and {more} more: {suggested('check', Path(path))})" if more else ""
         raise DatasetFormatError(f"{path} is not a valid dataset: {report.problems[0]}{tail}")
 
 

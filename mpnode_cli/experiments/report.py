@@ -32,6 +32,7 @@ RESULTS = "results.json"
 REPORT = "report.md"
 FINDINGS = "findings.md"  # a hand-written analysis beside a report (why a claim fails, ...)
 INDEX = "README.md"
+INDEX_TITLE = "# Reproducing the paper: the index"  # how an index mpnode wrote begins
 _SCALE_ORDER = {"paper": 0, "small": 1, "tiny": 2}
 # The seeds a row should rest on; a cell of a run with fewer also shows a smaller scale's run
 # with more, where there is one (`rebuild_index`).
@@ -350,7 +351,7 @@ def rebuild_index(out: Path) -> Path:
     recipe from the largest scale run (tiny runs are smoke tests and are left out), and
     the verdicts that rest on runs that did not learn or barely learned."""
     lines = [
-        "# Reproducing the paper: the index", "",
+        INDEX_TITLE, "",
         "One row per claim of the paper (Gupta, Vemprala & Kapoor, \"Learning Modular "
         "Simulations for Homogeneous Systems\", NeurIPS 2022). *Ours* shows the claim's "
         "comparison on our results, from the largest scale run (`paper`, else `small`) with "

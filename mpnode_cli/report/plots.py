@@ -18,6 +18,9 @@ import numpy as np
 
 MAX_NODES = 6  # columns of a rollout figure; larger graphs show their first nodes
 DPI = 110
+# The naive predictors an error plot draws beside the model, as its tables name them
+# (`mpnode_cli.training.baselines`).
+BASELINE_LABELS = ("hold x(0)", "time mean (train)")
 
 
 def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: str | Path,
@@ -85,14 +88,17 @@ def plot_error_vs_time(time, mse_vs_time, path: str | Path, *, labels: Sequence[
 
     Args:
         time: `[T]`.
-        mse_vs_time: `[T]`, or `[C, T]` for C curves named by `labels`.
+        mse_vs_time: `[T]`, or `[C, T]` for C curves named by `labels` (evaluate's: the
+            model's, then the baselines', `BASELINE_LABELS`, drawn dotted and grey).
         path: PNG to write.
     """
     time, curves = _np(time), np.atleast_2d(_np(mse_vs_time))
     fig, ax = plt.subplots(figsize=(5.5, 3.5))
     for c, curve in enumerate(curves):
         label = labels[c] if c < len(labels) else None
-        ax.plot(time[1:], curve[1:], lw=1.4, label=label)
+        style = ({"ls": ":", "color": "0.35" if label == BASELINE_LABELS[0] else "0.6"}
+                 if label in BASELINE_LABELS else {})
+        ax.plot(time[1:], curve[1:], lw=1.4, label=label, **style)
     ax.set_yscale("log")
     ax.set_xlabel("t")
     ax.set_ylabel("MSE (normalized)")

@@ -22,17 +22,44 @@ from rich import box
 from rich.table import Table
 from rich.text import Text
 
+# Columns a table may take where it is not shown on a terminal (a pipe, a file, a log),
+# whose console is otherwise unbounded so that plain lines are never wrapped.
+PIPE_WIDTH = 100
+
+
+class FittedTable(Table):
+    """A rich table that fits `PIPE_WIDTH` columns when not written to a terminal (on one,
+    rich fits it to the terminal's width itself); cells then fold rather than lose their
+    ends, so a path in one is whole."""
+
+    def add_column(self, *args: Any, **options: Any) -> None:
+        options.setdefault("overflow", "fold")
+        super().add_column(*args, **options)
+
+    def __rich_console__(self, console, options):
+        yield from super().__rich_console__(console, _fitted(console, options))
+
+    def __rich_measure__(self, console, options):
+        return super().__rich_measure__(console, _fitted(console, options))
+
+
+def _fitted(console, options):
+    """`options` narrowed to `PIPE_WIDTH` off a terminal."""
+    if console.is_terminal or options.max_width <= PIPE_WIDTH:
+        return options
+    return options.update(width=PIPE_WIDTH)
+
 
 def titled(title: str, **options: Any) -> Table:
-    """A table under a title that is never wrapped: rich wraps a title to the table's
-    width, and a narrow table would break a path in it mid-name.
+    """A table (`FittedTable`) under a title that is never wrapped: rich wraps a title to
+    the table's width, and a narrow table would break a path in it mid-name.
 
     Args:
         title: the title (a path, a command, what the table is).
         **options: rich's `Table` options.
     """
     text = Text(title, style="table.title", no_wrap=True, overflow="ignore")
-    return Table(title=text, title_justify="left", **options)
+    return FittedTable(title=text, title_justify="left", **options)
 
 
 def fmt(value: Any, digits: int = 4) -> str:

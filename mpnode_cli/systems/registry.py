@@ -214,7 +214,9 @@ def _wrong_declaration(cls: type[System]) -> str | None:
         return True
 
     checks = [
-        ("name", lambda v: isinstance(v, str) and v.strip() != "", "a non-empty string"),
+        # The name becomes part of paths (datasets/<name>-n8-ring-s0.h5): no '/' or '..'.
+        ("name", lambda v: isinstance(v, str) and v.isidentifier(),
+         "an identifier (letters, digits and _, as a Python name; it names the dataset file)"),
         ("state_names", lambda v: names(v, 1), "a tuple of at least one name"),
         ("control_names", names, "a tuple of names"),
         ("topologies", lambda v: names(v, 1), "a tuple of at least one topology"),

@@ -71,6 +71,7 @@ from mpnode_cli import __version__
 from mpnode_cli.config import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_path
 from mpnode_cli.paths import file_sha256  # noqa: F401  (a checkpoint's identity)
+from mpnode_cli.terminal import suggested
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
@@ -248,7 +249,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     problems = checkpoint_problems(ckpt)
     if problems:
         more = len(problems) - 1
-        tail = f" (and {more} more: mpnode check {ckpt.path})" if more else ""
+        tail = f" (and {more} more: {suggested('check', Path(ckpt.path))})" if more else ""
         raise CheckpointFormatError(f"{ckpt.path} is not a valid checkpoint: {problems[0]}{tail}")
     return ckpt
 

@@ -25,13 +25,18 @@ import numpy as np
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
-from mpnode_cli.data.stream import StreamedTrajectories, in_blocks, prefetched
+from mpnode_cli.data.stream import StreamedTrajectories, prefetched
 from mpnode_cli.jsonable import jsonable
 from mpnode_cli.models.base import NeuralModel, model_dtype
 from mpnode_cli.models.ensemble import EnsembleRollout, spread_error_correlation
 from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
 from mpnode_cli.solver.options import SolverOptions
+from mpnode_cli.training.baselines import (  # noqa: F401  (baseline_mse: evaluate's own)
+    baseline_mse,
+    baseline_mse_vs_time,
+    mean_of_curves,
+)
 from mpnode_cli.training.extrapolation import data_extrapolation
 from mpnode_cli.training.losses import Angles, difference, huber_loss, run_angles
 from mpnode_cli.training.predict import roll_out, rollout_solver, write_predictions
@@ -320,77 +325,6 @@ def checkpoint_angles(ckpt, normalizer: Normalizer) -> Angles | None:
                       normalizer.x_std)
 
 
-def baseline_mse(train: TrajectoryData | StreamedTrajectories | Sequence[TrajectoryData],
-                 data: TrajectoryData | StreamedTrajectories,
-                 normalizer: Normalizer, angles: Angles | None = None) -> dict[str, float]:
-    """The MSE of two naive predictors on `data`, in `evaluate`'s units.
-
-    Both are measured as `EvalResult.mse` is: normalized units, t₀ excluded, the mean over
-    every predicted sample, node and feature (over all trajectories of `data`, including any
-    whose model rollout failed).
-
-    - hold_x0: x̂(t_k) = x(t₀), every node keeps its initial state.
-    - time_mean: x̂(t_k) = the mean of the train trajectories' states at t_k, over
-      trajectories and nodes, per feature. A sample time of `data` takes the train mean of
-      the latest train sample time at or before it, so equal grids match sample by sample
-      and beyond the train horizon the last train time-mean is held.
-
-    Args:
-        train: trajectories whose per-time mean is the time_mean predictor (the split the
-            model was trained on), or a list of several datasets' (pooled: at each sample
-            time, the mean over the trajectories and nodes of those that have it).
-            data: the trajectories to score; physical units both, in memory or streamed
-            (then read a block of trajectories at a time).
-        normalizer: the training normalization.
-        angles: state components compared mod 2π, as `evaluate` takes them.
-
-    Returns:
-        `{"hold_x0": float, "time_mean": float}`, NaN where undefined (empty `data` or
-        `train`, or a single sample time).
-    """
-    if len(data) == 0 or data.time.numel() < 2:
-        return {"hold_x0": math.nan, "time_mean": math.nan}
-    pred = None
-    if not isinstance(train, TrajectoryData | StreamedTrajectories):
-        train, mean_t = _pooled_time_mean(train, normalizer)
-    elif len(train):
-        total = sum(normalizer.norm_x(block.states.double()).sum(dim=(0, 2))
-                    for block in in_blocks(train))
-        mean_t = total / (len(train) * train.num_nodes)  # (T', D)
-    if len(train):
-        # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
-        ts, train_ts = data.time.double(), train.time.double()
-        slack = 1e-9 * max(1.0, float(ts.abs().max()))
-        at = torch.searchsorted(train_ts, ts + slack, right=True) - 1  # (T,) latest t' ≤ t_k
-        pred = mean_t[at.clamp(0, len(train_ts) - 1)]  # (T, D)
-    hold = time_mean = 0.0
-    count = 0
-    for block in in_blocks(data):
-        x = normalizer.norm_x(block.states.double())  # (B, T, N, D)
-        hold += float(difference(x[:, 1:], x[:, :1], angles).pow(2).sum())
-        if pred is not None:
-            time_mean += float(difference(x[:, 1:], pred[None, 1:, None, :], angles).pow(2).sum())
-        count += x[:, 1:].numel()
-    return {"hold_x0": hold / count,
-            "time_mean": time_mean / count if pred is not None else math.nan}
-
-
-def _pooled_time_mean(train: Sequence[TrajectoryData], normalizer: Normalizer
-                      ) -> tuple[TrajectoryData, torch.Tensor]:
-    """The longest of several train splits (its grid holds every other's sample times,
-    `mpnode_cli.data.pooled.check_poolable`) and the pooled normalized time mean on it,
-    `[T', D]`: at t_k, over the trajectories and nodes of the splits that have t_k."""
-    longest = max(train, key=lambda d: d.time.numel())
-    t, d = longest.time.numel(), longest.node_dim
-    total = torch.zeros(t, d, dtype=torch.float64)
-    count = torch.zeros(t, 1, dtype=torch.float64)
-    for part in train:
-        k = part.time.numel()
-        total[:k] += normalizer.norm_x(part.states.double()).sum(dim=(0, 2))  # (T_j, D)
-        count[:k] += len(part) * part.num_nodes
-    return longest, total / count.clamp(min=1)
-
-
 def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData | list[TrajectoryData],
                                                           str]:
     """The train split a checkpoint was fitted on, for `baseline_mse`'s time mean.
@@ -524,10 +458,11 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     result = evaluate(model, subset, normalizer, batch_size=batch_size,
                       progress=pass_of(progress, 0, passes), angles=angles, **options)
     train, note = train_reference(ckpt, data)
-    baselines = jsonable(baseline_mse(train, subset, normalizer, angles))
+    curves = baseline_mse_vs_time(train, subset, normalizer, angles)  # each [T]
+    baselines = jsonable(mean_of_curves(curves))
     plots: list[str] = []
     if plot_dir is not None:
-        from mpnode_cli.report.plots import plot_error_vs_time, plot_rollout
+        from mpnode_cli.report.plots import BASELINE_LABELS, plot_error_vs_time, plot_rollout
 
         stem = f"{data.path.stem}-{split}"
         pred = predict(model, subset, normalizer, torch.arange(1), **options)
@@ -542,8 +477,11 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                              title=f"{data.path.name}: trajectory {index} (the first of the "
                                    f"{split} split)", labels=labels,
                              spread=None if pred.spread is None else pred.spread[0])),
-            str(plot_error_vs_time(data.time, result.mse_vs_time,
+            str(plot_error_vs_time(data.time, [np.asarray(result.mse_vs_time, dtype=float),
+                                               curves["hold_x0"],
+                                               curves["time_mean"]],
                                    Path(plot_dir) / f"{stem}-error.png",
+                                   labels=("model", *BASELINE_LABELS),
                                    title=f"{data.path.name} ({split}): error vs time")),
         ]
     written = None

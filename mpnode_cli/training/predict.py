@@ -30,11 +30,12 @@ holds only finite values, so failures are refused (`PredictionFailed`) instead o
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
@@ -48,6 +49,8 @@ from mpnode_cli.models.ensemble import EnsembleRollout
 from mpnode_cli.paths import file_sha256
 from mpnode_cli.progress import Progress
 from mpnode_cli.solver.options import SolverOptions
+
+F = TypeVar("F", bound=Callable[..., Any])
 
 # What a rollout holds per predicted number (a state, message or control component of one
 # node at one sample: the batch's float32 outputs and their gather, the float64 copies
@@ -191,6 +194,25 @@ def _in_blocks(states: np.ndarray):
             for start in range(0, len(states), rows))
 
 
+def _names_memory_errors(step: str) -> Callable[[F], F]:
+    """A decorator: a `MemoryError` inside the function (numpy's `_ArrayMemoryError`, with
+    the shape it could not allocate) is raised again as "out of memory <step> (...)", so
+    that the verb's one line says which step ran out."""
+
+    def decorate(function: F) -> F:
+        @functools.wraps(function)
+        def named(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return function(*args, **kwargs)
+            except MemoryError as exc:
+                raise MemoryError(f"out of memory {step} ({exc or 'no detail'})") from None
+
+        return cast(F, named)
+
+    return decorate
+
+
+@_names_memory_errors("writing the predictions")
 def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarray,
                       graphs: Graphs, graph_index: np.ndarray, controls: np.ndarray | None = None,
                       split: np.ndarray | None = None, config: dict[str, Any],
@@ -216,6 +238,7 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
 
     Raises:
         PredictionFailed: some rollouts did not finish (nothing is written).
+        MemoryError: "out of memory writing the predictions (...)" (nothing is written).
     """
     check_finished(pred)
     k = len(pred.states)

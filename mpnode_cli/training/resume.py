@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mpnode_cli.config import TrainConfig
+from mpnode_cli.terminal import suggested
 from mpnode_cli.training.run import read_config
 
 if TYPE_CHECKING:
@@ -57,10 +58,10 @@ def resume_config(run_dir: Path, datasets: list[Path] | None,
                          "the run's order, or none")
     gone = [str(p) for p in trained if not Path(p).is_file()]
     if datasets is None and gone:
-        how = ("its new path, mpnode train DATASET" if len(trained) == 1 else
-               "the paths of all its datasets, in order, mpnode train DATASET...")
+        how, word = (("its new path", "DATASET") if len(trained) == 1 else
+                     ("the paths of all its datasets, in order", "DATASET..."))
         raise ValueError(f"{run_dir} trained on {', '.join(gone)}, which is not there any "
-                         f"more: give {how} --resume {run_dir}")
+                         f"more: give {how}, {suggested('train', word, '--resume', run_dir)}")
     # Datasets given are taken if they are the same data: training compares fingerprints.
     where = {"dataset": [d.resolve() for d in datasets]} if datasets is not None else {}
     return TrainConfig(**{**config.model_dump(), **changes, **where, "run_dir": run_dir})

@@ -25,6 +25,7 @@ from typing import Any
 from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.jsonable import jsonable
+from mpnode_cli.terminal import suggested
 from mpnode_cli.textfiles import read_json, read_text
 
 CONFIG, METRICS, SUMMARY = "config.json", "metrics.jsonl", "summary.json"
@@ -124,7 +125,7 @@ def create(run_dir: Path) -> bool:
     check_output_folder(run_dir)
     if run_dir.is_dir() and any(run_dir.iterdir()):
         raise ValueError(f"run folder {run_dir} already exists: continue it with "
-                         f"--resume {run_dir}, or choose another --run-dir")
+                         f"{suggested('train', '--resume', run_dir)}, or choose another --run-dir")
     try:
         return reserve_folder(run_dir, "checkpoints")
     except FileExistsError:  # since the line above
@@ -157,7 +158,7 @@ def write_interrupted(run_dir: Path, epoch: int, signal: str) -> None:
     truncate_metrics(run_dir, epoch)  # a row may precede its checkpoint
     summary = read_summary(run_dir)
     write_json(path, {**summary, "epochs": epoch, "finished": False, "interrupted": signal,
-                      "resume": f"mpnode train --resume {run_dir}"})
+                      "resume": suggested("train", "--resume", Path(run_dir))})
 
 
 def checkpoint_path(run_dir: Path, which: str) -> Path:
