@@ -129,6 +129,9 @@ class GenerateConfig(BaseModel):
             that share a graph seed share their systems whatever their trajectory seed.
         edge_list: a user's graph as a text file of `i j` lines (then `topology` is
             `"edgelist"`; see `mpnode_cli.graphs.read_edge_list`).
+        hubs: degree coverage: in every graph this many nodes (those of highest degree)
+            are joined to every other node, so the data hold in-degrees up to N − 1
+            (`mpnode_cli.topologies.join_hubs`; docs/transfer.md). Not with an edge list.
         directed: read the edge list's `i j` as one edge from i to j, not an undirected
             edge.
         trajectories: K.
@@ -160,6 +163,7 @@ class GenerateConfig(BaseModel):
     graphs: int = Field(1, ge=1)
     graph_seed: int = Field(0, ge=0, le=SEED_MAX)
     edge_list: Path | None = None
+    hubs: int = Field(0, ge=0)
     directed: bool = False
     trajectories: int | None = Field(None, ge=1)
     t_end: float | None = Field(None, gt=0)
@@ -209,6 +213,11 @@ class GenerateConfig(BaseModel):
             raise ValueError("directed applies to an edge list only (--edge-list)")
         if self.edge_list is not None and self.topology not in (None, "edgelist"):
             raise ValueError(f"give either a topology ({self.topology}) or an edge list, not both")
+        if self.edge_list is not None and self.hubs:
+            raise ValueError("hubs joins nodes of generated graphs; an edge list is used as "
+                             "it is (add the edges to the file instead)")
+        if self.nodes is not None and self.hubs > self.nodes:
+            raise ValueError(f"hubs ({self.hubs}) must be at most nodes ({self.nodes})")
         if self.trajectories is not None and self.trajectories < self.graphs:
             raise ValueError(
                 f"trajectories ({self.trajectories}) must be at least graphs ({self.graphs}) "

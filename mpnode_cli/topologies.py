@@ -144,3 +144,44 @@ def _require(kw: dict[str, float], name: str, topology: str) -> float:
     if name not in kw:
         raise ValueError(f"topology '{topology}' needs parameter {name}")
     return kw[name]
+
+
+def join_hubs(graph: np.ndarray | EdgeList, hubs: int) -> np.ndarray | EdgeList:
+    """Degree coverage: `graph` with its `hubs` nodes of highest in-degree (the lowest
+    index first among equals) joined to every other node, both ways.
+
+    Node models trained on small graphs meet hubs with more neighbours than any node they
+    saw when run on larger ones (docs/transfer.md). A hub joined to all N − 1 others has the
+    largest in-degree a graph of N nodes allows, so a pool of such graphs spans in-degrees
+    up to N − 1 beside the topology's own. Symmetric graphs stay symmetric.
+
+    Args:
+        graph: uint8 `[N, N]` (`A[i, j] = 1` iff j sends to i) or an `EdgeList`.
+        hubs: how many nodes to join to all others, 0 ≤ hubs ≤ N.
+
+    Returns:
+        a new graph of the input's kind.
+
+    Raises:
+        ValueError: `hubs` outside 0..N.
+    """
+    dense = isinstance(graph, np.ndarray)
+    n = graph.shape[0]
+    if not 0 <= hubs <= n:
+        raise ValueError(f"hubs must lie in 0..{n} (the graph's nodes), got {hubs}")
+    if hubs == 0:
+        return graph
+    degree = (graph != 0).sum(axis=1) if dense else np.bincount(graph.receivers, minlength=n)
+    chosen = np.argsort(-degree, kind="stable")[:hubs]
+    others = np.arange(n)
+    senders = np.concatenate([np.repeat(chosen, n), np.tile(others, hubs)])
+    receivers = np.concatenate([np.tile(others, hubs), np.repeat(chosen, n)])
+    keep = senders != receivers
+    senders, receivers = senders[keep], receivers[keep]
+    if dense:
+        out = graph.copy()
+        out[receivers, senders] = 1
+        return out
+    return EdgeList.build(n, np.concatenate([graph.senders, senders]),
+                          np.concatenate([graph.receivers, receivers]))
+

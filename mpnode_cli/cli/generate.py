@@ -139,6 +139,9 @@ def generate_command(
         None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
     graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
     edge_list: Path | None = _EDGE_LIST,
+    hubs: str | None = typer.Option(
+        None, metavar="H", help="Degree coverage: join the H highest-degree nodes of every "
+        "graph to all others, so in-degrees reach N − 1 (docs/transfer.md)."),
     directed: bool = typer.Option(
         False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
     trajectories: str | None = typer.Option(None, metavar="N", help="Number of trajectories K."),
@@ -174,7 +177,7 @@ def generate_command(
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
         "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
         "chunk_size": chunk_size, "directed": directed or None, "system_file": system_file,
-        "shard": shard,
+        "shard": shard, "hubs": hubs,
     }  # fmt: skip
     solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
     try:

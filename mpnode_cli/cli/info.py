@@ -96,6 +96,7 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
         "trajectories": k, "split": {"train": train, "validation": val, "test": test},
         "samples": t, "dt": attrs["dt"], "t_end": attrs["dt"] * (t - 1),
         "graphs": len(graphs), "topology": config.get("topology"),
+        "hubs": config.get("hubs") or 0,
         "directed": directed, "edges_mean": float(edges.mean()),
         "parameters": header["scalar_params"],
         "per_graph_parameters": {name.removeprefix("params/"): list(shape)
@@ -140,8 +141,9 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
         ("trajectories", f"{facts['trajectories']} ({split['train']} train / "
                          f"{split['validation']} val / {split['test']} test)"),
         ("samples", f"{facts['samples']} (dt {facts['dt']:g}, t_end {facts['t_end']:g})"),
-        ("graphs", f"{facts['graphs']} × {facts['topology'] or '?'}, "
-                   f"{facts['edges_mean']:g} {kind} edges on average"),
+        ("graphs", f"{facts['graphs']} × {facts['topology'] or '?'}"
+                   + (f" + {facts['hubs']} hubs joined to all" if facts["hubs"] else "")
+                   + f", {facts['edges_mean']:g} {kind} edges on average"),
         ("parameters", scalars or "none"),
         ("per-graph parameters", per_graph or "none"),
         ("states dtype", facts["states_dtype"]),

@@ -51,6 +51,7 @@ from mpnode_cli.systems.registry import (
     sparse_systems,
     system_class,
 )
+from mpnode_cli.topologies import join_hubs
 
 if TYPE_CHECKING:
     import torch
@@ -225,7 +226,8 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
     if fields["out"] is None:
         fields["out"] = Path(
             "datasets",
-            f"{config.system}-n{fields['nodes']}-{fields['topology']}-s{config.seed}.h5",
+            f"{config.system}-n{fields['nodes']}-{fields['topology']}"
+            f"{f'-h{config.hubs}' if config.hubs else ''}-s{config.seed}.h5",
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
     trajectory_range(resolved)  # a shard spec that fits these trajectories
@@ -557,7 +559,8 @@ def _graph(system: CheckedSystem, config: GenerateConfig, g: int) -> np.ndarray 
     if config.edge_list is not None:
         graph = read_edges(config.edge_list, directed=config.directed)
         return graph.to_dense() if graph.num_nodes <= DENSE_GRAPH_MAX_NODES else graph
-    return system.graph(config.topology, config.nodes, config.graph_seed + g)
+    graph = system.graph(config.topology, config.nodes, config.graph_seed + g)
+    return join_hubs(graph, config.hubs) if config.hubs else graph
 
 
 def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):
