@@ -31,6 +31,7 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "relu": ("--activation", "relu"),
     "relu-linear-path": ("--activation", "relu", "--linear-path"),
     "softplus": ("--activation", "softplus"),
+    "l2s": ("--model", "l2s"),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
