@@ -127,8 +127,8 @@ def check_run_folder(run_dir: Path, config: TrainConfig
     stored = runs.read_config(run_dir)
     if not runs.checkpoint_path(run_dir, "last").is_file():
         raise ValueError(f"{run_dir} has no checkpoints/last.pt to resume from (it stopped "
-                         "before its first epoch was saved): train it again in a new "
-                         "--run-dir")
+                         "before its first epoch was saved): delete it, or train again "
+                         "with another --run-dir")
     last = load_checkpoint(runs.checkpoint_path(run_dir, "last"))
     best_path = runs.checkpoint_path(run_dir, "best")
     best = load_checkpoint(best_path) if best_path.exists() else None
