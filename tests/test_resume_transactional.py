@@ -249,8 +249,8 @@ def _ahead_of_its_metrics(runs: dict[str, Path], run: Path, which: str) -> None:
 
 
 @pytest.mark.parametrize(("which", "damage", "words"), [
-    ("last", _other_runs_checkpoint, "last.pt is not this run's checkpoint: its seeds"),
-    ("best", _other_runs_checkpoint, "best.pt is not this run's checkpoint: its seeds"),
+    ("last", _other_runs_checkpoint, "last.pt is not this run's checkpoint: it and"),
+    ("best", _other_runs_checkpoint, "best.pt is not this run's checkpoint: it and"),
     ("last", _weights_of_another_model, "last.pt does not fit the model"),
     ("last", _ahead_of_its_metrics, "metrics.jsonl ends at epoch 1, but"),
 ])

@@ -62,16 +62,18 @@ class RunFolder:
         self.path: Path | None = None
         self.last: Checkpoint | None = None
         self._best: Checkpoint | None = None
-        self._made: bool | None = None  # a new run's: whether its folder existed (empty)
+        self._existed: bool | None = None  # a new run's folder: whether it was there, empty
         self._lock: RunLock | None = None
 
     def __enter__(self) -> RunFolder:
         return self
 
-    def __exit__(self, kind, *_) -> None:
+    def __exit__(self, kind: type[BaseException] | None, *_: object) -> None:
         try:
-            if kind is not None and self._made is not None:  # a husk: neither resumable
-                runs.remove_unstarted(self.path, keep_folder=self._made)  # nor reusable
+            # A new run that failed before its first last.pt: a husk, neither resumable
+            # nor reusable.
+            if kind is not None and self._existed is not None:
+                runs.remove_unstarted(self.path, keep_folder=self._existed)
         finally:
             if self._lock is not None:
                 self._lock.release()
@@ -102,7 +104,7 @@ class RunFolder:
             recover(run_dir, self.last, self._best)
         else:
             existed = not runs.create(run_dir)
-            self.path, self._made = run_dir, existed
+            self.path, self._existed = run_dir, existed
             self._lock = lock_run(run_dir)
         runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
 
@@ -186,9 +188,9 @@ def _check_own(ckpt: Checkpoint, stored: TrainConfig, model: torch.nn.Module,
     ours = stored.model_dump(mode="json")
     differ = [k for k in ours if k not in _MAY_DIFFER and theirs.get(k) != ours[k]]
     if differ:
-        verb = "differs" if len(differ) == 1 else "differ"
-        raise ValueError(f"{ckpt.path} is not this run's checkpoint: its {', '.join(differ)} "
-                         f"{verb} from {run_dir}/{runs.CONFIG}'s (a file of another run?)")
+        raise ValueError(f"{ckpt.path} is not this run's checkpoint: it and "
+                         f"{run_dir}/{runs.CONFIG} differ in {', '.join(differ)} (a "
+                         f"checkpoint of another run, or an edited {runs.CONFIG})")
     want, have = model.state_dict(), ckpt.state_dict
     missing, extra = [n for n in want if n not in have], [n for n in have if n not in want]
     wrong = [n for n in want if n in have and tuple(have[n].shape) != tuple(want[n].shape)]

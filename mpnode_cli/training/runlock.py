@@ -43,8 +43,7 @@ class RunLock:
         if fd is None:
             return
         try:
-            if fcntl is not None:
-                fcntl.flock(fd, fcntl.LOCK_UN)
+            fcntl.flock(fd, fcntl.LOCK_UN)
         finally:
             os.close(fd)
 
@@ -57,12 +56,12 @@ def lock_run(run_dir: str | Path) -> RunLock:
             (pid N)"), or the folder cannot be opened (one line).
     """
     path = Path(run_dir)
+    if fcntl is None:
+        return RunLock(path, None)
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as exc:
         raise ValueError(f"cannot open run folder {path}: {exc.strerror or exc}") from None
-    if fcntl is None:
-        return RunLock(path, fd)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
