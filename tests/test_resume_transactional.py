@@ -37,11 +37,13 @@ pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
 @pytest.fixture(scope="module")
 def runs(user_files, tmp_path_factory) -> dict[str, Path]:
     """`base` (1 epoch, to be resumed), `whole` (EPOCHS epochs, never stopped: the
-    reference) and `ensemble` (1 epoch, 2 members), all of one small dataset."""
+    reference), and the same of an ensemble of 2 members (`ensemble`, `ensemble-whole`;
+    at an lr at which its members improve at different epochs), all of one small
+    dataset."""
     root = tmp_path_factory.mktemp("resume")
-    made = {"base": 1, "whole": EPOCHS, "ensemble": 1}
+    made = {"base": 1, "whole": EPOCHS, "ensemble": 1, "ensemble-whole": EPOCHS}
     for name, epochs in made.items():
-        seeds = ("--seeds", 2) if name == "ensemble" else ()
+        seeds = ("--seeds", 2, "--lr", 0.2) if name.startswith("ensemble") else ()
         result = invoke("train", user_files["data"], "--epochs", epochs, *TINY, *seeds,
                         "--run-dir", root / name)
         assert result.exit_code == 0, result.output
@@ -191,6 +193,19 @@ def test_a_resume_killed_between_an_epochs_writes_resumes_exactly(runs, tmp_path
     result = invoke("train", "--resume", run, "--epochs", EPOCHS)
     assert result.exit_code == 0, result.output
     _assert_same_run(run, runs["whole"])
+
+
+def test_an_ensemble_killed_before_its_best_pt_keeps_each_members_best(runs, tmp_path):
+    """Epoch 2 improves member 1 alone. Killed after its last.pt and before its best.pt,
+    the resume writes best.pt again from member 1's epoch-2 weights (last.pt's) and
+    member 0's epoch-1 ones (the best.pt there)."""
+    assert read_metrics(runs["ensemble-whole"])[2]["improved_members"] == [1]
+    run = _copy(runs["ensemble"], tmp_path / "run")
+    assert _resume_in_child(run, dies_at=("last.pt", 1))
+    assert load_checkpoint(checkpoint_path(run, "best")).epoch == 1
+    result = invoke("train", "--resume", run, "--epochs", EPOCHS)
+    assert result.exit_code == 0, result.output
+    _assert_same_run(run, runs["ensemble-whole"])
 
 
 def test_two_resumes_of_one_run_at_once_one_is_refused(runs, tmp_path):
