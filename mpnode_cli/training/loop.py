@@ -110,9 +110,9 @@ def train(config: TrainConfig, *, resume: bool = False,
     Returns the summary; None on the processes other than rank 0 of a torchrun launch.
     The run folder is locked while the run lasts; a resumed one is checked whole before
     anything is written (`mpnode_cli.training.run_folder`). A new run that fails before
-    its first checkpoint leaves no run folder behind. Resuming a
-    run that has done its `epochs` is an error, unless `finished_ok`: then no epoch runs and
-    the summary is written again (for a caller that lost it, e.g. an interrupted experiment).
+    its first checkpoint leaves no run folder behind. Resuming a run that has done its
+    `epochs` is an error, unless `finished_ok` or its summary is yet to be written: then no
+    epoch runs and the summary is written (again, for a caller that lost it).
 
     Raises:
         ValueError: unusable data, checkpoint or run folder (a one-line reason).
