@@ -317,6 +317,26 @@ def test_a_refusal_on_rank_0_stops_every_rank(gene, tmp_path):
     assert [p.name for p in (tmp_path / "run").iterdir()] == ["notes.txt"]
 
 
+def resume_a_locked_run(rank, run_dir):
+    from mpnode_cli.training.run import read_config
+
+    with pytest.raises(ValueError, match="in use by another mpnode process"):  # none waits
+        loop.train(read_config(run_dir).model_copy(update={"epochs": 3}), resume=True)
+
+
+def test_a_run_another_process_holds_stops_every_rank(gene, tmp_path):
+    """Rank 0 alone takes the run's lock; refused, it stops the other rank too."""
+    from mpnode_cli.training.runlock import lock_run
+
+    loop.train(small(gene, tmp_path / "run", epochs=1))
+    held = lock_run(tmp_path / "run")  # as another training would
+    try:
+        spawn_two(resume_a_locked_run, tmp_path / "run")
+    finally:
+        held.release()
+    assert [r["epoch"] for r in read_metrics(tmp_path / "run")] == [0, 1]
+
+
 def test_only_rank_0_prints_an_error(gene, monkeypatch, tmp_path):
     monkeypatch.setenv("RANK", "1")
     result = CliRunner().invoke(app, ["train", str(tmp_path / "missing.h5")])

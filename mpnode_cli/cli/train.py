@@ -8,7 +8,8 @@ help; its default, and the recipes' where they differ, are shown), a solver opti
 (`SolverOptions`), or a model option's (`mpnode_cli.models.options`: one per option any
 model declares; the chosen model refuses the ones it does not declare). `--help` groups
 them in panels, as a user looks for them. `--resume RUN_DIR` continues a run as its folder
-says (`mpnode_cli.training.resume`: what may change, and which datasets it takes). Several
+says (`mpnode_cli.training.resume`: what may change, and which datasets and config file
+it takes). Several
 datasets are trained on at once (`mpnode_cli.data.pooled`). Exit codes: 2 for usage
 errors, 1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after saving
 `last.pt` and a `summary.json` that says the run was interrupted).
@@ -100,7 +101,7 @@ def train_command(
         if resume is not None:
             from mpnode_cli.training.resume import resume_config
 
-            config = resume_config(resume, datasets or None, fields | chosen)
+            config = resume_config(resume, datasets or None, fields | chosen, config_file)
         else:
             if not datasets:
                 raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")

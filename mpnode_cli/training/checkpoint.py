@@ -25,7 +25,7 @@ Fields of the dict:
     loop: the loop's own state (best validation loss, epoch counters, lr history); an
         ensemble's holds each member's under `members`.
     parent_sha256: sha256 of the checkpoint a finetune started from, else None.
-    metrics: the best epoch's validation metrics (and test metrics once known).
+    metrics: its epoch's metrics row (best.pt's: the best epoch's validation metrics).
 
 Version 2 renamed MP-NODE's `aggregation` option (dense/scatter, how the mean is computed)
 to `backend`, added the `aggregate` choice (mean/sum/pna) and the PNA degree statistic

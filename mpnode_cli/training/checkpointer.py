@@ -2,8 +2,11 @@
 interrupt.
 
 Each epoch's files are its metrics row, `last.pt` and, if its validation loss is the best
-so far, `best.pt`. They are written all or none (`mpnode_cli.signals.deferred_signals`),
-so that `last.pt`'s epoch is always the last row of metrics.jsonl. The snapshot, a copy of
+so far, `best.pt`, written in that order: `last.pt` (which holds the row too) commits the
+epoch, so that a process killed between two of the writes leaves a folder that a resume
+brings back to `last.pt` (`mpnode_cli.training.run_folder`). A signal waits for all three
+(`mpnode_cli.signals.deferred_signals`), so that `last.pt`'s epoch is then the last row of
+metrics.jsonl. The snapshot, a copy of
 the last completed epoch's checkpoint, is what `last.pt` holds, what a run of bad steps
 rolls back to, and what Ctrl-C or SIGTERM leaves behind.
 """
@@ -53,8 +56,8 @@ class Checkpointer:
 
     def save_epoch(self, row: dict[str, Any], *, best: bool,
                    improved: list[int] | None = None) -> None:
-        """Take the snapshot of the epoch just done, and write its files: `best.pt` if it
-        improved (`best`), its metrics `row`, then `last.pt`.
+        """Take the snapshot of the epoch just done (with its metrics `row`), and write its
+        files: the row, then `last.pt`, then `best.pt` if it improved (`best`).
 
         Signals are held for the whole of it, the snapshot included, so an interrupt comes
         after all three writes or before any; the interrupt handler (`save_interrupted`)
@@ -67,13 +70,14 @@ class Checkpointer:
         run = self.run
         with deferred_signals():
             self.snapshot = self._copy()
+            self.snapshot.metrics = copy.deepcopy(row)
             if not run.world.main:
                 return
+            runs.append_metrics(run.run_dir, row)
+            save_checkpoint(runs.checkpoint_path(run.run_dir, "last"), self.snapshot)
             if best:
                 save_checkpoint(runs.checkpoint_path(run.run_dir, "best"),
                                 self._best(row, improved or []))
-            runs.append_metrics(run.run_dir, row)
-            save_checkpoint(runs.checkpoint_path(run.run_dir, "last"), self.snapshot)
 
     def save_interrupted(self, exc: KeyboardInterrupt) -> None:
         """Save the snapshot as `last.pt` and an interrupted `summary.json` (rank 0), for

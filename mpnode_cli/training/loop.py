@@ -74,6 +74,7 @@ from mpnode_cli.training.checkpointer import Checkpointer
 from mpnode_cli.training.evaluate import EvalResult, evaluate, evaluate_datasets, pooled
 from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.recipe import resolve_config
+from mpnode_cli.training.run_folder import RunFolder
 from mpnode_cli.training.schedule import LRSchedule
 from mpnode_cli.training.setup import Progress, Run, load_data, set_up
 
@@ -107,9 +108,11 @@ def train(config: TrainConfig, *, resume: bool = False,
     """Train (or finetune, or resume) as `config` says; write the run folder.
 
     Returns the summary; None on the processes other than rank 0 of a torchrun launch.
-    A new run that fails before its first checkpoint leaves no run folder behind. Resuming a
-    run that has done its `epochs` is an error, unless `finished_ok`: then no epoch runs and
-    the summary is written again (for a caller that lost it, e.g. an interrupted experiment).
+    The run folder is locked while the run lasts; a resumed one is checked whole before
+    anything is written (`mpnode_cli.training.run_folder`). A new run that fails before
+    its first checkpoint leaves no run folder behind. Resuming a run that has done its
+    `epochs` is an error, unless `finished_ok` or its summary is yet to be written: then no
+    epoch runs and the summary is written (again, for a caller that lost it).
 
     Raises:
         ValueError: unusable data, checkpoint or run folder (a one-line reason).
@@ -118,26 +121,23 @@ def train(config: TrainConfig, *, resume: bool = False,
             `summary.json`).
         TrainingDiverged: bad steps persisted down to `min_lr`.
     """
-    made: list[tuple[Path, bool]] = []  # the new run folder, and whether it existed
-    try:
-        return _train(config, resume, progress, made, finished_ok)
-    except BaseException:
-        for run_dir, existed in made:  # a husk could neither be resumed nor reused
-            runs.remove_unstarted(run_dir, keep_folder=existed)
-        raise
+    with RunFolder() as folder:  # locked while the run lasts; a failed new one removed
+        return _train(config, resume, progress, folder, finished_ok)
 
 
-def _train(config: TrainConfig, resume: bool, progress: Progress | None,
-           made: list[tuple[Path, bool]], finished_ok: bool = False) -> runs.TrainSummary | None:
-    """`train`'s body; it appends a new run folder to `made` (and whether it existed)."""
+def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder: RunFolder,
+           finished_ok: bool = False) -> runs.TrainSummary | None:
+    """`train`'s body; `folder` holds the run folder (rank 0's) while it lasts."""
     world = distributed.world()
     emit = progress if progress is not None and world.main else (lambda event: None)
+    if resume:  # locked, and checked whole, before anything is read into the run
+        world.from_main(lambda: folder.resume(config))
 
     # 1. Run setup: the data and the config settled for them, then the model from its
     # starting point (fresh, a finetune's parent, a resumed run's last.pt) and the rest.
     data = load_data(config, resume, world, emit)
     config = resolve_compile(data.config, sum(len(t) for t in data.train_sets))
-    run = set_up(config, data, resume, made, finished_ok)
+    run = set_up(config, data, resume, folder, finished_ok)
     config, state = run.config, run.state
     # 2.–3. The lr policy (each member's, for an ensemble), and the checkpointer with its
     # first snapshot: the starting point.

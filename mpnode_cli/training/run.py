@@ -10,6 +10,9 @@
                         stopped by Ctrl-C or SIGTERM writes one with `finished: false` and
                         `interrupted`
     checkpoints/        best.pt (lowest validation loss) and last.pt (latest epoch)
+    (no file)           the folder itself is locked while a training writes it
+                        (`mpnode_cli.training.runlock`); a resume checks it whole first
+                        and mends what a killed run left (`mpnode_cli.training.run_folder`)
     plots/              test-split plots of the best checkpoint
 """
 
@@ -192,16 +195,25 @@ def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:
 
 
 def append_metrics(run_dir: Path, row: dict[str, Any]) -> None:
+    """Append an epoch's row (one that a kill cuts short is dropped on resume)."""
     with open(Path(run_dir) / METRICS, "a") as f:
         f.write(json.dumps(jsonable(row)) + "\n")
 
 
 def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
+    """A run's metrics rows.
+
+    Raises:
+        ValueError: a line that is not a row (a damaged run folder).
+    """
     path = Path(run_dir) / METRICS
-    if not path.is_file():
-        return []
+    return metrics_rows(read_text(path, ""), path) if path.is_file() else []
+
+
+def metrics_rows(text: str, path: Path) -> list[dict[str, Any]]:
+    """The rows of metrics.jsonl's `text` (read from `path`, which errors name)."""
     rows = []
-    for lineno, line in enumerate(read_text(path, "").splitlines(), start=1):
+    for lineno, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
         try:
@@ -215,9 +227,12 @@ def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:
     return rows
 
 
-def truncate_metrics(run_dir: Path, last_epoch: int) -> None:
-    """Drop rows after `last_epoch`: an interrupt may land between a row and its checkpoint."""
-    rows = [r for r in read_metrics(run_dir) if r["epoch"] <= last_epoch]
+def truncate_metrics(run_dir: Path, last_epoch: int,
+                     rows: list[dict[str, Any]] | None = None) -> None:
+    """Drop rows after `last_epoch` (of `rows`, if given, else of the file's): an interrupt
+    may land between a row and its checkpoint."""
+    rows = [r for r in (read_metrics(run_dir) if rows is None else rows)
+            if r["epoch"] <= last_epoch]
     atomic_text(Path(run_dir) / METRICS, "".join(json.dumps(r) + "\n" for r in rows))
 
 

@@ -13,8 +13,9 @@ of the draws from torch's generator, so that one seed makes one run:
    the train splits (pooled);
 4. Adam, the loop's generator (batch order and noise) and its counters, restored from
    `last.pt` on resume;
-5. the run folder: made (a new run) or cut back to `last.pt`'s epoch (resume), with the
-   resolved `config.json`.
+5. the run folder: made and locked (a new run) or brought back to `last.pt`'s epoch
+   (resume: locked and checked before the setup began, `mpnode_cli.training.run_folder`),
+   with the resolved `config.json`.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ from mpnode_cli.training.extrapolation import training_range
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.recipe import resolve_config
 from mpnode_cli.training.resume import check_resumable
+from mpnode_cli.training.run_folder import RunFolder
 
 Progress = Callable[[dict[str, Any]], None]
 
@@ -220,11 +222,10 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
                    val_sets=val_sets, device=device)
 
 
-def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Path, bool]],
+def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
            finished_ok: bool) -> Run:
     """Build the model from its starting point, with its normalizer and optimizer; restore
-    a resumed run's state; open the run folder (a new one is appended to `made`, with
-    whether it existed).
+    a resumed run's state; open the run folder (`folder`: a resumed run's checked already).
 
     Args:
         config: `data.config` with `solver.compile` settled.
@@ -233,7 +234,7 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
         ValueError, FileNotFoundError: as `mpnode_cli.training.loop.train` says.
     """
     world, datas, train_sets = data.world, data.datas, data.train_sets
-    last, parent = _starting_point(config, resume, datas, finished_ok)
+    last, parent = _starting_point(config, resume, datas, finished_ok, folder.last)
     source, renormalize = last or parent, parent is not None and config.renormalize
     kind, model_config = _architecture(config, source, parent is not None, datas)
     seeds = members_of(config, source, parent is not None)
@@ -268,8 +269,7 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
         # The only draws from torch's global generator in training are L2S's step noise on
         # each rank's own slice: other ranks must not repeat rank 0's draws.
         torch.manual_seed(hash((config.seed, world.rank, state.epoch)))
-    world.from_main(lambda: _open_folder(run_dir, config, None if last is None else state.epoch,
-                                         made))
+    world.from_main(lambda: folder.open(run_dir, config))
     # Each rank validates its part of each split; the error sums are added over ranks.
     val_parts = [v.select(torch.arange(len(v))[world.shard(len(v))]) for v in data.val_sets]
     return Run(config=config, run_dir=run_dir, world=world, emit=data.emit, datas=datas,
@@ -281,15 +281,16 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, made: list[tuple[Pa
                state=state, resumed=last is not None, parent_sha=parent_sha)
 
 
-def _starting_point(config: TrainConfig, resume: bool, datas: list, finished_ok: bool
-                    ) -> tuple[Checkpoint | None, Checkpoint | None]:
-    """`(last, parent)`: the run's `last.pt` (resume) or the checkpoint a finetune starts
-    from, or neither (fresh weights)."""
+def _starting_point(config: TrainConfig, resume: bool, datas: list, finished_ok: bool,
+                    checked: Checkpoint | None) -> tuple[Checkpoint | None, Checkpoint | None]:
+    """`(last, parent)`: the run's `last.pt` (resume; `checked` if rank 0 read it already)
+    or the checkpoint a finetune starts from, or neither (fresh weights)."""
     if resume and config.run_dir is None:
         raise ValueError("resume needs the run folder (run_dir)")
     parent = None if resume or config.init_checkpoint is None else load_checkpoint(
         config.init_checkpoint)
-    last = load_checkpoint(runs.checkpoint_path(config.run_dir, "last")) if resume else None
+    last = checked or (load_checkpoint(runs.checkpoint_path(config.run_dir, "last"))
+                       if resume else None)
     if last is not None:
         check_resumable(config, last, datas, finished_ok)
     return last, parent
@@ -411,17 +412,6 @@ def _build_members(kind: str, model_config: dict[str, Any], seed: int, seeds: in
     from mpnode_cli.models.ensemble import Ensemble
 
     return Ensemble(members)
-
-
-def _open_folder(run_dir: Path, config: TrainConfig, resumed_epoch: int | None,
-                 made: list[tuple[Path, bool]]) -> None:
-    """Make a new run's folder, or cut a resumed run's metrics back to its `last.pt`; write
-    the config (rank 0's)."""
-    if resumed_epoch is not None:
-        runs.truncate_metrics(run_dir, resumed_epoch)
-    else:
-        made.append((run_dir, not runs.create(run_dir)))
-    runs.write_json(run_dir / runs.CONFIG, config.model_dump(mode="json"))
 
 
 def _facts(datas: list, paths: list[Path], train_sets: list) -> dict[str, Any]:
