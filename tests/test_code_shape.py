@@ -29,8 +29,6 @@ FILE_RATCHET: dict[str, int] = {
     "mpnode_cli/config.py": 604,
     "mpnode_cli/data/generate.py": 676,
     "mpnode_cli/data/hdf5.py": 578,
-    "mpnode_cli/experiments/report.py": 527,
-    "mpnode_cli/experiments/spec.py": 646,
     "mpnode_cli/training/checkpoint.py": 544,
     "mpnode_cli/training/evaluate.py": 659,
     "mpnode_cli/training/loop.py": 612,
@@ -38,7 +36,6 @@ FILE_RATCHET: dict[str, int] = {
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).
 FUNCTION_RATCHET: dict[str, int] = {
     "mpnode_cli/data/shards.py::_check_shards": 66,
-    "mpnode_cli/experiments/report.py::rebuild_index": 64,
     "mpnode_cli/solver/fixed.py::solve_fixed": 61,
 }
 
