@@ -15,8 +15,9 @@ import pytest
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.experiments import members, spec
-from mpnode_cli.experiments.report import rebuild_index, write_report
+from mpnode_cli.experiments import claims, members, spec
+from mpnode_cli.experiments.index import rebuild_index
+from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import plan, run_experiment
 
 runner = CliRunner()
@@ -174,9 +175,9 @@ CLAIM = "a.test.mse < b.test.mse"
 ])
 def test_a_claim_is_decided_from_its_members(a, b, outcome, said):
     results = _run(a, b)
-    decision = spec.decide(CLAIM, results)
+    decision = claims.decide(CLAIM, results)
     assert decision.outcome == outcome and decision.members == len(a)
-    holds, shown, verdict = spec.verdict(CLAIM, results)
+    holds, shown, verdict = claims.verdict(CLAIM, results)
     assert verdict == said
     assert holds == {"holds": True, "fails": False, "undecided": None}[outcome]
     mean_a, std_a = members.mean_std(a)
@@ -197,26 +198,26 @@ def test_the_mean_and_std_rule():
     # Against a number: 0.5 ± 0.5 < 0.9 is split and the gap 0.4 is within 0.5.
     assert members.decide([(0.0, 0.9), (1.0, 0.9)], "<").outcome == "undecided"
     assert members.decide([(0.5, None), (0.1, 0.2)], "<").outcome is None
-    assert spec.verdict("a.test.mse < 0.9", {"a": {"members": [
+    assert claims.verdict("a.test.mse < 0.9", {"a": {"members": [
         {"test": {"mse": 0.0}}, {"test": {"mse": 1.0}}]}})[1] == "0.5 ± 0.5 < 0.9 ± 0"
 
 
 def test_a_single_seed_verdict_reads_as_before():
     results = {"a": {"best_epoch": 5, "test": {"mse": 0.1, "time_mean": 1.0}},
                "b": {"best_epoch": 5, "test": {"mse": 0.3, "time_mean": 1.0}}}
-    assert spec.verdict(CLAIM, results) == (True, "0.1 < 0.3", "yes")
-    assert spec.decide(CLAIM, results).members == 1
+    assert claims.verdict(CLAIM, results) == (True, "0.1 < 0.3", "yes")
+    assert claims.decide(CLAIM, results).members == 1
 
 
 def test_a_verdict_names_each_member_that_did_not_learn():
     """Member 1 of `b` is not below the time mean, member 0 of `a` barely (1.25×)."""
     results = _run([8.0, 1.0], [2.0, 12.0])
-    assert spec.verdict(CLAIM, results)[2] == (
+    assert claims.verdict(CLAIM, results)[2] == (
         "undecided (holds for 1 of 2 members; the means differ by less than their combined "
         "std; a: member 0 barely learned (1.25× below the time mean); b: member 1 not below "
         "the time mean)")
-    assert spec.not_learned(CLAIM, results) == ["b"]
-    assert spec.barely_learned(CLAIM, results) == ["a"]
+    assert claims.not_learned(CLAIM, results) == ["b"]
+    assert claims.barely_learned(CLAIM, results) == ["a"]
 
 
 def _record(out: Path, name: str, results: dict, scale: str = "small") -> None:

@@ -23,8 +23,8 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.data.presets import PRESETS
+from mpnode_cli.experiments import claims, spec
 from mpnode_cli.experiments import runner as experiment_runner
-from mpnode_cli.experiments import spec
 from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
 
@@ -108,9 +108,9 @@ def test_bad_spec_is_one_line(tmp_path, change, message):
 
 def test_claims_are_judged_on_results():
     results = {"a": {"test": {"mse": 0.1}}, "b-c": {"test": {"mse": 0.3}}}
-    assert spec.judge("a.test.mse < b-c.test.mse", results) == (True, "0.1 < 0.3")
-    assert spec.judge("a.test.mse > 0.5 * b-c.test.mse", results) == (False, "0.1 > 0.15")
-    assert spec.judge("a.val.mse < 1", results) == (None, "— < 1")
+    assert claims.judge("a.test.mse < b-c.test.mse", results) == (True, "0.1 < 0.3")
+    assert claims.judge("a.test.mse > 0.5 * b-c.test.mse", results) == (False, "0.1 > 0.15")
+    assert claims.judge("a.val.mse < 1", results) == (None, "— < 1")
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -252,11 +252,11 @@ def test_table2_per_mean_does_not_depend_on_the_normalization():
     scaled = {**run, "table2": 40 * 0.02 * 9.0, "val": {"mse": 0.02 * 9.0,
                                                          "time_mean": 0.5 * 9.0}}
     results = {"a": run, "b": scaled}
-    assert spec.with_derived(run)["table2_per_mean"] == pytest.approx(40 * 0.02 / 0.5)
-    assert spec.judge("a.table2 < b.table2", results)[0] is True  # units differ
-    holds, shown = spec.judge("a.table2_per_mean < b.table2_per_mean", results)
+    assert claims.with_derived(run)["table2_per_mean"] == pytest.approx(40 * 0.02 / 0.5)
+    assert claims.judge("a.table2 < b.table2", results)[0] is True  # units differ
+    holds, shown = claims.judge("a.table2_per_mean < b.table2_per_mean", results)
     assert holds is False and shown == "1.6 < 1.6"
-    assert spec.with_derived({"best_epoch": 3, "val": {"mse": None}}) == {
+    assert claims.with_derived({"best_epoch": 3, "val": {"mse": None}}) == {
         "best_epoch": 3, "val": {"mse": None}}  # nothing to derive from
 
 
@@ -267,21 +267,21 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
     flat = {"best_epoch": 9, "test": {"mse": 1.08, "time_mean": 1.06}}
     zeroed = {"mse": 2.0, "time_mean": 1.0}
     results = {"on": learned, "off": flat, "zeroed": zeroed}
-    assert spec.not_learned("on.test.mse < off.test.mse", results) == ["off"]
-    assert spec.not_learned("zeroed.mse > on.test.mse", results) == []
-    assert spec.not_learned("2 * off.test.mse > off.min_val_loss", results) == ["off"]
-    assert spec.verdict("on.test.mse < off.test.mse", results)[2] == (
+    assert claims.not_learned("on.test.mse < off.test.mse", results) == ["off"]
+    assert claims.not_learned("zeroed.mse > on.test.mse", results) == []
+    assert claims.not_learned("2 * off.test.mse > off.min_val_loss", results) == ["off"]
+    assert claims.verdict("on.test.mse < off.test.mse", results)[2] == (
         "yes (off: not below the time mean)")
-    assert spec.verdict("off.test.mse < on.test.mse", results)[2] == (
+    assert claims.verdict("off.test.mse < on.test.mse", results)[2] == (
         "**no** (off: not below the time mean)")
-    assert spec.verdict("zeroed.mse > on.test.mse", results)[2] == "yes"
-    assert spec.verdict("on.val.mse < 1", results)[2] == "—"
+    assert claims.verdict("zeroed.mse > on.test.mse", results)[2] == "yes"
+    assert claims.verdict("on.val.mse < 1", results)[2] == "—"
     # 1.006× below the time mean "beats" it but has barely learned, as has 1.4×; 10× has.
     results["near"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.006}}
     results["weak"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.4}}
-    assert spec.barely_learned("near.test.mse < weak.test.mse", results) == ["near", "weak"]
-    assert spec.barely_learned("on.test.mse < off.test.mse", results) == []
-    assert spec.verdict("near.test.mse < on.test.mse", results)[2] == (
+    assert claims.barely_learned("near.test.mse < weak.test.mse", results) == ["near", "weak"]
+    assert claims.barely_learned("on.test.mse < off.test.mse", results) == []
+    assert claims.verdict("near.test.mse < on.test.mse", results)[2] == (
         "**no** (near: barely learned, 1.01× below the time mean)")
 
 
@@ -294,12 +294,12 @@ def test_a_verdict_says_when_the_model_is_not_the_papers():
     run = {"best_epoch": 3, "model": "mpnode", "model_options": {"aggregate": "pna"},
            "test": {"mse": 0.001, "time_mean": 0.5}}
     results = {"run": run, "test": {"mse": 0.002}}
-    assert spec.verdict("run.test.mse < 1", results, experiment)[2] == (
+    assert claims.verdict("run.test.mse < 1", results, experiment)[2] == (
         "yes (PNA aggregation, not the paper's mean)")
-    assert spec.verdict("test.mse < 1", results, experiment)[2] == (
+    assert claims.verdict("test.mse < 1", results, experiment)[2] == (
         "yes (PNA aggregation, not the paper's mean)")
     mean = {**run, "model_options": {"aggregate": "mean"}}
-    assert spec.verdict("run.test.mse < 1", {"run": mean}, experiment)[2] == "yes"
+    assert claims.verdict("run.test.mse < 1", {"run": mean}, experiment)[2] == "yes"
 
 
 def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
@@ -317,7 +317,7 @@ def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
     (folder / "results.json").write_text(json.dumps({
         "scale": "small", "recipe": "mpnode",
         "steps": [{"id": step, "result": result} for step, result in results.items()]}))
-    from mpnode_cli.experiments.report import rebuild_index
+    from mpnode_cli.experiments.index import rebuild_index
 
     index = rebuild_index(tmp_path).read_text()
     row = next(line for line in index.splitlines() if "BA test error at or below" in line)
@@ -441,7 +441,7 @@ def test_the_message_pca_is_judged_against_an_untrained_model(tmp_path):
     for stats in (pca, pca["untrained"]):
         assert stats["growth"] == pytest.approx(stats["spread_last"] / stats["spread_first"])
     assert pca["untrained"]["spread_last"] != pytest.approx(pca["spread_last"])
-    holds, shown = spec.judge(experiment.claims[0].holds,
+    holds, shown = claims.judge(experiment.claims[0].holds,
                               {s.id: s.result for s in record.steps})
     assert holds is not None and " > " in shown
     plain = spec.EvaluateStep(id="e", verb="evaluate", checkpoint="run", data="data")

@@ -23,7 +23,8 @@ from mpnode_cli.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from mpnode_cli.training.evaluate import check_compatible, evaluate, predict
+from mpnode_cli.training.compat import check_compatible
+from mpnode_cli.training.evaluate import evaluate, predict
 from mpnode_cli.training.loop import TrainingDiverged, TrainingInterrupted, train
 from mpnode_cli.training.run import checkpoint_path, read_config, read_metrics
 

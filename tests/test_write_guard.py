@@ -42,7 +42,7 @@ def test_a_users_readme_is_never_the_experiment_index(tmp_path, monkeypatch):
 
 
 def test_an_index_mpnode_wrote_is_rebuilt_without_force(tmp_path):
-    from mpnode_cli.experiments.report import INDEX_TITLE
+    from mpnode_cli.experiments.saved import INDEX_TITLE
     from mpnode_cli.paths import check_output_file
 
     index = tmp_path / "README.md"

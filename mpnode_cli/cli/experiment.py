@@ -155,7 +155,7 @@ def _check_reports(out: Path, name: str) -> None:
     Raises:
         FileExistsError, ValueError: one line (`mpnode_cli.paths.check_output_file`).
     """
-    from mpnode_cli.experiments.report import INDEX, INDEX_TITLE, REPORT
+    from mpnode_cli.experiments.saved import INDEX, INDEX_TITLE, REPORT
     from mpnode_cli.paths import check_output_file
 
     check_output_file(out / INDEX, overwrite=False, mine=INDEX_TITLE.encode())

@@ -217,11 +217,11 @@ def _evaluate(step, options, folder: Path, inputs, status, emit):
         pca = folder / f"{step.id}-pca.png"
         if by_member:
             for k, member in enumerate(by_member):
-                member["pca"] = _message_pca(member_checkpoint(ckpt, k), data, step,
-                                             pca if k == 0 else None)
+                member["pca"] = _pca(member_checkpoint(ckpt, k), data, step,
+                                     pca if k == 0 else None)
             result["pca"] = by_member[0]["pca"]
         else:
-            result["pca"] = _message_pca(ckpt, data, step, pca)
+            result["pca"] = _pca(ckpt, data, step, pca)
         figures.append(str(pca))
     if by_member:
         result[members.MEMBERS] = by_member
@@ -229,86 +229,13 @@ def _evaluate(step, options, folder: Path, inputs, status, emit):
             [commands.evaluate(best, path, step)], figures)
 
 
-def _message_pca(ckpt, data, step, path: Path | None) -> dict[str, Any]:
-    """PCA of all nodes' messages over time (the paper's Fig. 12), drawn at `path` (None:
-    not drawn): each sample time of each trajectory is one point of N·M message values.
+def _pca(ckpt, data, step, path: Path | None) -> dict[str, Any]:
+    """An evaluate step's message PCA (`mpnode_cli.training.message_pca`), drawn at `path`."""
+    from mpnode_cli.training.message_pca import message_pca
 
-    Messages start at zero, so their spread from the start grows in any model whose
-    messages move at all; with `pca_untrained` the same statistic is taken of the same
-    architecture with fresh weights (the training's seed) on the same trajectories, and
-    `growth` (late spread ÷ early spread) of the trained model is judged against its."""
-    import torch
-
-    from mpnode_cli.models.registry import build_model
-    from mpnode_cli.report.plots import plot_components
-
-    subset = data.subset(step.split)
-    n = min(step.trajectories, len(subset))
-    trained = ckpt.build_model()
-    time, messages = _messages(ckpt, trained, subset, n)
-    b, _, nodes, m = messages.shape
-    scores, explained = _components(messages, step.pca)
-    if path is not None:
-        plot_components(time, scores, path, dpi=FIGURE_DPI,
-                        title=f"PCA of {nodes}×{m} messages, {b} trajectories")
-    result = {"trajectories": b, "messages": nodes * m, "explained": explained,
-              **_spread(scores)}
-    if step.pca_untrained:
-        # The weights the training started from (it seeds, then builds), with the data
-        # statistics it fitted (buffers such as PNA's degree scale), which are not weights.
-        with torch.random.fork_rng():
-            torch.manual_seed(int((ckpt.train_config or {}).get("seed", 0)))
-            fresh = build_model(ckpt.model_kind, ckpt.model_config)
-        fresh.to(dtype=next(trained.parameters()).dtype)  # a float64 training's, too
-        state = fresh.state_dict()
-        state.update({k: v for k, v in trained.named_buffers() if k in state})
-        fresh.load_state_dict(state)
-        _, untrained = _messages(ckpt, fresh, subset, n)
-        result["untrained"] = _spread(_components(untrained, step.pca)[0])
-    return result
-
-
-def _messages(ckpt, model, subset, n: int):
-    """The sample times `[T]` and messages `[B, T, N, M]` of `model` on the first `n`
-    trajectories of `subset`, with the checkpoint's normalization and training solver."""
-    import torch
-
-    from mpnode_cli.config import stored_solver, train_solver
-    from mpnode_cli.training.evaluate import predict
-
-    pred = predict(model, subset, ckpt.build_normalizer(), torch.arange(n),
-                   solver=stored_solver(ckpt.train_config, train_solver))
-    if pred.messages is None or pred.messages.shape[-1] == 0:
-        raise ValueError(f"model '{ckpt.model_kind}' has no message states")
-    return pred.time, pred.messages
-
-
-def _components(messages, k: int):
-    """The first `k` principal components' scores `[B, T, k]` of messages `[B, T, N, M]`
-    (each sample time of each trajectory one point of N·M values), and the share of the
-    variance each component explains."""
-    import torch
-
-    b, t, nodes, m = messages.shape
-    flat = messages.double().reshape(b * t, nodes * m)  # (B·T, N·M)
-    centred = flat - flat.mean(dim=0)
-    _, s, v = torch.linalg.svd(centred, full_matrices=False)
-    k = min(k, v.shape[0])
-    scores = (centred @ v[:k].T).reshape(b, t, k)  # (B, T, k)
-    total = float((s**2).sum())
-    return scores, [float(x) / total if total > 0 else 0.0 for x in (s**2)[:k]]
-
-
-def _spread(scores) -> dict[str, float | None]:
-    """How far the components have moved from where each trajectory started, early and
-    late in the horizon (the first and last quarter of the samples), and late over early:
-    the paper reads growth as the messages countering drift."""
-    t = scores.shape[1]
-    moved = (scores - scores[:, :1]).abs().mean(dim=(0, 2))  # (T,)
-    quarter = max(1, t // 4)
-    first, last = float(moved[:quarter].mean()), float(moved[-quarter:].mean())
-    return {"spread_first": first, "spread_last": last,
-            "growth": last / first if first > 0 else None}
+    return message_pca(ckpt, data, split=step.split, components=step.pca,
+                       trajectories=step.trajectories, untrained=step.pca_untrained,
+                       path=path, dpi=FIGURE_DPI)
 
 
 def _compare(step, options, folder: Path, inputs, status, emit):

@@ -29,7 +29,6 @@ from mpnode_cli.data.stream import StreamedTrajectories, prefetched
 from mpnode_cli.jsonable import jsonable
 from mpnode_cli.models.base import NeuralModel, model_dtype
 from mpnode_cli.models.ensemble import EnsembleRollout, spread_error_correlation
-from mpnode_cli.models.registry import OPTIONS, model_class
 from mpnode_cli.progress import Progress, pass_of
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.baselines import (  # noqa: F401  (baseline_mse: evaluate's own)
@@ -37,6 +36,7 @@ from mpnode_cli.training.baselines import (  # noqa: F401  (baseline_mse: evalua
     baseline_mse_vs_time,
     mean_of_curves,
 )
+from mpnode_cli.training.compat import check_compatible
 from mpnode_cli.training.extrapolation import data_extrapolation
 from mpnode_cli.training.losses import Angles, difference, huber_loss, run_angles
 from mpnode_cli.training.predict import roll_out, rollout_solver, write_predictions
@@ -368,42 +368,6 @@ def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData | list[T
     names = ", ".join(source.path.name for source in sources)
     splits = "split" if len(sources) == 1 else "splits"
     return (train[0] if len(train) == 1 else train), f"the train {splits} of {names}{note}"
-
-
-def check_compatible(model_kind: str, model_config: dict[str, Any], trained_nodes: int,
-                     data: TrajectoryData, verb: str, trained_system: str | None = None, *,
-                     allow_other_system: bool = False) -> None:
-    """Raise a one-line `ValueError` when a trained model cannot run on `data`.
-
-    A model learned one system's node dynamics in that system's normalization; on another
-    system's data (of the same state size) it runs, but its numbers mean nothing, so that
-    is refused unless asked for.
-
-    Args:
-        model_kind, model_config: the checkpoint's model.
-        trained_nodes: N of the dataset the model was trained on.
-        data: the dataset to run on.
-        verb: what the user asked for ("finetune", "zeroshot", ...), for the message.
-        trained_system: the `system` of the training dataset (None: not checked).
-        allow_other_system: accept data of another system.
-    """
-    name = data.path.name
-    for field, have in (("node_dim", data.node_dim), ("control_dim", data.control_dim)):
-        want = int(model_config.get(field, 0))
-        if have != want:
-            what = "state" if field == "node_dim" else "control"
-            raise ValueError(
-                f"{name} has {field} {have} but the checkpoint expects {want}: {verb} needs "
-                f"the same per-node {what} size")
-    if trained_system is not None and data.system != trained_system and not allow_other_system:
-        raise ValueError(
-            f"{name} holds system '{data.system}' but the checkpoint was trained on "
-            f"'{trained_system}': {verb} on another system needs --allow-other-system")
-    transferable = model_kind not in OPTIONS or model_class(model_kind).transferable
-    if not transferable and data.num_nodes != trained_nodes:
-        raise ValueError(
-            f"{name} has {data.num_nodes} nodes but model '{model_kind}' was trained on "
-            f"{trained_nodes} and only runs on graphs of that size")
 
 
 def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",

@@ -43,7 +43,7 @@ from mpnode_cli.paths import check_output_folder
 from mpnode_cli.training import distributed
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint
-from mpnode_cli.training.evaluate import check_compatible
+from mpnode_cli.training.compat import check_compatible
 from mpnode_cli.training.extrapolation import training_range
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.recipe import resolve_config

@@ -1,0 +1,204 @@
+"""Claims judged on results: whether each holds, on one model or on an ensemble's members,
+and the verdict as the reports write it.
+
+A claim (`spec.Claim`) compares two numbers of the steps' results, `LEFT OP RIGHT`
+(`spec.parse_claim`). Run with `--seeds S`, every training is an ensemble and a claim is
+judged member by member and on the members' means (`members.decide`). A verdict also says
+what it rests on: training runs that did not learn (their test error not below the
+time-mean predictor's) or barely learned, and an MP-NODE that is not the paper's model.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mpnode_cli.experiments import members
+from mpnode_cli.experiments.spec import TRAINING, Experiment, parse_claim
+
+
+def with_derived(result: Any) -> Any:
+    """A step's results with `table2_per_mean` added where a training run's are: the
+    Table-2 figure with the best checkpoint's validation MSE divided by the time-mean
+    predictor's (best epoch × val MSE ÷ time-mean MSE). Both MSEs are in the run's own
+    normalization, so the ratio is not: a finetune keeps its parent's normalization, and
+    its training loss is in other units than a scratch run's on the same data."""
+    if not isinstance(result, dict) or "best_epoch" not in result:
+        return result
+    val = result.get("val") or {}
+    mse, mean = val.get("mse"), val.get("time_mean")
+    if isinstance(mse, int | float) and isinstance(mean, int | float) and mean > 0:
+        return {**result, "table2_per_mean": result["best_epoch"] * mse / mean}
+    return result
+
+
+# A training run less than this many times below the time-mean predictor has barely
+# learned: a claim comparing it says little, though it "beats" the time mean (by 1.006×).
+BARELY_LEARNED = 1.5
+# The paper averages the incoming messages (§3.2, eq. (3)); mpnode's recipe may not.
+PAPER_AGGREGATE = "mean"
+_AGGREGATE_NAMES = {"pna": "PNA", "sum": "sum"}
+
+
+def learning(text: str, results: dict[str, dict[str, Any]]) -> dict[str, float]:
+    """The training runs a claim reads that have not learned, or barely: run → its test
+    MSE's time-mean predictor's MSE over its own (≤ 1: not below the time mean; below
+    `BARELY_LEARNED`: barely below it). The time mean predicts the train split's mean state
+    at each sample time. Evaluate and zero-shot steps are not listed: a model with its
+    messages zeroed is meant to be bad."""
+    out: dict[str, float] = {}
+    for _, ref in parse_claim(text)[::2]:
+        step = (ref or "").partition(".")[0]
+        result = results.get(step)
+        if not isinstance(result, dict) or "best_epoch" not in result or step in out:
+            continue
+        test = result.get("test") or {}
+        mse, mean = test.get("mse"), test.get("time_mean")
+        if not (isinstance(mse, int | float) and isinstance(mean, int | float)) or mse <= 0:
+            continue  # a number missing, or a perfect fit
+        if mean < BARELY_LEARNED * mse:
+            out[step] = mean / mse
+    return out
+
+
+def member_learning(text: str, results: dict[str, dict[str, Any]]
+                    ) -> dict[str, dict[int | None, float]]:
+    """`learning` member by member: run → {member k → its ratio} for the members that have
+    not learned or barely (the member is None for a single model's results)."""
+    out: dict[str, dict[int | None, float]] = {}
+    named = _named(text, results)
+    for k in range(members.count(named)):
+        for step, ratio in learning(text, members.view(named, k)).items():
+            out.setdefault(step, {})[k if _ensemble(named) else None] = ratio
+    return out
+
+
+def _named(text: str, results: dict[str, Any]) -> dict[str, Any]:
+    """The results of the steps a claim names."""
+    steps = [(ref or "").partition(".")[0] for _, ref in parse_claim(text)[::2]]
+    return {step: results[step] for step in steps if step in results}
+
+
+def _ensemble(results: dict[str, Any]) -> bool:
+    return any(isinstance(r, dict) and r.get(members.MEMBERS) for r in results.values())
+
+
+def not_learned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
+    """The training runs a claim reads with a member whose test MSE is not below the
+    time-mean predictor's: it has not learned, so the claim says little whichever way it
+    goes."""
+    return [step for step, ratios in member_learning(text, results).items()
+            if any(ratio <= 1 for ratio in ratios.values())]
+
+
+def barely_learned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
+    """The training runs a claim reads with a member below the time-mean predictor, but by
+    less than `BARELY_LEARNED`×."""
+    return [step for step, ratios in member_learning(text, results).items()
+            if any(ratio > 1 for ratio in ratios.values())]
+
+
+def learning_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """What `member_learning` finds, a phrase per run: `not below the time mean` or
+    `barely learned, 1.3× below the time mean`; for an ensemble `member 1 not below the
+    time mean, member 2 barely learned (1.3× below the time mean)`."""
+    def said(k: int | None, ratio: float) -> str:
+        if ratio <= 1:
+            return "not below the time mean" if k is None else \
+                f"member {k} not below the time mean"
+        below = f"{ratio:.3g}× below the time mean"
+        return f"barely learned, {below}" if k is None else \
+            f"member {k} barely learned ({below})"
+
+    return {step: ", ".join(said(k, ratio) for k, ratio in ratios.items())
+            for step, ratios in member_learning(text, results).items()}
+
+
+def trained_runs(text: str, experiment: Experiment) -> list[str]:
+    """The training steps a claim reads: those it names, and the checkpoints of the
+    evaluate and zero-shot steps it names."""
+    by_id = {step.id: step for step in experiment.steps}
+    out: list[str] = []
+    for _, ref in parse_claim(text)[::2]:
+        step = by_id.get((ref or "").partition(".")[0])
+        if step is not None and step.verb not in TRAINING:
+            step = by_id.get(getattr(step, "checkpoint", None) or "")
+        if step is not None and step.verb in TRAINING and step.id not in out:
+            out.append(step.id)
+    return out
+
+
+def departures(text: str, results: dict[str, dict[str, Any]],
+               experiment: Experiment | None) -> list[str]:
+    """How the MP-NODE runs a claim reads differ from the paper's model: an aggregation
+    other than the paper's mean (mpnode's recipe uses PNA for gene and Kuramoto)."""
+    if experiment is None:
+        return []
+    found = []
+    for step in trained_runs(text, experiment):
+        result = results.get(step) or {}
+        aggregate = (result.get("model_options") or {}).get("aggregate")
+        if result.get("model") == "mpnode" and aggregate not in (None, PAPER_AGGREGATE):
+            found.append(_AGGREGATE_NAMES.get(aggregate, aggregate))
+    return [f"{name} aggregation, not the paper's mean" for name in dict.fromkeys(found)]
+
+
+def verdict(text: str, results: dict[str, dict[str, Any]],
+            experiment: Experiment | None = None) -> tuple[bool | None, str, str]:
+    """Whether a claim holds (None: undecided, or a number missing), the numbers shown, and
+    the verdict as the reports write it: yes, **no**, undecided or — (a number missing),
+    followed by what it rests on: for an ensemble, how many members it holds for and
+    whether the means differ by more than their combined std (`members.decide`); the
+    runs (members) that did not beat the time mean or barely did; and a model that is not
+    the paper's (with `experiment`, to find the runs behind an evaluation).
+
+    One model's results show their two numbers (`0.025 < 0.62`), an ensemble's their means
+    ± std over the members."""
+    decision = decide(text, results)
+    holds = {"holds": True, "fails": False}.get(decision.outcome or "")
+    said = {"holds": "yes", "fails": "**no**", "undecided": "undecided"}.get(
+        decision.outcome or "", "—")
+    notes = [decision.reason()] if _ensemble(_named(text, results)) and decision.outcome else []
+    notes += [f"{step}: {note}" for step, note in learning_notes(text, results).items()]
+    notes += departures(text, results, experiment)
+    if notes:
+        said += f" ({'; '.join(notes)})"
+    return holds, decision.shown(), said
+
+
+def decide(text: str, results: dict[str, dict[str, Any]]) -> members.Decision:
+    """A claim judged on each member alone (member k of every step it names) and on the
+    members' means (`members.decide`); results without members are one member."""
+    named = _named(text, results)
+    return members.decide([_sides(text, members.view(named, k))
+                           for k in range(members.count(named))], parse_claim(text)[1])
+
+
+def judge(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str]:
+    """Whether a claim holds on `results` (step id → its results; one model's, or one
+    member's), and the numbers shown.
+
+    Returns:
+        (True/False, or None when a number is missing; e.g. "0.025 < 0.62").
+    """
+    values = _sides(text, results)
+    op = parse_claim(text)[1]
+    shown = f" {op} ".join("—" if v is None else f"{v:.4g}" for v in values)
+    if None in values:
+        return None, shown
+    return members.OPS[op](float(values[0]), float(values[1])), shown
+
+
+def _sides(text: str, results: dict[str, dict[str, Any]]) -> tuple[float | None, float | None]:
+    """A claim's two numbers on `results` (None where one is missing)."""
+    results = {step: with_derived(result) for step, result in results.items()}
+    left, _, right = parse_claim(text)
+    values = []
+    for factor, ref in (left, right):
+        if ref is None:
+            values.append(factor)
+            continue
+        step, _, path = ref.partition(".")
+        value = members.lookup(results.get(step), path)
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        values.append(factor * float(value) if ok else None)
+    return values[0], values[1]

@@ -1,0 +1,68 @@
+"""A run's saved results: the files under `reports/<name>/<scale>-<recipe>/`, and reading
+them back.
+
+Each run of an experiment leaves its `RunRecord` (`results.json`, with the claims judged)
+and its figures in its own folder, so reports and the index can be rebuilt from what is
+saved, without running anything. Reports are committed, so a saved record holds no folder
+of the machine that ran it (`portable`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+RESULTS = "results.json"
+REPORT = "report.md"
+FINDINGS = "findings.md"  # a hand-written analysis beside a report (why a claim fails, ...)
+INDEX = "README.md"
+INDEX_TITLE = "# Reproducing the paper: the index"  # how an index mpnode wrote begins
+_SCALE_ORDER = {"paper": 0, "small": 1, "tiny": 2}
+_RECIPE_ORDER = {"mpnode": 0, "paper": 1}
+
+
+def kept_facts(data: dict[str, Any], previous: Path) -> dict[str, Any]:
+    """A rerun that ran no step (every one reused) keeps the saved run's facts: its command,
+    start, wall time, machine and which steps ran then; results and claims are the new."""
+    if any(step["status"] != "skipped" for step in data["steps"]) or not previous.is_file():
+        return data
+    old = json.loads(previous.read_text())
+    before = {step["id"]: step["status"] for step in old.get("steps", [])}
+    if old.get("seeds", 1) != data.get("seeds", 1) or not set(before) >= {
+            step["id"] for step in data["steps"]}:
+        return data
+    steps = [{**step, "status": before[step["id"]]} for step in data["steps"]]
+    return {**data, **{key: old[key] for key in ("command", "started", "wall_seconds",
+                                                  "machine") if key in old},
+            "steps": steps}
+
+
+def portable(data: dict[str, Any], work: Path) -> dict[str, Any]:
+    """A run's record (`RunRecord.to_dict()`) with its paths relative to the work folder
+    `work`: each step's folder by its path in it, its commands as run from it, and `work`
+    as `shown_path` shows it."""
+    from mpnode_cli.experiments.commands import from_work
+    from mpnode_cli.paths import shown_path
+
+    steps = []
+    for step in data["steps"]:
+        folder = Path(step["folder"])
+        for base in (work, work.resolve()):
+            if folder.is_relative_to(base):
+                folder = folder.relative_to(base)
+                break
+        steps.append({**step, "folder": str(folder),
+                      "commands": [from_work(c, work) for c in step["commands"]]})
+    return {**data, "work": shown_path(work, "<work>"), "steps": steps}
+
+
+def saved_runs(out: Path, name: str) -> list[dict[str, Any]]:
+    """Every saved run of an experiment, paper scale and mpnode recipe first."""
+    runs = []
+    for path in sorted((out / name).glob(f"*/{RESULTS}")):
+        if path.parent.name.endswith(".tmp"):
+            continue
+        runs.append(json.loads(path.read_text()))
+    return sorted(runs, key=lambda r: (_SCALE_ORDER.get(r["scale"], 9),
+                                       _RECIPE_ORDER.get(r["recipe"], 9)))
