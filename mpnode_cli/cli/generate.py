@@ -277,7 +277,12 @@ generate_command = _with_system_options(generate_command)
 
 def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
     """Check the job and its output, generate with a progress bar, then print the summary."""
-    from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     from mpnode_cli.data.generate import (
         GenerateError,
@@ -290,12 +295,11 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
     )
     from mpnode_cli.paths import check_output_file
 
-    try:
+    try:  # generate itself builds the graphs before solving: no dry run here
         config = resolve_config(config, dry_run=False)
         _confirm_size(config, yes)
         check_output_file(output_path(config), overwrite=force,
                           inputs=generate_inputs(config))
-        config = resolve_config(config)
     except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))
     # Before solving, so that it can be stopped; the whole dataset's split, shard or not.
@@ -307,9 +311,14 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool) -> None:
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
+        TimeRemainingColumn(),
     )
-    summary = with_bar(f"solving {config.system}",
-                       lambda progress: generate(config, overwrite=force, progress=progress),
+
+    def work(progress):  # each step's name on the bar, from the graphs to the file
+        return generate(config, overwrite=force, progress=progress,
+                        stage=lambda step: progress(None, None, f"{config.system}: {step}"))
+
+    summary = with_bar(f"{config.system}: starting", work,
                        quiet=json_out, stopped=f"nothing written to {output_path(config)}",
                        failures=(GenerateError,), columns=columns, total=config.trajectories)
     if json_out:

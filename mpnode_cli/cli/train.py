@@ -318,6 +318,7 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     import json
     from dataclasses import asdict
 
+    from mpnode_cli.memory import naming_memory
     from mpnode_cli.report.tables import train_table
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.distributed import process_group
@@ -325,11 +326,13 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     from mpnode_cli.training.run import add_to_summary, read_summary
 
     display_console = console(stderr=True)
+    step = TrainingStep()
     try:
         # Under torchrun: join the other processes; only rank 0 reports (and returns a summary).
         with interrupt_on_signals(), process_group(config.device) as world, _Display(
-                display_console, world.main) as display:
-            summary = train(config, resume=resume, progress=display.on_event)
+                display_console, world.main) as display, naming_memory(
+                step, None, "lower --batch-size, or train on fewer samples or nodes"):
+            summary = train(config, resume=resume, progress=step.told(display.on_event))
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
     except TrainingDiverged as exc:
@@ -354,6 +357,32 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
         typer.echo(json.dumps(read_summary(summary.run_dir)))
         return
     console().print(train_table(asdict(summary)))
+
+
+class TrainingStep:
+    """Where training is, from the loop's events: what a line names if memory runs out."""
+
+    def __init__(self) -> None:
+        self.now = "loading the data and building the model"
+
+    def told(self, on_event):
+        """`on_event`, after noting each event's step."""
+        def seen(event: dict[str, Any]) -> None:
+            kind = event.get("event")
+            if kind == "start":
+                self.now = f"training epoch {event['first_epoch']}"
+            elif kind == "epoch":  # the next one starts (or the test, after the last)
+                self.now = f"training epoch {event['epoch'] + 1}"
+            elif kind == "batch":
+                self.now = (f"training epoch {event['epoch']}, past batch {event['batch']} "
+                            f"of {event['batches']}")
+            elif kind == "test":
+                self.now = "testing the best checkpoint"
+            on_event(event)
+        return seen
+
+    def __str__(self) -> str:
+        return self.now
 
 
 class _Display:

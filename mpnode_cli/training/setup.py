@@ -35,6 +35,7 @@ from mpnode_cli.data.pooled import (
     load_datasets,
     train_and_validation,
 )
+from mpnode_cli.data.size import check_steps, solver_steps
 from mpnode_cli.data.stream import StreamedTrajectories
 from mpnode_cli.devices import torch_device
 from mpnode_cli.models.registry import OPTIONS, build_model, model_class
@@ -212,6 +213,9 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
         if config.init_checkpoint is not None else {}))
     if not resume:
         config = resolve_config(config, datas[0])
+    longest = max(d.time.numel() for d in datas)  # fixed steps a rollout of them all takes
+    check_steps(solver_steps(config.solver, float(datas[0].time[1] - datas[0].time[0]),
+                             longest)[0], config.solver)
     device = torch_device(config.device)
     train_sets, val_sets = train_and_validation(datas, config.trajectories)
     if note := fewer_than_asked(datas, train_sets, config.trajectories):
