@@ -430,6 +430,9 @@ class TrainConfig(BaseModel):
     allow_other_system: bool = Field(False, description=(
         "Finetune: accept a dataset whose system differs from the checkpoint's (refused "
         "by default: the model learned another system)."))
+    allow_predictions: bool = Field(False, description=(
+        "Accept a model's predictions (evaluate --save-predictions, simulate) as training "
+        "data; refused by default, as a model would learn another model's errors."))
     stream: bool = Field(False, description=(
         "Read the batches from the dataset file as they are needed (a thread reads two "
         "ahead), for data larger than memory; the losses are those of the data in "

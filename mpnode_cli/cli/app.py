@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 import typer
-from typer.core import TyperCommand
+from typer.core import TyperCommand, TyperGroup
 
 from mpnode_cli import __version__
 from mpnode_cli.cli.check import check_command
@@ -63,6 +63,21 @@ def _root(
 ) -> None:
     """mpnode: message-passing neural ODEs for homogeneous networked systems."""
     ctx.meta[_THREADS] = threads
+    # Checked here for every verb, as the computing verbs check theirs; where a verb has
+    # its own --threads (which wins over the variable), that verb checks the variable (a
+    # group's verbs too: `experiment run` has one).
+    verb = app_command(ctx)
+    if threads is not None or not isinstance(verb, _Computing | TyperGroup):
+        try:
+            choose_threads(threads)
+        except ValueError as exc:
+            fail(str(exc))
+
+
+def app_command(ctx: typer.Context) -> Any:
+    """The verb's command that the root's `ctx` is about to run (None for none yet)."""
+    name = ctx.invoked_subcommand
+    return None if name is None else ctx.command.get_command(ctx, name)
 
 
 class _Computing(TyperCommand):

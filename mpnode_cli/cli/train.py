@@ -56,7 +56,7 @@ _SOLVER = ("method", "rtol", "atol", "fixed_dt")
 # `model`). A `TrainConfig` field or a solver option is built from its declaration; the
 # other names are the command's own parameters. A command has the ones it takes.
 _PANELS = {
-    DATA: ("renormalize", "allow_other_system", "trajectories", "stream"),
+    DATA: ("renormalize", "allow_other_system", "allow_predictions", "trajectories", "stream"),
     RECIPE: ("recipe", "loss", "epochs", "batch_size", "even_batches", "lr", "min_lr",
              "schedule", "patience", "stop_patience", "time_limit", "clip", "noise",
              "max_bad_steps", "val_batch_size", "seed", "seeds", "wrap_angles"),
@@ -70,7 +70,8 @@ _PANELS = {
 # Flags spelt otherwise than `--name/--no-name`: two names for the two ways, or a switch
 # that only turns something on.
 _FLAGS = {"even_batches": ("--even-batches/--tail-batch",), "stream": ("--stream/--in-memory",),
-          "renormalize": ("--renormalize",), "allow_other_system": ("--allow-other-system",)}
+          "renormalize": ("--renormalize",), "allow_other_system": ("--allow-other-system",),
+          "allow_predictions": ("--allow-predictions",)}
 
 # Every system declares the loss of the paper recipe (`System.paper_loss`).
 _SYSTEM_CHOOSES = {"loss"}

@@ -91,7 +91,7 @@ def read_table(path: str | Path) -> tuple[list[str], np.ndarray]:
             # loadtxt warns of a table without rows, which the caller reports in its words.
             warnings.simplefilter("ignore", UserWarning)
             rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64,
-                              encoding="utf-8")
+                              encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise ValueError(f"CSV file {path} is not UTF-8 text (a binary file?)") from None
     except ValueError as exc:

@@ -40,7 +40,8 @@ import numpy as np
 import torch
 
 from mpnode_cli.config import stored_solver, train_solver
-from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, fingerprint, write_dataset
+from mpnode_cli.data.fingerprint import fingerprint
+from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, write_dataset
 from mpnode_cli.data.size import Estimate, check_job, simulate_estimate
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.memory import naming_memory
@@ -246,7 +247,8 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         solver_status=pred.status, solver_n_f_evals=pred.n_f_evals,
         extrapolation=node_flags,
         extra_attrs={"prediction": json.dumps(record, sort_keys=True),
-                     "fingerprint": fingerprint(states, graphs, graph_index, time)},
+                     "fingerprint": fingerprint(states, graphs, graph_index, time,
+                                                controls=controls)},
     )
     return write_dataset(path, dataset, overwrite=overwrite)
 

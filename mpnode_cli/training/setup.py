@@ -30,6 +30,7 @@ import torch
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.pooled import (
+    check_ground_truth,
     dataset_names,
     fewer_than_asked,
     load_datasets,
@@ -207,6 +208,8 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
     if not resume and world.main:  # the run folder's place must be writable before any work
         check_output_folder(config.run_dir or runs.default_root())
     datas = load_datasets(config.datasets, config.stream)
+    if not config.allow_predictions:
+        check_ground_truth(datas)
     paths = [Path(p).resolve() for p in config.datasets]
     config = config.model_copy(update={"dataset": paths[0] if len(paths) == 1 else paths} | (
         {"init_checkpoint": Path(config.init_checkpoint).resolve()}
