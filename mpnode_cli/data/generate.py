@@ -124,10 +124,11 @@ def output_path(config: GenerateConfig) -> Path:
 def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateConfig:
     """Fill in every system-dependent default and check the system can be built as asked.
 
-    A job whose memory estimate exceeds this machine's memory is refused before anything
-    is built. With `dry_run`, the first graph is built and one initial state drawn, so that
-    a topology that cannot exist at this size, or an option that does not fit it, fails
-    here with one clear message rather than after minutes of solving.
+    A job too big for the memory available, or of more fixed steps than `max_steps`, is
+    refused before anything is built (`mpnode_cli.data.size.check_job`). With `dry_run`,
+    the first graph is built and one initial state drawn, so that a topology that cannot
+    exist at this size, or an option that does not fit it, fails here with one clear
+    message rather than after minutes of solving.
 
     Raises:
         ValueError: unknown system, parameter, topology or size; an unreadable edge list;
