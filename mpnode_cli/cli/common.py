@@ -19,7 +19,7 @@ M = TypeVar("M", bound=BaseModel)
 # (`confirm_size`: generate and simulate); so does the estimate of a job this slow.
 SHOW_BYTES = 256 * 2**20
 CONFIRM_BYTES = 4 * 2**30
-SHOW_SECONDS = 10.0
+SHOW_SECONDS = 5.0
 
 # Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
 # verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.

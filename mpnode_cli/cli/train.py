@@ -327,7 +327,7 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     from mpnode_cli.training.run import add_to_summary, read_summary
 
     display_console = console(stderr=True)
-    step = TrainingStep()
+    step = _TrainingStep()
     try:
         # Under torchrun: join the other processes; only rank 0 reports (and returns a summary).
         with interrupt_on_signals(), process_group(config.device) as world, _Display(
@@ -360,7 +360,7 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     console().print(train_table(asdict(summary)))
 
 
-class TrainingStep:
+class _TrainingStep:
     """Where training is, from the loop's events: what a line names if memory runs out."""
 
     def __init__(self) -> None:
