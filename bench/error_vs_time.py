@@ -20,7 +20,8 @@ from pathlib import Path
 
 import torch
 
-from mpnode_cli.config import stored_solver, train_solver
+from mpnode_cli.config import train_solver
+from mpnode_cli.config_upgrade import stored_solver
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.evaluate import evaluate

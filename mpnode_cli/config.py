@@ -49,7 +49,7 @@ def train_solver() -> SolverOptions:
     return SolverOptions(rtol=1e-4, atol=1e-4, controller="i", compile="auto")
 
 
-def _over(defaults: Callable[[], SolverOptions], value: Any) -> Any:
+def over_defaults(defaults: Callable[[], SolverOptions], value: Any) -> Any:
     """A `solver` table that names only some options: the rest from the verb's defaults
     (not `SolverOptions`' own, which are `solve`'s)."""
     return {**defaults().model_dump(), **value} if isinstance(value, dict) else value
@@ -182,7 +182,7 @@ class GenerateConfig(BaseModel):
     @field_validator("solver", mode="before")
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
-        return _over(generate_solver, value)
+        return over_defaults(generate_solver, value)
 
     @field_validator("shard", mode="before")
     @classmethod
@@ -439,6 +439,9 @@ class TrainConfig(BaseModel):
     allow_other_system: bool = Field(False, description=(
         "Finetune: accept a dataset whose system differs from the checkpoint's (refused "
         "by default: the model learned another system)."))
+    allow_predictions: bool = Field(False, description=(
+        "Accept a model's predictions (evaluate --save-predictions, simulate) as training "
+        "data; refused by default, as a model would learn another model's errors."))
     stream: bool = Field(False, description=(
         "Read the batches from the dataset file as they are needed (a thread reads two "
         "ahead), for data larger than memory; the losses are those of the data in "
@@ -447,7 +450,7 @@ class TrainConfig(BaseModel):
     @field_validator("solver", mode="before")
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
-        return _over(train_solver, value)
+        return over_defaults(train_solver, value)
 
     @field_validator("dataset")
     @classmethod
@@ -472,101 +475,6 @@ class TrainConfig(BaseModel):
     def datasets(self) -> list[Path]:
         """The training datasets, in the order given (one or several)."""
         return list(self.dataset) if isinstance(self.dataset, list) else [self.dataset]
-
-
-# TrainConfig fields that held model options before each model declared its own (written
-# into run folders' config.json and checkpoints' train_config by earlier versions);
-# `aggregation` is MP-NODE's `backend` under its first name.
-_FLAT_MODEL_FIELDS = ("hidden", "layers", "activation", "message_dim", "graph", "messages",
-                      "aggregate", "backend", "aggregation", "latent", "steps", "depth",
-                      "history", "step_noise")
-
-
-# Config fields that held solver options before `solver` (generate: rtol, atol; train: all
-# three), written into datasets' config, run folders' config.json and checkpoints.
-_FLAT_SOLVER_FIELDS = ("rtol", "atol", "fixed_dt")
-
-
-def upgrade_solver_fields(fields: dict[str, Any]) -> dict[str, Any]:
-    """Map a generate or train config written before `solver` onto today's fields.
-
-    The flat `rtol`, `atol` and `fixed_dt` move into the `solver` table (where it names
-    them too, the table wins); the options they did not have take the config's defaults,
-    which are what the solver did then (Tsit5, `solve`'s `max_steps`, no compile). A
-    config without flat solver fields is returned as it is.
-
-    Args:
-        fields: a config as JSON fields (a dataset's stored config, a run's `config.json`,
-            a config file).
-
-    Returns:
-        New fields that the config accepts (if the rest is valid).
-    """
-    flat = {k: fields[k] for k in _FLAT_SOLVER_FIELDS if k in fields}
-    if not flat:
-        return fields
-    fields = {k: v for k, v in fields.items() if k not in flat}
-    nested = fields.get("solver")
-    if nested is None or isinstance(nested, dict):
-        fields["solver"] = {**flat, **(nested or {})}
-    return fields
-
-
-def stored_solver(fields: dict[str, Any], defaults: Callable[[], SolverOptions]) -> SolverOptions:
-    """The solver options of a stored config, of today's form or an earlier one, without
-    validating the rest of it.
-
-    Args:
-        fields: e.g. a checkpoint's `train_config` or a dataset's stored config.
-        defaults: the verb's defaults, `train_solver` or `generate_solver`.
-    """
-    fields = pin_stored_solver(upgrade_solver_fields(fields))
-    return SolverOptions(**_over(defaults, fields.get("solver", {})))
-
-
-def pin_stored_solver(fields: dict[str, Any]) -> dict[str, Any]:
-    """A config that mpnode stored before `SolverOptions.controller` existed ran with the
-    PI controller, and one stored without `compile` ran uncompiled: say so, so that a
-    resumed or re-evaluated run integrates as it did (the train defaults are now "i" and
-    "auto"). Only for stored configs (run folders, checkpoints, datasets): a user's config
-    file that leaves them out gets the verb's defaults.
-
-    Args:
-        fields: a stored config as JSON fields, after `upgrade_solver_fields`.
-    """
-    solver = fields.get("solver")
-    if solver is None or isinstance(solver, dict):
-        pinned = {"controller": "pi", "compile": False} | (solver or {})
-        if pinned != solver:
-            fields = {**fields, "solver": pinned}
-    return fields
-
-
-def upgrade_train_fields(fields: dict[str, Any]) -> dict[str, Any]:
-    """Map a train config written by an earlier version onto today's fields.
-
-    The flat model fields set (not None) move into `model_options`, `aggregation`
-    becoming `backend`; `step_noise`, then a field of every config, is kept for L2S
-    only, the one model that used it. The flat solver fields move into `solver`
-    (`upgrade_solver_fields`). A config of today's form is returned as it is.
-
-    Args:
-        fields: a resolved train config as JSON fields (e.g. a run's `config.json`).
-
-    Returns:
-        New fields that `TrainConfig(**fields)` accepts (if the rest is valid).
-    """
-    fields = upgrade_solver_fields(fields)
-    if "model_options" in fields or not any(k in fields for k in _FLAT_MODEL_FIELDS):
-        return fields
-    fields = dict(fields)
-    options = {k: fields.pop(k) for k in _FLAT_MODEL_FIELDS if k in fields}
-    if "aggregation" in options:
-        options["backend"] = options.pop("aggregation")
-    if fields.get("model", "mpnode") != "l2s":
-        options.pop("step_noise", None)
-    fields["model_options"] = {k: v for k, v in options.items() if v is not None}
-    return fields
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

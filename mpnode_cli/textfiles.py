@@ -1,7 +1,8 @@
 """A user's text files (edge lists, CSV tables, config files, experiment specs, a run
 folder's JSON), read in one place: a file that is missing, unreadable or not UTF-8 text is
 one `ValueError` that names it, never a bare `'utf-8' codec can't decode` from deep inside
-a parser.
+a parser. A byte-order mark at the start (Excel's "CSV UTF-8", Notepad) is dropped, so that
+a first line reads as what it says ("utf-8-sig": plain UTF-8 reads the same).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ def read_text(path: str | Path, what: str) -> str:
         ValueError: a file that cannot be opened or read, or is not UTF-8 text.
     """
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = Path(path).read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise ValueError(_not_text(path, what)) from None
     except OSError as exc:
@@ -61,7 +62,7 @@ def text_lines(path: str | Path, what: str, max_chars: int) -> Iterator[tuple[in
             counts as binary), or has a line longer than `max_chars`.
     """
     try:
-        with open(path, encoding="utf-8") as f:
+        with open(path, encoding="utf-8-sig") as f:
             lineno = 0
             while raw := f.readline(max_chars + 1):
                 lineno += 1

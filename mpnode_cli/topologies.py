@@ -14,6 +14,8 @@ the system registry, which imports it) stays cheap for the CLI.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mpnode_cli.graphs import EdgeList
@@ -78,6 +80,31 @@ def make_edges(topology: str, n: int, seed: int, **kw: float) -> EdgeList:
     pairs = np.asarray(list(g.edges()), dtype=np.int64).reshape(-1, 2)  # [E_undirected, 2]
     return EdgeList.build(n, np.concatenate([pairs[:, 0], pairs[:, 1]]),
                           np.concatenate([pairs[:, 1], pairs[:, 0]]))
+
+
+def expected_messages(topology: str, n: int, **kw: float) -> int:
+    """The messages (directed edges, two per undirected edge) that `make_edges` builds for
+    these arguments, before building it: exact for `complete`, `chain`, `ws`, `ba` and
+    G(n, M); the mean for G(n, p) and `s1` (n · mean_degree).
+
+    Raises:
+        ValueError: as `make_graph`, for an unknown topology or a missing parameter.
+    """
+    _check_request(topology, n, kw)
+    if topology == "complete":
+        return n * (n - 1)
+    if topology == "chain":
+        return 2 * max(n - 1, 0)
+    if topology == "er":
+        if kw.get("m_edges") is not None:
+            return 2 * int(kw["m_edges"])
+        return math.ceil(float(_require(kw, "p", topology)) * n * (n - 1))
+    if topology == "ba":  # networkx: a star of m edges, then m per node after the first m + 1
+        m = int(_require(kw, "m", topology))
+        return 2 * m * max(n - m, 0)
+    if topology == "ws":
+        return n * 2 * (int(_require(kw, "k", topology)) // 2)
+    return math.ceil(n * float(_require(kw, "mean_degree", topology)))  # s1
 
 
 def _s1(n: int, seed: int, **kw: float) -> EdgeList:

@@ -46,7 +46,7 @@ MISTAKES = {
         "NaN or inf at the initial states of 4 of 4"),
     "sampler of the wrong shape": (
         (DRAW, DRAW.replace(", 2))", "))")), "sample_initial",
-        "initial states [k, N, D] of shape [1, 4], expected [1, 4, 2]"),
+        "initial states [k, N, D] of shape [4, 4], expected [4, 4, 2]"),
     "sampler of NaN": (
         (DRAW, DRAW.replace("2))\n", "2)) * np.nan\n")), "sample_initial", "NaN or inf"),
     "sampler that misuses numpy": (

@@ -14,13 +14,10 @@ from typer.testing import CliRunner
 from mpnode_cli.cli.app import app
 from mpnode_cli.cli.info import _facts, _rows
 from mpnode_cli.cli.train import _config
-from mpnode_cli.config import (
-    GenerateConfig,
-    TrainConfig,
-    generate_solver,
+from mpnode_cli.config import GenerateConfig, TrainConfig, generate_solver, train_solver
+from mpnode_cli.config_upgrade import (
     pin_stored_solver,
     stored_solver,
-    train_solver,
     upgrade_solver_fields,
     upgrade_train_fields,
 )

@@ -8,7 +8,8 @@ import math
 import pytest
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig, upgrade_train_fields
+from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config_upgrade import upgrade_train_fields
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.mpnode import MPNODE

@@ -80,19 +80,32 @@ class _Computing(TyperCommand):
         return super().invoke(ctx)
 
 
+class _Threadless(TyperCommand):
+    """A verb that sizes no thread pools: the root's `--threads` and `MPNODE_THREADS` are
+    still checked once its options have parsed (`VERB --help` wins), as a computing verb
+    checks them, so that a slip is one line and not silently ignored."""
+
+    def invoke(self, ctx: typer.Context) -> Any:
+        try:
+            choose_threads(ctx.meta.get(_THREADS))
+        except ValueError as exc:
+            fail(str(exc))
+        return super().invoke(ctx)
+
+
 # Each verb's module imports only typer at load time; heavy imports live in its function.
 # compare only reads JSON, so it has no threads to size.
 app.command("generate", no_args_is_help=True, cls=_Computing)(generate_command)
-app.command("merge", no_args_is_help=True)(merge_command)
-app.command("import", no_args_is_help=True)(import_command)
-app.command("info")(info_command)
-app.command("check", no_args_is_help=True)(check_command)
+app.command("merge", no_args_is_help=True, cls=_Threadless)(merge_command)
+app.command("import", no_args_is_help=True, cls=_Threadless)(import_command)
+app.command("info", cls=_Threadless)(info_command)
+app.command("check", no_args_is_help=True, cls=_Threadless)(check_command)
 app.command("train", cls=_Computing)(train_command)
 app.command("finetune", no_args_is_help=True, cls=_Computing)(finetune_command)
 app.command("evaluate", no_args_is_help=True, cls=_Computing)(evaluate_command)
 app.command("zeroshot", no_args_is_help=True, cls=_Computing)(zeroshot_command)
 app.command("simulate", no_args_is_help=True, cls=_Computing)(simulate_command)
-app.command("compare", no_args_is_help=True)(compare_command)
+app.command("compare", no_args_is_help=True, cls=_Threadless)(compare_command)
 experiment_app.command("list")(list_command)
 experiment_app.command("run", no_args_is_help=True, cls=_Computing)(run_command)
 app.add_typer(experiment_app, name="experiment")

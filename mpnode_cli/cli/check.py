@@ -19,6 +19,9 @@ import typer
 from mpnode_cli.cli.common import console, error_message, fail, output_parser
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+_ZIP_SIGNATURE = b"PK\x03\x04"
+# Names a dataset goes by: such a file that is not HDF5 is named so, not tried as a checkpoint.
+_HDF5_SUFFIXES = (".h5", ".hdf5", ".hdf")
 
 
 def check_command(
@@ -78,11 +81,30 @@ def _check(path: Path):
 
     if not path.exists():
         return Report(path, "file", [f"no such file or folder: {path}"])
+    if path.is_file() and path.stat().st_size == 0:
+        return Report(path, "file", [f"{path} is an empty file (0 bytes): neither a dataset "
+                                     "nor a checkpoint"])
     if path.is_file() and _is_hdf5(path):
         return check_dataset(path)
+    if path.is_file() and path.suffix.lower() in _HDF5_SUFFIXES and not _is_zip(path):
+        import h5py  # an HDF5 file may start after a user block: h5py looks further
+
+        if h5py.is_hdf5(path):
+            return check_dataset(path)
+        return Report(path, "file", [f"{path} is not an HDF5 file (it lacks HDF5's "
+                                     "signature), so not an mpnode dataset"])
     from mpnode_cli.training.validate import check_checkpoint
 
     return check_checkpoint(path)
+
+
+def _is_zip(path: Path) -> bool:
+    """A zip archive's signature at the file's start (`torch.save` writes one)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(_ZIP_SIGNATURE)) == _ZIP_SIGNATURE
+    except OSError:
+        return False
 
 
 def _is_hdf5(path: Path) -> bool:

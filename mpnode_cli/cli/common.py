@@ -16,9 +16,10 @@ T = TypeVar("T")
 M = TypeVar("M", bound=BaseModel)
 
 # Jobs whose memory estimate passes these sizes get the estimate printed, and a question
-# (`confirm_size`: generate and simulate).
+# (`confirm_size`: generate and simulate); so does the estimate of a job this slow.
 SHOW_BYTES = 256 * 2**20
 CONFIRM_BYTES = 4 * 2**30
+SHOW_SECONDS = 5.0
 
 # Every computing verb's `--threads` (the root's `mpnode --threads N VERB` works too; the
 # verb's wins). `cli/app.py` reads and applies it before the verb runs; the verb ignores it.
@@ -98,10 +99,11 @@ def extrapolation_note(row: dict[str, Any], name: str | None = None) -> None:
 
 
 def confirm_size(size: Any, job: str, yes: bool) -> None:
-    """Print the size of a big job; above `CONFIRM_BYTES` ask (or refuse without a terminal).
+    """Print the estimate of a big or slow job; above `CONFIRM_BYTES` ask (or refuse
+    without a terminal).
 
     Args:
-        size: the job's `mpnode_cli.data.generate.Estimate`.
+        size: the job's `mpnode_cli.data.size.Estimate`.
         job: what it makes, "K trajectories × T samples × N nodes".
         yes: go ahead without asking (`--yes`).
 
@@ -110,12 +112,11 @@ def confirm_size(size: Any, job: str, yes: bool) -> None:
     """
     import sys
 
-    from mpnode_cli.data.generate import format_bytes
+    from mpnode_cli.memory import format_bytes
 
-    if size.memory_bytes < SHOW_BYTES:
+    if size.memory_bytes < SHOW_BYTES and (size.seconds or 0) < SHOW_SECONDS:
         return
-    typer.echo(f"this job: {job}; file about {format_bytes(size.file_bytes)}, memory about "
-               f"{format_bytes(size.memory_bytes)}", err=True)
+    typer.echo(f"this job: {job}; {size.describe()}", err=True)
     if size.memory_bytes < CONFIRM_BYTES or yes:
         return
     if not sys.stdin.isatty():
@@ -209,8 +210,9 @@ def split_by_name(counts) -> dict[str, int]:
 def task_bar(description: str, columns: tuple | None = None, total: float | None = None, *,
              quiet: bool = False) -> Iterator[tuple]:
     """A transient rich progress bar on stderr, and the `progress(done, total)` callback
-    that moves it: `(bar, progress)`. The bar appears at the first call of `progress`, so
-    what the work prints or asks before it starts (`confirm_size`) is not under a live
+    that moves it (None leaves a count as it is; a third argument, `description`, says what
+    is being done now): `(bar, progress)`. The bar appears at the first call of `progress`,
+    so what the work prints or asks before it starts (`confirm_size`) is not under a live
     display. No bar when stderr is not a terminal (pipes, logs, tests), nor when `quiet`
     (`--json`): it would only add noise.
 
@@ -231,10 +233,11 @@ def task_bar(description: str, columns: tuple | None = None, total: float | None
                    disable=quiet or not display.is_terminal)
     task = bar.add_task(description, total=total)
 
-    def progress(done: float, total: float | None) -> None:
+    def progress(done: float | None, total: float | None, description: str | None = None
+                 ) -> None:
         if not bar.live.is_started:
             bar.start()
-        bar.update(task, completed=done, total=total)
+        bar.update(task, completed=done, total=total, description=description)
 
     try:
         yield bar, progress

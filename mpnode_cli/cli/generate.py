@@ -219,7 +219,8 @@ def _layered_config(preset: str | None, config_file: Path | None, system_file: P
         ValueError: a system file, preset or config file that does not load, no system,
             or fields the config refuses.
     """
-    from mpnode_cli.config import read_config_file, upgrade_solver_fields
+    from mpnode_cli.config import read_config_file
+    from mpnode_cli.config_upgrade import upgrade_solver_fields
     from mpnode_cli.data.presets import get_preset, merge_layers
 
     own = None
@@ -284,7 +285,12 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool,
          config_file: Path | None = None) -> None:
     """Check the job and its output (never one of its inputs, `config_file` included),
     generate with a progress bar, then print the summary."""
-    from rich.progress import BarColumn, MofNCompleteColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     from mpnode_cli.data.generate import (
         GenerateError,
@@ -297,12 +303,11 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool,
     )
     from mpnode_cli.paths import check_output_file
 
-    try:
+    try:  # generate itself builds the graphs before solving: no dry run here
         config = resolve_config(config, dry_run=False)
         _confirm_size(config, yes)
         check_output_file(output_path(config), overwrite=force,
                           inputs=(*generate_inputs(config), config_file))
-        config = resolve_config(config)
     except (FileExistsError, ValueError) as exc:
         _usage_error(_message(exc))
     # Before solving, so that it can be stopped; the whole dataset's split, shard or not.
@@ -314,9 +319,14 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool,
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
+        TimeRemainingColumn(),
     )
-    summary = with_bar(f"solving {config.system}",
-                       lambda progress: generate(config, overwrite=force, progress=progress),
+
+    def work(progress):  # each step's name on the bar, from the graphs to the file
+        return generate(config, overwrite=force, progress=progress,
+                        stage=lambda step: progress(None, None, f"{config.system}: {step}"))
+
+    summary = with_bar(f"{config.system}: starting", work,
                        quiet=json_out, stopped=f"nothing written to {output_path(config)}",
                        failures=(GenerateError,), columns=columns, total=config.trajectories)
     if json_out:

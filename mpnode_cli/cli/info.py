@@ -80,7 +80,8 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
     """The summary as JSON-able facts (what `--json` prints and the table shows)."""
     import numpy as np
 
-    from mpnode_cli.config import generate_solver, stored_solver
+    from mpnode_cli.config import generate_solver
+    from mpnode_cli.config_upgrade import stored_solver
 
     attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
     (k, t, n, d), states_dtype = shapes["states"]

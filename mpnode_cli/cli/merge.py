@@ -39,8 +39,8 @@ def merge_command(
     import json
 
     from mpnode_cli.cli.common import with_bar
-    from mpnode_cli.data.generate import format_bytes
     from mpnode_cli.data.shards import merge_shards
+    from mpnode_cli.memory import format_bytes
 
     summary = with_bar(f"merging {len(shards)} shards",
                        lambda progress: merge_shards(shards, out, overwrite=force,

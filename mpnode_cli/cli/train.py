@@ -58,7 +58,7 @@ _SOLVER = ("method", "rtol", "atol", "fixed_dt")
 # `model`). A `TrainConfig` field or a solver option is built from its declaration; the
 # other names are the command's own parameters. A command has the ones it takes.
 _PANELS = {
-    DATA: ("renormalize", "allow_other_system", "trajectories", "stream"),
+    DATA: ("renormalize", "allow_other_system", "allow_predictions", "trajectories", "stream"),
     RECIPE: ("recipe", "loss", "epochs", "batch_size", "even_batches", "lr", "min_lr",
              "schedule", "patience", "stop_patience", "time_limit", "clip", "noise",
              "max_bad_steps", "val_batch_size", "seed", "seeds", "wrap_angles"),
@@ -72,7 +72,8 @@ _PANELS = {
 # Flags spelt otherwise than `--name/--no-name`: two names for the two ways, or a switch
 # that only turns something on.
 _FLAGS = {"even_batches": ("--even-batches/--tail-batch",), "stream": ("--stream/--in-memory",),
-          "renormalize": ("--renormalize",), "allow_other_system": ("--allow-other-system",)}
+          "renormalize": ("--renormalize",), "allow_other_system": ("--allow-other-system",),
+          "allow_predictions": ("--allow-predictions",)}
 
 # Every system declares the loss of the paper recipe (`System.paper_loss`).
 _SYSTEM_CHOOSES = {"loss"}
@@ -148,7 +149,8 @@ def _config(config_file: Path | None, options: dict[str, Any],
     """The train config: the file's fields (upgraded if written by an earlier version),
     beneath the options given; model options and solver options are merged into the file's
     `[model_options]` and `[solver]` tables one by one."""
-    from mpnode_cli.config import read_config_file, upgrade_train_fields
+    from mpnode_cli.config import read_config_file
+    from mpnode_cli.config_upgrade import upgrade_train_fields
 
     fields = upgrade_train_fields(read_config_file(config_file)) if config_file else {}
     solver = {k: v for k, v in options.items() if k in _SOLVER}
@@ -320,6 +322,7 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     import json
     from dataclasses import asdict
 
+    from mpnode_cli.memory import naming_memory
     from mpnode_cli.report.tables import train_table
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
     from mpnode_cli.training.distributed import process_group
@@ -327,11 +330,13 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     from mpnode_cli.training.run import add_to_summary, read_summary
 
     display_console = console(stderr=True)
+    step = _TrainingStep()
     try:
         # Under torchrun: join the other processes; only rank 0 reports (and returns a summary).
         with interrupt_on_signals(), process_group(config.device) as world, _Display(
-                display_console, world.main) as display:
-            summary = train(config, resume=resume, progress=display.on_event)
+                display_console, world.main) as display, naming_memory(
+                step, None, "lower --batch-size, or train on fewer samples or nodes"):
+            summary = train(config, resume=resume, progress=step.told(display.on_event))
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
     except TrainingDiverged as exc:
@@ -356,6 +361,32 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
         typer.echo(json.dumps(read_summary(summary.run_dir)))
         return
     console().print(train_table(asdict(summary)))
+
+
+class _TrainingStep:
+    """Where training is, from the loop's events: what a line names if memory runs out."""
+
+    def __init__(self) -> None:
+        self.now = "loading the data and building the model"
+
+    def told(self, on_event):
+        """`on_event`, after noting each event's step."""
+        def seen(event: dict[str, Any]) -> None:
+            kind = event.get("event")
+            if kind == "start":
+                self.now = f"training epoch {event['first_epoch']}"
+            elif kind == "epoch":  # the next one starts (or the test, after the last)
+                self.now = f"training epoch {event['epoch'] + 1}"
+            elif kind == "batch":
+                self.now = (f"training epoch {event['epoch']}, past batch {event['batch']} "
+                            f"of {event['batches']}")
+            elif kind == "test":
+                self.now = "testing the best checkpoint"
+            on_event(event)
+        return seen
+
+    def __str__(self) -> str:
+        return self.now
 
 
 class _Display:

@@ -13,8 +13,8 @@ from __future__ import annotations
 from mpnode_cli.lazy import lazy_exports
 
 __getattr__, __all__ = lazy_exports(__name__, {
-    "hdf5": ["Dataset", "DatasetFormatError", "read_dataset", "read_header", "write_dataset",
-             "fingerprint"],
+    "hdf5": ["Dataset", "DatasetFormatError", "read_dataset", "read_header", "write_dataset"],
+    "fingerprint": ["fingerprint"],
     "importers": ["ImportSummary", "import_arrays"],
     "validate": ["Report", "check_dataset", "require_valid"],
     "generate": ["GenerateError", "GenerateSummary", "resolve_config"],

@@ -91,7 +91,7 @@ def read_table(path: str | Path) -> tuple[list[str], np.ndarray]:
             # loadtxt warns of a table without rows, which the caller reports in its words.
             warnings.simplefilter("ignore", UserWarning)
             rows = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2, dtype=np.float64,
-                              encoding="utf-8")
+                              encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise ValueError(f"CSV file {path} is not UTF-8 text (a binary file?)") from None
     except ValueError as exc:
@@ -194,9 +194,10 @@ def _checked_header(f, size: int, where: str) -> int:
 
 def _check_memory(need: int, path: Path) -> None:
     """Refuse arrays that would not fit in memory as the float64 copies mpnode reads."""
-    from mpnode_cli.data.generate import format_bytes, physical_memory
+    from mpnode_cli.memory import available_memory, format_bytes
 
-    have = physical_memory()
+    have = available_memory()
     if have is not None and need * 3 > have:  # the file's arrays, their float64 copy
-        raise ValueError(f"{path} holds {format_bytes(need)} of arrays, more than this "
-                         f"machine's memory ({format_bytes(have)}) takes as float64")
+        raise ValueError(f"{path} holds {format_bytes(need)} of arrays, more than the "
+                         f"memory this machine has available ({format_bytes(have)}) takes "
+                         "as float64")

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from mpnode_cli.data.hdf5 import NodeSizes, fingerprint, read_dataset
+from mpnode_cli.data.fingerprint import fingerprint
+from mpnode_cli.data.hdf5 import NodeSizes, read_dataset
 from mpnode_cli.data.validate import require_valid
 from mpnode_cli.graphs import EdgeBatch, Graphs
 
@@ -161,7 +162,8 @@ class TrajectoryData(NodeSizes):
             split=torch.from_numpy(ds.split.astype(np.uint8)),
             system=ds.system, state_names=tuple(ds.state_names),
             control_names=tuple(ds.control_names), path=Path(path),
-            fingerprint=fingerprint(states, ds.graphs, ds.graph_index, ds.time),
+            fingerprint=fingerprint(states, ds.graphs, ds.graph_index, ds.time,
+                                    controls=ds.controls),
             attrs={"topology": topology, "config": ds.config, "dt": ds.dt,
                    "recipe": _recipe(ds.extra_attrs.get("recipe")),
                    "prediction": ds.extra_attrs.get("prediction"),

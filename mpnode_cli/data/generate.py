@@ -27,6 +27,7 @@ import functools
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -42,7 +43,9 @@ from mpnode_cli.data.shards import (
     shard_path,
     shard_range,
 )
+from mpnode_cli.data.size import Estimate, check_job, generate_estimate
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
+from mpnode_cli.memory import naming_memory
 from mpnode_cli.progress import Progress
 from mpnode_cli.systems.contract import CheckedSystem, named
 from mpnode_cli.systems.registry import (
@@ -62,14 +65,6 @@ if TYPE_CHECKING:
 # independently with probability p per draw (p ≈ 0.2 for the pendulum's wide box), so 50
 # rounds only run out when something is systematically wrong.
 MAX_REDRAW_ROUNDS = 50
-
-# Bytes per float64 value a chunk's solve holds besides its output (the stages and the
-# step's temporaries, for a 7-stage method), per node state.
-_SOLVE_WORK = 16 * 8
-# Messages per node assumed by `estimate` for an edge-list graph (mean degree 32, far
-# above the sparse topologies' 4-10), so that the estimate errs on the large side.
-_EDGES_PER_NODE = 32
-
 
 class GenerateError(RuntimeError):
     """Generation could not produce a complete dataset (e.g. every trajectory fails)."""
@@ -101,45 +96,12 @@ class GenerateSummary:
     seconds: float
 
 
-@dataclass(frozen=True)
-class Estimate:
-    """What a job will take, before it runs: a generate job (`estimate`), or a simulate
-    job (`mpnode_cli.training.predict.simulate_estimate`).
-
-    Attributes:
-        file_bytes: the file written (states, controls, graphs; a simulation's messages).
-        memory_bytes: peak memory. For generate: the float64 states of every trajectory,
-            their cast for storage, the graphs, and one chunk's solve. Graphs above
-            `DENSE_GRAPH_MAX_NODES` nodes are edge lists, counted at `_EDGES_PER_NODE`
-            messages per node (their true count is only known once they are built).
-        values: numbers in `states` (K·T·N·D).
-    """
-
-    file_bytes: int
-    memory_bytes: int
-    values: int
-
-
 def estimate(config: GenerateConfig) -> Estimate:
-    """The size of the file and the memory a resolved config will take (approximate); for
-    a shard, its own trajectories'."""
-    system = build_system(config)
+    """The size of the file, the memory, the solver steps and the rough time a resolved
+    config will take (`mpnode_cli.data.size.generate_estimate`); for a shard, its own
+    trajectories'."""
     start, stop = trajectory_range(config)
-    k, t, n, g = stop - start, config.num_steps + 1, config.nodes, config.graphs
-    d, u = len(system.state_names), len(system.control_names)
-    store = 4 if config.dtype == "float32" else 8
-    values = k * t * n * (d + u)
-    chunk = min(config.chunk_size, k)
-    # Chunks over several graphs carry one float64 copy of the adjacency per trajectory.
-    chunk_graphs = chunk if g > 1 else 1
-    if n <= DENSE_GRAPH_MAX_NODES or not system.sparse:  # matrices
-        graph_memory, graph_file = g * n * n * 9 + chunk_graphs * n * n * 8, g * n * n
-    else:  # int64 senders and receivers, and a chunk's flattened copy of them
-        messages = n * _EDGES_PER_NODE
-        graph_memory, graph_file = (g + chunk_graphs) * messages * 16, g * messages * 8
-    memory = values * (8 + store) + graph_memory + chunk * n * d * _SOLVE_WORK
-    return Estimate(file_bytes=values * store + graph_file, memory_bytes=memory,
-                    values=k * t * n * d)
+    return generate_estimate(config, build_system(config), stop - start)
 
 
 def trajectory_range(config: GenerateConfig) -> tuple[int, int]:
@@ -160,39 +122,14 @@ def output_path(config: GenerateConfig) -> Path:
     return shard_path(config.out, *config.shard)
 
 
-def check_memory(size: Estimate, what: str, advice: str) -> None:
-    """Refuse a job whose memory estimate exceeds this machine's memory.
-
-    Args:
-        size: the job's estimate. what: the job, as the message names it ("this dataset").
-        advice: what to change ("lower --t-end or raise --dt").
-
-    Raises:
-        ValueError: the job would not fit (one line).
-    """
-    need, have = size.memory_bytes, physical_memory()
-    if have is not None and need > have:
-        raise ValueError(f"{what} needs about {format_bytes(need)} of memory, more than this "
-                         f"machine's {format_bytes(have)}: {advice}")
-
-
-def physical_memory() -> int | None:
-    """This machine's memory in bytes (None where the OS does not say)."""
-    import os
-
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    except (AttributeError, ValueError, OSError):
-        return None
-
-
 def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateConfig:
     """Fill in every system-dependent default and check the system can be built as asked.
 
-    A job whose memory estimate exceeds this machine's memory is refused before anything
-    is built. With `dry_run`, the first graph is built and one initial state drawn, so that
-    a topology that cannot exist at this size, or an option that does not fit it, fails
-    here with one clear message rather than after minutes of solving.
+    A job too big for the memory available, or of more fixed steps than `max_steps`, is
+    refused before anything is built (`mpnode_cli.data.size.check_job`). With `dry_run`,
+    the first graph is built and one initial state drawn, so that a topology that cannot
+    exist at this size, or an option that does not fit it, fails here with one clear
+    message rather than after minutes of solving.
 
     Raises:
         ValueError: unknown system, parameter, topology or size; an unreadable edge list;
@@ -231,8 +168,9 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
     trajectory_range(resolved)  # a shard spec that fits these trajectories
-    check_memory(estimate(resolved), "this dataset",
-                 "lower --trajectories, --t-end or --nodes, or raise --dt")
+    check_job(estimate(resolved), "this dataset",
+              "lower --trajectories, --t-end, --nodes or --graphs, or raise --dt",
+              solver=resolved.solver)
     if resolved.nodes > DENSE_GRAPH_MAX_NODES and not system.sparse:
         raise ValueError(
             f"system '{system.name}' needs its graph as an N×N matrix, which mpnode builds "
@@ -247,7 +185,8 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
 
 
 def generate(
-    config: GenerateConfig, *, overwrite: bool = False, progress: Progress | None = None
+    config: GenerateConfig, *, overwrite: bool = False, progress: Progress | None = None,
+    stage: Callable[[str], None] | None = None,
 ) -> GenerateSummary:
     """Simulate the dataset `config` describes and write it to `config.out` (a shard: to
     `output_path(config)`).
@@ -257,6 +196,8 @@ def generate(
         overwrite: replace an existing file at the output path.
         progress: called as `progress(done, total)` after each solved chunk, and within a
             chunk as its solve moves (`done` then counts the chunk's fraction solved).
+        stage: called with each step as it starts ("building graph 2 of 5", "solving
+            trajectories 1–1024 of 2000", "writing the file").
 
     Returns:
         A `GenerateSummary`.
@@ -269,14 +210,17 @@ def generate(
         KeyboardInterrupt: SIGINT (or SIGTERM, under `interrupt_on_signals`); nothing is
             written.
         GenerateError: trajectories that keep failing after `MAX_REDRAW_ROUNDS` redraws.
+        OutOfMemory: memory ran out all the same (one line naming the step).
     """
     from mpnode_cli.paths import reserve_output
 
     start = time.perf_counter()
-    config = resolve_config(config)
+    # No dry run: step 1 builds the graphs and step 2 draws the initial states before any
+    # solve, and building a large graph twice would double the wait.
+    config = resolve_config(config, dry_run=False)
     out = output_path(config)
     with reserve_output(out, overwrite=overwrite, inputs=generate_inputs(config)):
-        return _generate(config, out, progress, start)
+        return _generate(config, out, progress, _Stage(stage), start)
 
 
 def generate_inputs(config: GenerateConfig) -> tuple[Path | None, ...]:
@@ -284,17 +228,39 @@ def generate_inputs(config: GenerateConfig) -> tuple[Path | None, ...]:
     return config.edge_list, config.system_file
 
 
-def _generate(config: GenerateConfig, out: Path, progress: Progress | None,
+class _Stage:
+    """The step `generate` is at: told to the caller's `stage` callback as it starts, and
+    named if memory runs out in it."""
+
+    def __init__(self, report: Callable[[str], None] | None) -> None:
+        self.now, self.report = "starting", report
+
+    def __call__(self, step: str) -> None:
+        self.now = step
+        if self.report is not None:
+            self.report(step)
+
+    def __str__(self) -> str:
+        return self.now
+
+
+def _generate(config: GenerateConfig, out: Path, progress: Progress | None, stage: _Stage,
               start: float) -> GenerateSummary:
     """`generate` once its output is reserved: solve, redraw, write."""
     import torch
 
     system = build_system(config)
-    graphs, params = _graphs_and_params(system, config)
-    draws = _draw_trajectories(system, config, graphs)
-    ts = torch.arange(config.num_steps + 1, dtype=torch.float64) * config.dt  # [T]
-    solved = _solve_and_redraw(system, config, ts, graphs, params, draws, progress)
-    return _write(system, config, out, ts, graphs, params, draws, solved, start)
+    lo, hi = trajectory_range(config)
+    need = generate_estimate(config, system, hi - lo).memory_bytes
+    with naming_memory(stage, need, "lower --chunk-size, --trajectories, --t-end or --nodes, "
+                                    "or raise --dt"):
+        graphs, params = _graphs_and_params(system, config, stage)
+        stage("drawing the initial states")
+        draws = _draw_trajectories(system, config, graphs)
+        ts = torch.arange(config.num_steps + 1, dtype=torch.float64) * config.dt  # [T]
+        solved = _solve_and_redraw(system, config, ts, graphs, params, draws, progress, stage)
+        stage("writing the file")
+        return _write(system, config, out, ts, graphs, params, draws, solved, start)
 
 
 @dataclass
@@ -369,15 +335,17 @@ class _Solved:
             self.sim_rejected[chunk] = sim.rejected.numpy()
 
 
-def _graphs_and_params(system: CheckedSystem, config: GenerateConfig
+def _graphs_and_params(system: CheckedSystem, config: GenerateConfig, stage: _Stage
                        ) -> tuple[Graphs, dict[str, np.ndarray]]:
     """Step 1: the G graphs and each one's parameters (name → `[G, ...]`).
 
     The graphs are `[G, N, N]` uint8 matrices up to DENSE_GRAPH_MAX_NODES nodes, edge lists
     above (memory O(E), not O(N²)).
     """
-    g = config.graphs
-    built = [_graph(system, config, i) for i in range(g)]
+    g, built = config.graphs, []
+    for i in range(g):
+        stage(f"building graph {i + 1} of {g}")
+        built.append(_graph(system, config, i))
     graphs = (Graphs.from_adjacency(np.stack(built)) if isinstance(built[0], np.ndarray)
               else Graphs.from_edge_lists(config.nodes, built))
     per_graph = [
@@ -412,7 +380,7 @@ def _draw_trajectories(system: CheckedSystem, config: GenerateConfig, graphs: Gr
 def _solve_and_redraw(system: CheckedSystem, config: GenerateConfig, ts: torch.Tensor,
                       graphs: Graphs,
                       params: dict[str, np.ndarray], draws: _Draws,
-                      progress: Progress | None) -> _Solved:
+                      progress: Progress | None, stage: _Stage) -> _Solved:
     """Steps 3–4: solve, then redraw what failed or was rejected, until nothing is left.
 
     Raises:
@@ -429,7 +397,7 @@ def _solve_and_redraw(system: CheckedSystem, config: GenerateConfig, ts: torch.T
         chunks = (draws.first_chunks if round_ == 0
                   else _chunks(pending, draws.graph_index, config.chunk_size))
         done = _solve_round(system, config, ts, graphs, params, draws, chunks, solved,
-                            progress, done, total)
+                            (progress, stage), done, total)
         solved.total_f_evals += int(solved.n_f_evals[pending].sum())
 
         bad_status = solved.status[pending] != 0
@@ -463,9 +431,12 @@ def _solve_and_redraw(system: CheckedSystem, config: GenerateConfig, ts: torch.T
 
 def _solve_round(system: CheckedSystem, config: GenerateConfig, ts: torch.Tensor, graphs: Graphs,
                  params: dict[str, np.ndarray], draws: _Draws, chunks, solved: _Solved,
-                 progress: Progress | None, done: int, total: int) -> int:
-    """Solve one round's chunks into `solved`; the progress count `done` after them."""
+                 told: tuple[Progress | None, _Stage], done: int, total: int) -> int:
+    """Solve one round's chunks into `solved`, telling `told` (progress, stage) as they
+    go; the progress count `done` after them."""
+    progress, stage = told
     for chunk, gi in chunks:
+        stage(f"solving trajectories {done + 1}–{done + len(chunk)} of {total}")
         tic = time.perf_counter()
         # `[1, ...]` when the chunk shares one graph, else one copy per trajectory.
         which = slice(gi, gi + 1) if gi is not None else draws.graph_index[chunk]
@@ -613,15 +584,6 @@ def _solve_chunk(system, config, ts, graphs, which, params, y0, inputs, progress
         solver=config.solver,
         progress=progress,
     )
-
-
-def format_bytes(n: float) -> str:
-    """`1.5 GiB`, `320 MiB`, `12 KiB`: a size for a person."""
-    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
-        n /= 1024
-    return f"{n:.3g} PiB"  # unreachable: the loop returns at TiB
 
 
 def split_trajectories(k: int, fractions: tuple[float, float, float], seed: int) -> np.ndarray:

@@ -17,7 +17,6 @@ renamed when complete, so an interrupted run (Ctrl-C included) leaves nothing at
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from collections.abc import Sequence
@@ -30,7 +29,7 @@ import h5py
 import numpy as np
 
 from mpnode_cli import __version__
-from mpnode_cli.config import upgrade_solver_fields
+from mpnode_cli.config_upgrade import upgrade_solver_fields
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 from mpnode_cli.progress import Progress
 
@@ -157,36 +156,6 @@ class Dataset(NodeSizes):
             ValueError: N > `DENSE_GRAPH_MAX_NODES`.
         """
         return self.graphs.dense()
-
-
-def fingerprint(states: Any, graphs: Graphs, graph_index: np.ndarray,
-                time: np.ndarray, *, rows: int | None = None,
-                progress: Progress | None = None) -> str:
-    """The data's identity: sha256 of states (as float32), the graphs, graph_index and
-    time, each as stored. Runs and checkpoints record it; a file whose data are the same has
-    the same fingerprint wherever it lies.
-
-    The graphs enter as `Graphs.fingerprint_arrays`: the `[G, N, N]` matrices up to
-    `DENSE_GRAPH_MAX_NODES` nodes (so a file's fingerprint is the one format version 1
-    gave it), the edge lists above.
-
-    Args:
-        states: `[K, T, N, D]`, a numpy array or an h5py dataset (read `rows`
-            trajectories at a time; the digest is the same).
-        graphs, graph_index, time: as stored in the file.
-        rows: trajectories per read (default: all at once).
-        progress: called after each read, with the trajectories read and K.
-    """
-    digest = hashlib.sha256()
-    step = max(1, rows or len(states))
-    for start in range(0, len(states), step):
-        block = np.asarray(states[start:start + step], dtype=np.float32)
-        digest.update(np.ascontiguousarray(block).tobytes())
-        if progress is not None:
-            progress(min(start + step, len(states)), len(states))
-    for array in (*graphs.fingerprint_arrays(), graph_index, time):
-        digest.update(np.ascontiguousarray(array).tobytes())
-    return digest.hexdigest()
 
 
 def write_dataset(path: str | Path, ds: Dataset, *, overwrite: bool = False,

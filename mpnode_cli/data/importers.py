@@ -24,7 +24,8 @@ import numpy as np
 
 from mpnode_cli.config import ImportConfig
 from mpnode_cli.data.arrays import read_arrays, read_table
-from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, fingerprint, write_dataset
+from mpnode_cli.data.fingerprint import fingerprint
+from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, write_dataset
 from mpnode_cli.data.validate import nonfinite
 from mpnode_cli.graphs import Graphs, missing_ids
 from mpnode_cli.paths import file_sha256
@@ -119,7 +120,7 @@ def _import(config: ImportConfig, out: Path, progress: Progress | None) -> Impor
     periodic = periodic_names(config.periodic, names)
     split = split_trajectories(k, config.split, config.seed)
     stored = _Cast(states, config.dtype)
-    digest = fingerprint(stored, graphs, graph_index, time, rows=_rows(states),
+    digest = fingerprint(stored, graphs, graph_index, time, controls=controls, rows=_rows(states),
                          progress=pass_of(progress, 1, 3))
     sources = {name: {"path": str(path.resolve()), "sha256": file_sha256(path)}
                for name in ("states", "adjacency", "edge_list", "controls")

@@ -68,6 +68,21 @@ def check_poolable(datasets: Sequence[Data]) -> None:
                 "numbers of samples may differ)")
 
 
+def check_ground_truth(datasets: Sequence[Data]) -> None:
+    """Refuse, in one line, a file of a model's predictions (its `prediction` attribute,
+    written by `evaluate --save-predictions` and `simulate`) as training data.
+
+    Raises:
+        ValueError: the first such dataset, and the option that accepts it.
+    """
+    for data in datasets:
+        if data.attrs.get("prediction"):
+            raise ValueError(
+                f"{data.path.name} holds a model's predictions (mpnode evaluate "
+                "--save-predictions or simulate), not ground truth: a model trained on them "
+                "learns the other model's errors; pass --allow-predictions if that is meant")
+
+
 def load_datasets(paths: Sequence[str | Path], stream: bool = False) -> list[Data]:
     """Read the datasets (`stream`: open the one dataset, `StreamedTrajectories`) and
     check that they can be trained on together (`check_poolable`).

@@ -31,7 +31,8 @@ import numpy as np
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData, _recipe, split_subset
-from mpnode_cli.data.hdf5 import fingerprint, read_graphs, read_header
+from mpnode_cli.data.fingerprint import fingerprint
+from mpnode_cli.data.hdf5 import read_graphs, read_header
 from mpnode_cli.data.validate import require_valid
 from mpnode_cli.graphs import EdgeBatch, Graphs
 
@@ -79,7 +80,8 @@ class StreamedTrajectories:
             time = f["time"][()]
             rows = max(1, _BLOCK_VALUES // int(np.prod(states.shape[1:])))
             graphs = read_graphs(f)
-            digest = fingerprint(states, graphs, f["graph_index"][()], time, rows=rows)
+            digest = fingerprint(states, graphs, f["graph_index"][()], time, rows=rows,
+                                 controls=f["controls"] if "controls" in f else None)
             shape = tuple(states.shape[1:])
             control_dim = f["controls"].shape[-1] if "controls" in f else 0
         topology = config.get("topology") if isinstance(config, dict) else None

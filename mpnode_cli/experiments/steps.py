@@ -338,7 +338,8 @@ def _rollout_figure(ckpt, data, split: str, path: Path) -> str:
     paper's Fig. 2, 3b and 11)."""
     import torch
 
-    from mpnode_cli.config import stored_solver, train_solver
+    from mpnode_cli.config import train_solver
+    from mpnode_cli.config_upgrade import stored_solver
     from mpnode_cli.report.plots import plot_rollout
     from mpnode_cli.training.evaluate import predict
 

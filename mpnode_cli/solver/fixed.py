@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import torch
 
@@ -18,15 +18,17 @@ from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
 from mpnode_cli.solver.solution import Status
 
 
-def fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> list[float]:
-    """Step end times: every output time and stop, with equal substeps of ≤ fixed_dt between."""
+def fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> Iterator[float]:
+    """Step end times: every output time and stop, with equal substeps of ≤ fixed_dt between.
+
+    Yielded one at a time: a tiny `fixed_dt` makes billions of them, and the solve stops at
+    `max_steps` long before (as a list they once filled the memory first).
+    """
     marks = torch.unique(torch.cat([ts, stops])).tolist()
-    grid = []
     for a, b in itertools.pairwise(marks):
         n = max(1, math.ceil((b - a) / fixed_dt - 1e-9))
-        grid.extend(a + (b - a) * (i / n) for i in range(1, n))
-        grid.append(b)
-    return grid
+        yield from (a + (b - a) * (i / n) for i in range(1, n))
+        yield b
 
 
 def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,

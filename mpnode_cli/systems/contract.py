@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mpnode_cli.graphs import EdgeList
+from mpnode_cli.memory import is_out_of_memory
 
 if TYPE_CHECKING:
     from mpnode_cli.systems.base import RHS, Simulation, System
@@ -48,9 +49,10 @@ def where(system: Any, method: str) -> str:
 
 def named(system: Any, method: str, exc: BaseException) -> BaseException:
     """The exception to raise for `exc`, raised inside `system.method`: a `PluginError`
-    naming where, or `exc` itself (a `KeyboardInterrupt`, a `PluginError` already, or a
-    `ValueError` that mpnode's own code raised)."""
-    if isinstance(exc, KeyboardInterrupt | PluginError):
+    naming where, or `exc` itself (a `KeyboardInterrupt`, a `PluginError` already, a
+    `ValueError` that mpnode's own code raised, or memory running out, which is the job's
+    size and not the method's fault: the caller names the step, `mpnode_cli.memory`)."""
+    if isinstance(exc, KeyboardInterrupt | PluginError) or is_out_of_memory(exc):
         return exc
     if isinstance(exc, ValueError):
         if not _through_plugin(system, exc):

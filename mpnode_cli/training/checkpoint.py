@@ -68,10 +68,11 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from mpnode_cli import __version__
-from mpnode_cli.config import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.config_upgrade import upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_path
 from mpnode_cli.paths import file_sha256  # noqa: F401  (a checkpoint's identity)
 from mpnode_cli.terminal import suggested
+from mpnode_cli.training.checkpoint_upgrade import upgrade_payload, version_problem
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
@@ -104,6 +105,8 @@ class Checkpoint:
     path: Path | None = None
     # In memory only: the ensemble member of the file at `path` this is (`member_checkpoint`).
     member: int | None = None
+    # In memory only: the format version the file was stored in (upgraded on reading).
+    format_version: int = FORMAT_VERSION
 
     @property
     def members(self) -> int:
@@ -279,20 +282,9 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointFormatError(f"{path} is not an mpnode checkpoint (no format '{FORMAT}')")
     version = payload.get("format_version")
-    if not isinstance(version, int) or version > FORMAT_VERSION:
-        raise CheckpointFormatError(
-            f"{path} is checkpoint format v{version}, newer than this mpnode reads "
-            f"(v{FORMAT_VERSION}); upgrade mpnode")
-    if version < 2:
-        _upgrade_v1(payload)
-    if version < 3:
-        _upgrade_v2(payload)
-    if version < 4 and isinstance(payload.get("train_config"), dict):
-        payload["train_config"] = upgrade_solver_fields(payload["train_config"])
-    if version < 5 and isinstance(payload.get("train_config"), dict):
-        payload["train_config"] = pin_stored_solver(payload["train_config"])
-    if version < 7:
-        _upgrade_v6(payload)
+    if problem := version_problem(version, FORMAT_VERSION):
+        raise CheckpointFormatError(f"{path} {problem}")
+    upgrade_payload(payload, version)
     try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],
@@ -302,41 +294,10 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
             rng=payload.get("rng") or {}, loop=payload.get("loop") or {},
             parent_sha256=payload.get("parent_sha256"), metrics=payload.get("metrics") or {},
             mpnode_version=payload.get("mpnode_version", "?"), path=path,
+            format_version=version,
         )  # fmt: skip
     except KeyError as exc:
         raise CheckpointFormatError(f"{path} lacks the checkpoint field {exc.args[0]!r}") from None
-
-
-def _upgrade_v1(payload: dict[str, Any]) -> None:
-    """Version 1 → 2 in place: the renamed MP-NODE option and the new PNA buffer."""
-    kind, config = payload.get("model_kind"), payload.get("model_config")
-    if isinstance(config, dict) and kind == "mpnode" and "aggregation" in config:
-        config["backend"] = config.pop("aggregation")
-    state = payload.get("state_dict")
-    if kind in ("mpnode", "gnode") and isinstance(state, dict):
-        state.setdefault("degree_delta", torch.zeros((), dtype=torch.float64))
-
-
-def _upgrade_v2(payload: dict[str, Any]) -> None:
-    """Version 2 → 3 in place: model options out of the train config, and L2S's
-    `step_noise` (then a train config field) into its model config."""
-    train_config, config = payload.get("train_config"), payload.get("model_config")
-    if not isinstance(train_config, dict):
-        return
-    if payload.get("model_kind") == "l2s" and isinstance(config, dict) and (
-            "step_noise" in train_config):
-        config.setdefault("step_noise", train_config["step_noise"])
-    payload["train_config"] = upgrade_train_fields(train_config)
-
-
-def _upgrade_v6(payload: dict[str, Any]) -> None:
-    """Version 6 → 7 in place: datasets of then had no periodic states."""
-    facts = payload.get("dataset")
-    if isinstance(facts, dict):
-        facts.setdefault("periodic_states", [])
-        for each in facts.get("datasets") or []:
-            if isinstance(each, dict):
-                each.setdefault("periodic_states", [])
 
 
 # Facts about the training dataset that evaluate, zeroshot and finetune rely on.

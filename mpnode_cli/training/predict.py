@@ -40,10 +40,13 @@ from typing import Any, TypeVar, cast
 import numpy as np
 import torch
 
-from mpnode_cli.config import stored_solver, train_solver
-from mpnode_cli.data.generate import Estimate, check_memory
-from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, fingerprint, write_dataset
+from mpnode_cli.config import train_solver
+from mpnode_cli.config_upgrade import stored_solver
+from mpnode_cli.data.fingerprint import fingerprint
+from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, write_dataset
+from mpnode_cli.data.size import Estimate, check_job, simulate_estimate
 from mpnode_cli.graphs import Graphs
+from mpnode_cli.memory import naming_memory
 from mpnode_cli.models.base import model_dtype
 from mpnode_cli.models.ensemble import EnsembleRollout
 from mpnode_cli.paths import file_sha256
@@ -51,15 +54,6 @@ from mpnode_cli.progress import Progress
 from mpnode_cli.solver.options import SolverOptions
 
 F = TypeVar("F", bound=Callable[..., Any])
-
-# What a rollout holds per predicted number (a state, message or control component of one
-# node at one sample: the batch's float32 outputs and their gather, the float64 copies
-# collected and joined, the cast for storage), and per trajectory and sample whatever the
-# node count (the interpolant's weights and output indices of the steps that write it).
-# Peaks of `mpnode simulate` measured with Tsit5 on 3 and 30 nodes fit ≈ 31 and ≈ 220
-# bytes; rounded up, so that the estimate errs on the large side.
-_BYTES_PER_VALUE = 48
-_BYTES_PER_SAMPLE = 256
 
 
 class PredictionFailed(RuntimeError):
@@ -277,7 +271,8 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
         solver_status=pred.status, solver_n_f_evals=pred.n_f_evals,
         extrapolation=node_flags,
         extra_attrs={"prediction": json.dumps(record, sort_keys=True),
-                     "fingerprint": fingerprint(states, graphs, graph_index, time)},
+                     "fingerprint": fingerprint(states, graphs, graph_index, time,
+                                                controls=controls)},
     )
     return write_dataset(path, dataset, overwrite=overwrite)
 
@@ -361,9 +356,10 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
     graphs, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
                                      directed=config.directed)
     size = simulate_estimate(ckpt, k, config.num_steps + 1, n, config.dtype,
-                             batch_size=config.batch_size)
-    check_memory(size, "this simulation", "lower --t-end or the number of initial states, "
-                 "or raise --dt")
+                             batch_size=config.batch_size, solver=rollout_solver(ckpt),
+                             dt=config.dt)
+    check_job(size, "this simulation", "lower --t-end or the number of initial states, "
+              "or raise --dt", solver=rollout_solver(ckpt))
     if confirm is not None:
         confirm(size, f"{k} trajectories × {config.num_steps + 1} samples × {n} nodes")
     ts = np.arange(config.num_steps + 1) * config.dt  # [T]
@@ -371,8 +367,11 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
     if config.controls is not None:
         controls = load_controls(config.controls, (k, len(ts), n))
     start = clock.perf_counter()
-    pred = roll_out(ckpt, x0, ts, graphs, graph_index, controls,
-                    batch_size=config.batch_size, device=config.device, progress=progress)
+    with naming_memory(f"rolling out {k} trajectories in batches of {config.batch_size}",
+                       size.memory_bytes, "lower --batch-size, --t-end or the number of "
+                       "initial states"):
+        pred = roll_out(ckpt, x0, ts, graphs, graph_index, controls,
+                        batch_size=config.batch_size, device=config.device, progress=progress)
     seconds = clock.perf_counter() - start
     check_finished(pred)
     beyond = extrapolation(ckpt, graphs, graph_index, _in_blocks(pred.states), predicted=True)
@@ -391,30 +390,6 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
                            seconds=seconds,
                            extrapolation=None if beyond is None else beyond.to_dict(),
                            members=ckpt.members if ckpt.members > 1 else None)
-
-
-def simulate_estimate(ckpt, k: int, t: int, n: int, dtype: str = "float32", *,
-                      batch_size: int = 128) -> Estimate:
-    """What rolling a checkpoint's model out for `k` trajectories of `t` samples on `n`
-    nodes will take (approximate, on the large side), before anything is allocated.
-
-    The states, the messages of a model that has them and the controls of one that takes
-    them are held for every trajectory at once (`roll_out` returns them all), so memory
-    grows with K·T·N; the graphs, read already, are not counted. An ensemble of S members
-    also holds its members' spread for every trajectory, and its other S − 1 members'
-    states and messages for one batch (`batch_size` trajectories) while it is rolled out.
-    """
-    config = ckpt.model_config
-    d, m, u = (int(config.get(key) or 0) for key in ("node_dim", "message_dim", "control_dim"))
-    s = ckpt.members
-    spread = d if s > 1 else 0  # an ensemble's hidden/ensemble_std
-    values = k * t * n * (d + m + u + spread)
-    batch = (s - 1) * min(k, batch_size) * t  # the other members' samples of one batch
-    store = 4 if dtype == "float32" else 8
-    return Estimate(file_bytes=values * store,
-                    memory_bytes=(values + batch * n * (d + m)) * _BYTES_PER_VALUE
-                    + (k * t + batch) * _BYTES_PER_SAMPLE,
-                    values=k * t * n * d)
 
 
 def simulate_output(config) -> Path:

@@ -25,7 +25,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
+from mpnode_cli.config import TrainConfig
+from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.jsonable import jsonable
 from mpnode_cli.terminal import suggested

@@ -31,7 +31,8 @@ from typing import Any
 
 import torch
 
-from mpnode_cli.config import TrainConfig, pin_stored_solver, upgrade_train_fields
+from mpnode_cli.config import TrainConfig
+from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_train_fields
 from mpnode_cli.textfiles import read_text
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint, save_checkpoint

@@ -31,11 +31,13 @@ import torch
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.pooled import (
+    check_ground_truth,
     dataset_names,
     fewer_than_asked,
     load_datasets,
     train_and_validation,
 )
+from mpnode_cli.data.size import check_steps, solver_steps
 from mpnode_cli.data.stream import StreamedTrajectories
 from mpnode_cli.devices import torch_device
 from mpnode_cli.models.registry import OPTIONS, build_model, model_class
@@ -208,12 +210,17 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
     if not resume and world.main:  # the run folder's place must be writable before any work
         check_output_folder(config.run_dir or runs.default_root())
     datas = load_datasets(config.datasets, config.stream)
+    if not config.allow_predictions:
+        check_ground_truth(datas)
     paths = [Path(p).resolve() for p in config.datasets]
     config = config.model_copy(update={"dataset": paths[0] if len(paths) == 1 else paths} | (
         {"init_checkpoint": Path(config.init_checkpoint).resolve()}
         if config.init_checkpoint is not None else {}))
     if not resume:
         config = resolve_config(config, datas[0])
+    longest = max(d.time.numel() for d in datas)  # fixed steps a rollout of them all takes
+    check_steps(solver_steps(config.solver, float(datas[0].time[1] - datas[0].time[0]),
+                             longest)[0], config.solver)
     device = torch_device(config.device)
     train_sets, val_sets = train_and_validation(datas, config.trajectories)
     if note := fewer_than_asked(datas, train_sets, config.trajectories):

@@ -35,7 +35,10 @@ def check_checkpoint(path: str | Path) -> Report:
         report.problems.append(str(exc))
         return report
     report.path = ckpt.path or report.path
-    report.summary.update({"format": f"{FORMAT} v{FORMAT_VERSION}", "model": ckpt.model_kind,
+    shown = f"{FORMAT} v{FORMAT_VERSION}"
+    if ckpt.format_version != FORMAT_VERSION:  # read as stored, then upgraded
+        shown += f" (upgraded from v{ckpt.format_version} on reading)"
+    report.summary.update({"format": shown, "model": ckpt.model_kind,
                            "epoch": ckpt.epoch, "trained_on": _trained_on(ckpt.dataset)})
     report.problems += checkpoint_problems(ckpt)
     if report.ok:

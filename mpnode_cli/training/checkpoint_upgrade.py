@@ -1,0 +1,76 @@
+"""Reading older checkpoints: each format version's upgrade to the next, applied in order
+on reading (`upgrade_payload`), and the check of the stored version (`version_problem`).
+
+What each version changed is told in `mpnode_cli.training.checkpoint`'s docstring. A file
+is read as the version it says it is: one that says 1 goes through every upgrade from 1
+(each leaves what it does not find as it is), and `mpnode check` says so ("upgraded from
+v1"); a version that is not a whole number from 1 to this mpnode's is refused.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
+
+
+def version_problem(version: Any, newest: int) -> str | None:
+    """What is wrong with a stored `format_version` (None: a version this mpnode reads,
+    a whole number from 1 to `newest`); the line follows the file's path."""
+    if type(version) is not int:  # bool, str ('6') and float are no version numbers
+        return (f"has format_version {version!r}, not a whole number from 1 to {newest}: "
+                "not a checkpoint mpnode wrote")
+    if version > newest:
+        return (f"is checkpoint format v{version}, newer than this mpnode reads "
+                f"(v{newest}); upgrade mpnode")
+    if version < 1:
+        return f"has format_version {version}, below the first (1): not a checkpoint mpnode wrote"
+    return None
+
+
+def upgrade_payload(payload: dict[str, Any], version: int) -> None:
+    """Upgrade a checkpoint's dict, stored as format `version`, to the newest, in place."""
+    if version < 2:
+        _upgrade_v1(payload)
+    if version < 3:
+        _upgrade_v2(payload)
+    if version < 4 and isinstance(payload.get("train_config"), dict):
+        payload["train_config"] = upgrade_solver_fields(payload["train_config"])
+    if version < 5 and isinstance(payload.get("train_config"), dict):
+        payload["train_config"] = pin_stored_solver(payload["train_config"])
+    if version < 7:
+        _upgrade_v6(payload)
+
+
+def _upgrade_v1(payload: dict[str, Any]) -> None:
+    """Version 1 → 2 in place: the renamed MP-NODE option and the new PNA buffer."""
+    kind, config = payload.get("model_kind"), payload.get("model_config")
+    if isinstance(config, dict) and kind == "mpnode" and "aggregation" in config:
+        config["backend"] = config.pop("aggregation")
+    state = payload.get("state_dict")
+    if kind in ("mpnode", "gnode") and isinstance(state, dict):
+        state.setdefault("degree_delta", torch.zeros((), dtype=torch.float64))
+
+
+def _upgrade_v2(payload: dict[str, Any]) -> None:
+    """Version 2 → 3 in place: model options out of the train config, and L2S's
+    `step_noise` (then a train config field) into its model config."""
+    train_config, config = payload.get("train_config"), payload.get("model_config")
+    if not isinstance(train_config, dict):
+        return
+    if payload.get("model_kind") == "l2s" and isinstance(config, dict) and (
+            "step_noise" in train_config):
+        config.setdefault("step_noise", train_config["step_noise"])
+    payload["train_config"] = upgrade_train_fields(train_config)
+
+
+def _upgrade_v6(payload: dict[str, Any]) -> None:
+    """Version 6 → 7 in place: datasets of then had no periodic states."""
+    facts = payload.get("dataset")
+    if isinstance(facts, dict):
+        facts.setdefault("periodic_states", [])
+        for each in facts.get("datasets") or []:
+            if isinstance(each, dict):
+                each.setdefault("periodic_states", [])
