@@ -120,3 +120,12 @@ def test_force_over_an_immutable_file_is_refused_before_the_work(tmp_path, monke
         assert os.listdir(tmp_path) == ["g.h5"]
     finally:
         subprocess.run(["chattr", "-i", str(out)], check=True)
+
+
+def test_an_empty_run_dir_is_refused_from_the_command_line_and_a_config(tmp_path):
+    from mpnode_cli.config import TrainConfig
+
+    assert "--run-dir is empty" in one_line_error(
+        invoke("train", tmp_path / "none.h5", "--run-dir", ""))
+    with pytest.raises(ValueError, match="is empty"):
+        TrainConfig(dataset=tmp_path / "none.h5", run_dir="")

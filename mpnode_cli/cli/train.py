@@ -33,6 +33,7 @@ from mpnode_cli.cli.common import (
     console,
     error_message,
     fail,
+    output_parser,
     solver_option,
     speaks,
     warn,
@@ -274,7 +275,8 @@ def _parameter(name: str, value_type: type, decls: tuple[str, ...], help_text: s
     """A keyword parameter whose typer option is left out as None."""
     if value_type not in (bool, int, float, str, Path):
         raise TypeError(f"option '{name}' has a type the CLI cannot take: {value_type}")
-    option = typer.Option(None, *decls, help=help_text, rich_help_panel=panel)
+    parser = output_parser(decls[0], folder=True) if name == "run_dir" else None
+    option = typer.Option(None, *decls, help=help_text, rich_help_panel=panel, parser=parser)
     return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
                              annotation=value_type | None)
 

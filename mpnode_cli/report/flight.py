@@ -16,6 +16,8 @@ matplotlib.use("Agg")  # before pyplot: servers and CI have no display
 import matplotlib.pyplot as plt
 import numpy as np
 
+from mpnode_cli.report.plots import save_whole
+
 # The doorway of the RA-L set-up (TrajectoryOptimization.jl `examples/RA-L/problem.jl`;
 # docs/quadrotor.md), as `systems/quadrotor_flight.py` checks it; repeated because reports
 # sit below systems and do not import them.
@@ -82,11 +84,7 @@ def plot_flight(states, load, path: str | Path, *, reference=None, time=None, sn
     ax.legend(loc="upper left", fontsize=8)
     if title:
         ax.set_title(title, fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_whole(fig, path, dpi=100, bbox_inches="tight")
 
 
 def _doorway(ax) -> None:

@@ -6,6 +6,7 @@ draw them; these functions only draw and save.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -185,9 +186,21 @@ def _np(x) -> np.ndarray:
 
 
 def _save(fig, path: str | Path, dpi: int = DPI) -> Path:
+    fig.tight_layout()
+    return save_whole(fig, path, dpi=dpi)
+
+
+def save_whole(fig, path: str | Path, **savefig: object) -> Path:
+    """Save `fig` as `path` whole or not at all: to a temporary beside it, renamed over
+    `path` once written (a figure cut off by a signal or a full disk leaves the old file,
+    or none, and no temporary); then close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
+    try:
+        fig.savefig(tmp, **savefig)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+        plt.close(fig)
     return path
