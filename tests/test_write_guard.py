@@ -129,3 +129,14 @@ def test_an_empty_run_dir_is_refused_from_the_command_line_and_a_config(tmp_path
         invoke("train", tmp_path / "none.h5", "--run-dir", ""))
     with pytest.raises(ValueError, match="is empty"):
         TrainConfig(dataset=tmp_path / "none.h5", run_dir="")
+
+
+def test_a_folder_of_the_users_where_a_report_goes_is_refused(tmp_path):
+    mine = tmp_path / "out" / "message-pca" / "tiny-mpnode"
+    mine.mkdir(parents=True)
+    (mine / "notes.txt").write_text("keep me")
+    message = one_line_error(invoke("experiment", "run", "message-pca", "--scale", "tiny",
+                                    "--out", tmp_path / "out", "--work", tmp_path / "wk"))
+    assert "holds no results.json" in message
+    assert (mine / "notes.txt").read_text() == "keep me"
+    assert not (tmp_path / "wk").exists()

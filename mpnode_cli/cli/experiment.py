@@ -139,7 +139,7 @@ def run_command(
         # Both folders are written: --work by every step, --out after the last.
         check_output_folder(work)
         check_output_folder(out / experiment.name)
-        _check_reports(out, experiment.name)
+        _check_reports(out, experiment.name, [f"{scale}-{_RECIPES[recipe]}"])
     except (FileExistsError, ValueError) as exc:
         fail(error_message(exc))
     command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
@@ -148,18 +148,24 @@ def run_command(
     _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs, seeds)
 
 
-def _check_reports(out: Path, name: str) -> None:
-    """The files `write_report` rewrites (`<out>/README.md`, `<out>/<name>/report.md`) may
-    be there only as mpnode wrote them: a user's own README.md is never replaced.
+def _check_reports(out: Path, name: str, runs: list[str]) -> None:
+    """The files `write_report` rewrites (`<out>/README.md`, `<out>/<name>/report.md`) and
+    the folders it replaces (`<out>/<name>/<scale>-<recipe>/`, `runs`) may be there only as
+    mpnode wrote them: a user's own README.md or folder is never replaced.
 
     Raises:
         FileExistsError, ValueError: one line (`mpnode_cli.paths.check_output_file`).
     """
-    from mpnode_cli.experiments.saved import INDEX, INDEX_TITLE, REPORT
+    from mpnode_cli.experiments.saved import INDEX, INDEX_TITLE, REPORT, RESULTS
     from mpnode_cli.paths import check_output_file
 
     check_output_file(out / INDEX, overwrite=False, mine=INDEX_TITLE.encode())
     check_output_file(out / name / REPORT, overwrite=False, mine=f"# {name}: ".encode())
+    for run in runs:
+        folder = out / name / run
+        if folder.exists() and not (folder / RESULTS).is_file():
+            raise FileExistsError(f"{folder} exists and holds no {RESULTS} of an mpnode "
+                                  "report: move it away or choose another --out")
 
 
 def _given_paths(out: Path, work: Path) -> list[str]:
