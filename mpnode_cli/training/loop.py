@@ -58,7 +58,7 @@ import time
 from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -100,6 +100,16 @@ class TrainingInterrupted(Exception):
 
 class TrainingDiverged(RuntimeError):
     """Bad steps kept coming after the lr was halved down to `min_lr`."""
+
+
+class StepResult(NamedTuple):
+    """One member's optimizer step: the global batch's loss, the gradient norm, this
+    rank's RHS evaluations, and why the step was skipped (None: it was taken)."""
+
+    loss: float
+    grad_norm: float
+    n_f_evals: int
+    skip: str | None
 
 
 def train(config: TrainConfig, *, resume: bool = False,
@@ -220,11 +230,11 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
                 results = _step_members(run.model, run.members, run.optimizer, inputs,
                                         times[i], graphs, loss_fn, config, world, active, share)
             raise_if_interrupted()  # a signal a library swallowed inside the step
-            evals_per_batch.append(max(r[2] for r in results))
-            for k, (loss, grad_norm, _, reason) in zip(active, results, strict=True):
-                tallies[k].add(loss, grad_norm, size, reason, f"batch {b}")
-                _after_step(run, schedules, saver, epoch, b, k, reason)
-            losses = [r[0] for r in results if r[3] is None]
+            evals_per_batch.append(max(r.n_f_evals for r in results))
+            for k, r in zip(active, results, strict=True):
+                tallies[k].add(r.loss, r.grad_norm, size, r.skip, f"batch {b}")
+                _after_step(run, schedules, saver, epoch, b, k, r.skip)
+            losses = [r.loss for r in results if r.skip is None]
             if losses:
                 run.emit({"event": "batch", "epoch": epoch, "batch": b,
                           "batches": len(plans[0]), "loss": sum(losses) / len(losses)})
@@ -338,11 +348,11 @@ def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
 
 
 def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig,
-          world: distributed.World, share: float = 1.0):
+          world: distributed.World, share: float = 1.0) -> StepResult:
     """One update of a single model from this rank's `x: [B_r, H, N, D]`, the fraction
     `share` = B_r / B of the global batch (all of it in one process).
 
-    Returns (the global batch's loss, grad norm, this rank's RHS evals, skip reason).
+    Returns its `StepResult`.
     """
     (result,) = _step_members(model, [model], optimizer, [(x, u)], ts, [adjacency], loss_fn,
                               config, world, [0], share)
@@ -352,15 +362,14 @@ def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig,
 def _step_members(model, members: list, optimizer, inputs: list, ts: torch.Tensor,
                   graphs: list, loss_fn, config: TrainConfig, world: distributed.World,
                   active: list[int], share: float = 1.0
-                  ) -> list[tuple[float, float, int, str | None]]:
+                  ) -> list[StepResult]:
     """One update of each active member (of `members`; `model` is the single model or
     their `Ensemble`) from its own `(x: [B_r, H, N, D], u)` in `inputs` and its graphs, the
     fraction `share` = B_r / B of the global batch. A member's bad batch (failed solves,
     non-finite loss or gradient) leaves its weights and moments as they are; the others
     update.
 
-    Returns, per active member: (the global batch's loss, grad norm, this rank's RHS
-    evals, skip reason).
+    Returns each active member's `StepResult`.
     """
     optimizer.zero_grad(set_to_none=True)
     batches = (_losses(model, inputs, ts, graphs, loss_fn, active, config.solver)
@@ -390,14 +399,14 @@ def _step_members(model, members: list, optimizer, inputs: list, ts: torch.Tenso
     for j, k in enumerate(active):
         evals = batches[j].n_f_evals if batches else 0
         if reasons[j] is not None:
-            out.append((math.nan, math.nan, evals, reasons[j]))
+            out.append(StepResult(math.nan, math.nan, evals, reasons[j]))
             continue
         norm = float(torch.nn.utils.clip_grad_norm_(members[k].parameters(), config.clip))
         if not math.isfinite(norm):
             members[k].zero_grad(set_to_none=True)
-            out.append((math.nan, norm, evals, "non-finite gradient"))
+            out.append(StepResult(math.nan, norm, evals, "non-finite gradient"))
             continue
-        out.append((float(verdict[j, -1]), norm, evals, None))
+        out.append(StepResult(float(verdict[j, -1]), norm, evals, None))
     optimizer.step()
     return out
 
