@@ -69,6 +69,25 @@ def test_stacked_layers_are_each_members_own_layer():
                               atol=1e-10)
 
 
+@pytest.mark.parametrize("kind", ["mpnode", "l2s"])
+def test_an_ensemble_implements_the_model_interface_itself(kind):
+    models = members(kind, {}, s=2)
+    ensemble = Ensemble(models)
+    assert "__getattr__" not in vars(Ensemble)  # nothing forwarded to a member
+    for name in ("kind", "transferable", "statistics_need_states", "options", "node_dim",
+                 "control_dim", "num_nodes", "initial_states"):
+        assert name in vars(Ensemble), name
+        assert getattr(ensemble, name) == getattr(models[0], name), name
+    assert ensemble.config == models[0].config | {"members": 2}
+    for name in ("fit_statistics", "check_states", "rollout", "rollout_from_data",
+                 "training_losses"):
+        assert callable(vars(Ensemble).get(name)), name
+    with pytest.raises(AttributeError):
+        ensemble.training_loss  # noqa: B018 (one model's, not the ensemble's)
+    with pytest.raises(ValueError, match="features per node"):
+        ensemble.check_states(torch.zeros(1, 5, 3))
+
+
 @pytest.mark.parametrize("kind, options, edges", [
     ("mpnode", {}, False), ("mpnode", {"backend": "scatter"}, True),
     ("mpnode", {"update": "mlp", "aggregate": "pna"}, False), ("gnode", {"graph": "sys"}, False),

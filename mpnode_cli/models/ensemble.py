@@ -32,6 +32,7 @@ from torch.func import functional_call
 
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout
+from mpnode_cli.models.options import ModelOptions
 from mpnode_cli.models.stacked import StackedLayers
 from mpnode_cli.solver.options import SolverOptions
 
@@ -115,7 +116,7 @@ class Ensemble(nn.Module):
             raise ValueError("an ensemble's members must share one kind and config")
         self.members = nn.ModuleList(members)
 
-    # The member's contract, read through.
+    # The `NeuralModel` interface, each name explicit: the members share kind and config.
     @property
     def size(self) -> int:
         """S, the number of members."""
@@ -126,17 +127,40 @@ class Ensemble(nn.Module):
         return self.members[0].kind
 
     @property
+    def transferable(self) -> bool:
+        return self.members[0].transferable
+
+    @property
+    def statistics_need_states(self) -> bool:
+        return self.members[0].statistics_need_states
+
+    @property
+    def options(self) -> ModelOptions:
+        return self.members[0].options
+
+    @property
+    def node_dim(self) -> int:
+        return self.members[0].node_dim
+
+    @property
+    def control_dim(self) -> int:
+        return self.members[0].control_dim
+
+    @property
+    def num_nodes(self) -> int | None:
+        return self.members[0].num_nodes
+
+    @property
+    def initial_states(self) -> int:
+        return self.members[0].initial_states
+
+    @property
     def config(self) -> dict[str, Any]:
         """A member's config, with `members`: S (what `build_model` reads back)."""
         return self.members[0].config | {"members": self.size}
 
-    def __getattr__(self, name: str):
-        try:
-            return super().__getattr__(name)
-        except AttributeError:
-            if name.startswith("_") or name == "members":
-                raise
-            return getattr(self._modules["members"][0], name)
+    def check_states(self, x0: torch.Tensor) -> None:
+        self.members[0].check_states(x0)
 
     @property
     def stackable(self) -> bool:

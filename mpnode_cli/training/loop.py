@@ -151,7 +151,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
     config, state = run.config, run.state
     # 2.–3. The lr policy (each member's, for an ensemble), and the checkpointer with its
     # first snapshot: the starting point.
-    schedules = ([LRSchedule(config, run.optimizer, state)] if not run.ensemble else
+    schedules = ([LRSchedule(config, run.optimizer, state.members[0])] if not run.ensemble else
                  [LRSchedule(config, run.optimizer, m, group=k)
                   for k, m in enumerate(state.members)])
     saver = Checkpointer(run)
@@ -330,7 +330,7 @@ def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
         return
     if lr is None:
         raise TrainingDiverged(
-            f"{run.state.bad_run} bad steps in a row at lr {schedule.lr:.3g} ({reason}); "
+            f"{schedule.state.bad_run} bad steps in a row at lr {schedule.lr:.3g} ({reason}); "
             "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
     if member is None:
         run.model.load_state_dict(snapshot.state_dict)

@@ -82,8 +82,7 @@ class LoopState:
     """The loop's counters, saved in every checkpoint so that a resume continues exactly.
 
     `epoch`, `skipped`, `restores` and `seconds` are the run's; the rest is each member's
-    (`members`, one for a single model). A single model's counters read and write through
-    this object's attributes of the same names (`state.best_val` is `members[0].best_val`).
+    (`members`, one for a single model).
     """
 
     epoch: int = 0
@@ -91,17 +90,6 @@ class LoopState:
     restores: int = 0
     seconds: float = 0.0
     members: list[MemberState] = field(default_factory=lambda: [MemberState()])
-
-    def __getattr__(self, name: str):
-        if name in MemberState.__dataclass_fields__:
-            return self.members[0].__dict__[name]
-        raise AttributeError(name)
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in MemberState.__dataclass_fields__:
-            setattr(self.members[0], name, value)
-        else:
-            object.__setattr__(self, name, value)
 
     def to_dict(self) -> dict[str, Any]:
         """The checkpoint's `loop`: flat for one model, with `members` for several."""
