@@ -15,7 +15,7 @@ from mpnode_cli.data.generate import generate
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.ensemble import Ensemble
 from mpnode_cli.models.registry import build_model
-from mpnode_cli.models.stacked import LayerNorm, Linear, StackedLayers
+from mpnode_cli.models.stacked import LayerNorm, Linear, StackedMembers
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import checkpoint_problems, load_checkpoint
 from mpnode_cli.training.evaluate import EvalResult
@@ -52,12 +52,12 @@ def test_stacked_layers_are_each_members_own_layer():
     linear, norm = Linear(5, 4).double(), LayerNorm(5).double()
     y = functional_call(linear, {"weight": w, "bias": b}, (x,))
     z = functional_call(norm, {"weight": g, "bias": h}, (x,))
-    # Inside `keep`, the layers take the kept members' weights only (members 0 and 2).
-    with StackedLayers(3).made_current() as stacked:
-        kept = torch.cat([x[:7], x[14:]])
-        y2 = stacked.keep(torch.tensor([0, 2]),
-                          lambda v: functional_call(linear, {"weight": w, "bias": b}, (v,)))(kept)
+    # Re-bound to the kept members' weights (members 0 and 2), the layer runs their rows.
+    stacked = StackedMembers({"weight": w, "bias": b})
+    kept = torch.cat([x[:7], x[14:]])
+    y2 = stacked.kept(linear, torch.tensor([0, 2]), linear)(kept)
     assert torch.allclose(y2, torch.cat([y[:7], y[14:]]), atol=1e-12)
+    assert linear.weight.shape == (4, 5)  # the layer's own weight is back
     # An ordinary weight is torch's own layer.
     assert torch.equal(linear(x), F.linear(x, linear.weight, linear.bias))
     for k in range(3):

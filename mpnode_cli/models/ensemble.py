@@ -12,8 +12,10 @@ How a member's weights reach its rows without a second copy of every model: the 
 parameters are stacked (`[S, ...]`, differentiable, so gradients flow back to each member's
 own tensors) and swapped into one member for the call (`torch.func.functional_call`); the
 models' layers (`mpnode_cli.models.stacked`) see a stacked weight and apply each member's
-to its rows. Everything else a model does (concatenation, activations, the aggregation over
-each sample's graph) acts row by row already.
+to its rows. The rollout is given the stacked members explicitly (`StackedMembers`), so
+that a solve that compacts can re-bind the weights of the members still running.
+Everything else a model does (concatenation, activations, the aggregation over each
+sample's graph) acts row by row already.
 
 Models that are not neural ODEs (L2S, whose training is one-step and whose rollout is
 autoregressive with its own noise) run their members one after another, each exactly as it
@@ -33,7 +35,7 @@ from torch.func import functional_call
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout
 from mpnode_cli.models.options import ModelOptions
-from mpnode_cli.models.stacked import StackedLayers
+from mpnode_cli.models.stacked import StackedMembers
 from mpnode_cli.solver.options import SolverOptions
 
 Graph = torch.Tensor | EdgeBatch
@@ -173,11 +175,11 @@ class Ensemble(nn.Module):
         for member in self.members:
             member.fit_statistics(states, dt, adjacency)
 
-    def _stacked(self, active: Sequence[int]) -> dict[str, torch.Tensor]:
+    def _stacked(self, active: Sequence[int]) -> StackedMembers:
         """The active members' parameters, each stacked `[S', ...]` (differentiable)."""
         params = [dict(self.members[k].named_parameters()) for k in active]
-        return {"model." + name: torch.stack([p[name] for p in params])
-                for name in params[0]}
+        return StackedMembers({name: torch.stack([p[name] for p in params])
+                               for name in params[0]})
 
     def member_rollouts(self, x0: torch.Tensor, ts: torch.Tensor, graphs: Sequence[Graph],
                         controls: torch.Tensor | None, active: Sequence[int], *,
@@ -207,9 +209,10 @@ class Ensemble(nn.Module):
         flat = x0.flatten(0, 1)  # (S'·B, N, D)
         u = None if controls is None else controls.flatten(0, 1)  # (S'·B, T, N, U)
         template = _Call(self.members[active[0]], "rollout")
-        with StackedLayers(s).made_current():
-            out = functional_call(template, self._stacked(active),
-                                  (flat, ts, stack_graphs(graphs), u), options)
+        stacked = self._stacked(active)
+        out = functional_call(template, {"model." + n: w for n, w in stacked.weights.items()},
+                              (flat, ts, stack_graphs(graphs), u),
+                              options | {"members": stacked})
         return [Rollout(states=states, status=status,
                         messages=None if out.messages is None else messages,
                         n_f_evals=out.n_f_evals)
