@@ -88,6 +88,23 @@ def test_an_ensemble_implements_the_model_interface_itself(kind):
         ensemble.check_states(torch.zeros(1, 5, 3))
 
 
+def test_a_single_model_is_an_ensemble_of_one():
+    (model,) = members("mpnode", {}, s=1, control_dim=0)
+    model.fit_statistics(None, 0.1, torch.ones(1, 5, 5))
+    assert model.members == (model,)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(1, 3, 6, 5, 2, generator=g, dtype=torch.float64)  # member axis S = 1
+    ts = torch.linspace(0, 1, 6, dtype=torch.float64)
+    adjacency = torch.ones(3, 5, 5, dtype=torch.float64)
+
+    def loss(p, t):
+        return (p - t).square().mean()
+
+    (batch,) = model.training_losses(x, ts, [adjacency], None, loss, [0])
+    alone = model.rollout(x[0, :, 0], ts, adjacency)  # the whole-horizon rollout from x(t₀)
+    assert torch.equal(batch.loss, loss(alone.states, x[0]))
+
+
 @pytest.mark.parametrize("kind, options, edges", [
     ("mpnode", {}, False), ("mpnode", {"backend": "scatter"}, True),
     ("mpnode", {"update": "mlp", "aggregate": "pna"}, False), ("gnode", {"graph": "sys"}, False),
@@ -223,13 +240,13 @@ def test_a_members_bad_batch_leaves_it_alone_and_the_others_step():
     before = [p.detach().clone() for p in models[1].parameters()]
     cfg = TrainConfig(dataset="x.h5")
     world = loop.distributed.world()
-    out = loop._step_members(ensemble, models, optimizer, [(x[0], None), (x[1], None)], ts,
-                             [adjacency, adjacency], loss, cfg, world, [0, 1])
+    out = loop._step(ensemble, optimizer, [(x[0], None), (x[1], None)], ts,
+                     [adjacency, adjacency], loss, cfg, world, [0, 1])
     assert out[0].skip is None and out[1].skip == "non-finite loss"
     assert all(torch.equal(p, q) for p, q in zip(models[1].parameters(), before, strict=True))
     assert not any(p in optimizer.state for p in models[1].parameters())
-    solo = loop._step(alone, optimizer_alone, x[0], ts, adjacency, None,
-                      lambda p, t: (p - t).square().mean(), cfg, world)
+    (solo,) = loop._step(alone, optimizer_alone, [(x[0], None)], ts, [adjacency],
+                         lambda p, t: (p - t).square().mean(), cfg, world)
     assert solo.loss == pytest.approx(out[0].loss, rel=1e-12)
     for p, q in zip(models[0].parameters(), alone.parameters(), strict=True):
         assert torch.allclose(p, q, atol=1e-12)
