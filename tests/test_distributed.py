@@ -124,9 +124,10 @@ def one_step(gene, rank: int | None, out: Path, batch: int, fail: str | None = N
         MPNODE.rollout = failing
     x = normalizer.norm_x(mine.states).double()  # (B_r, T, N, D)
     before = [p.detach().clone() for p in model.parameters()]
-    loss, norm, _, reason = loop._step(model, optimizer, x, train_set.time,
-                                       mine.adjacency.double(), None, loss_fn, config,
-                                       world, share=len(mine) / batch)
+    (result,) = loop._step(model, optimizer, [(x, None)], train_set.time,
+                           [mine.adjacency.double()], loss_fn, config, world,
+                           share=len(mine) / batch)
+    loss, norm, reason = result.loss, result.grad_norm, result.skip
     if rank in (None, 0):
         torch.save({"loss": loss, "norm": norm, "reason": reason, "before": before,
                     "params": [p.detach().clone() for p in model.parameters()]}, out)

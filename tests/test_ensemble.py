@@ -15,7 +15,7 @@ from mpnode_cli.data.generate import generate
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.ensemble import Ensemble
 from mpnode_cli.models.registry import build_model
-from mpnode_cli.models.stacked import LayerNorm, Linear, StackedLayers
+from mpnode_cli.models.stacked import LayerNorm, Linear, StackedMembers
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import checkpoint_problems, load_checkpoint
 from mpnode_cli.training.evaluate import EvalResult
@@ -52,12 +52,12 @@ def test_stacked_layers_are_each_members_own_layer():
     linear, norm = Linear(5, 4).double(), LayerNorm(5).double()
     y = functional_call(linear, {"weight": w, "bias": b}, (x,))
     z = functional_call(norm, {"weight": g, "bias": h}, (x,))
-    # Inside `keep`, the layers take the kept members' weights only (members 0 and 2).
-    with StackedLayers(3).made_current() as stacked:
-        kept = torch.cat([x[:7], x[14:]])
-        y2 = stacked.keep(torch.tensor([0, 2]),
-                          lambda v: functional_call(linear, {"weight": w, "bias": b}, (v,)))(kept)
+    # Re-bound to the kept members' weights (members 0 and 2), the layer runs their rows.
+    stacked = StackedMembers({"weight": w, "bias": b})
+    kept = torch.cat([x[:7], x[14:]])
+    y2 = stacked.kept(linear, torch.tensor([0, 2]), linear)(kept)
     assert torch.allclose(y2, torch.cat([y[:7], y[14:]]), atol=1e-12)
+    assert linear.weight.shape == (4, 5)  # the layer's own weight is back
     # An ordinary weight is torch's own layer.
     assert torch.equal(linear(x), F.linear(x, linear.weight, linear.bias))
     for k in range(3):
@@ -67,6 +67,42 @@ def test_stacked_layers_are_each_members_own_layer():
         var = x[rows].var(-1, keepdim=True, correction=0)
         assert torch.allclose(z[rows], (x[rows] - mean) / torch.sqrt(var + 1e-5) * g[k] + h[k],
                               atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["mpnode", "l2s"])
+def test_an_ensemble_implements_the_model_interface_itself(kind):
+    models = members(kind, {}, s=2)
+    ensemble = Ensemble(models)
+    assert "__getattr__" not in vars(Ensemble)  # nothing forwarded to a member
+    for name in ("kind", "transferable", "statistics_need_states", "options", "node_dim",
+                 "control_dim", "num_nodes", "initial_states"):
+        assert name in vars(Ensemble), name
+        assert getattr(ensemble, name) == getattr(models[0], name), name
+    assert ensemble.config == models[0].config | {"members": 2}
+    for name in ("fit_statistics", "check_states", "rollout", "rollout_from_data",
+                 "training_losses"):
+        assert callable(vars(Ensemble).get(name)), name
+    with pytest.raises(AttributeError):
+        ensemble.training_loss  # noqa: B018 (one model's, not the ensemble's)
+    with pytest.raises(ValueError, match="features per node"):
+        ensemble.check_states(torch.zeros(1, 5, 3))
+
+
+def test_a_single_model_is_an_ensemble_of_one():
+    (model,) = members("mpnode", {}, s=1, control_dim=0)
+    model.fit_statistics(None, 0.1, torch.ones(1, 5, 5))
+    assert model.members == (model,)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(1, 3, 6, 5, 2, generator=g, dtype=torch.float64)  # member axis S = 1
+    ts = torch.linspace(0, 1, 6, dtype=torch.float64)
+    adjacency = torch.ones(3, 5, 5, dtype=torch.float64)
+
+    def loss(p, t):
+        return (p - t).square().mean()
+
+    (batch,) = model.training_losses(x, ts, [adjacency], None, loss, [0])
+    alone = model.rollout(x[0, :, 0], ts, adjacency)  # the whole-horizon rollout from x(t₀)
+    assert torch.equal(batch.loss, loss(alone.states, x[0]))
 
 
 @pytest.mark.parametrize("kind, options, edges", [
@@ -204,14 +240,14 @@ def test_a_members_bad_batch_leaves_it_alone_and_the_others_step():
     before = [p.detach().clone() for p in models[1].parameters()]
     cfg = TrainConfig(dataset="x.h5")
     world = loop.distributed.world()
-    out = loop._step_members(ensemble, models, optimizer, [(x[0], None), (x[1], None)], ts,
-                             [adjacency, adjacency], loss, cfg, world, [0, 1])
-    assert out[0][3] is None and out[1][3] == "non-finite loss"
+    out = loop._step(ensemble, optimizer, [(x[0], None), (x[1], None)], ts,
+                     [adjacency, adjacency], loss, cfg, world, [0, 1])
+    assert out[0].skip is None and out[1].skip == "non-finite loss"
     assert all(torch.equal(p, q) for p, q in zip(models[1].parameters(), before, strict=True))
     assert not any(p in optimizer.state for p in models[1].parameters())
-    solo = loop._step(alone, optimizer_alone, x[0], ts, adjacency, None,
-                      lambda p, t: (p - t).square().mean(), cfg, world)
-    assert solo[0] == pytest.approx(out[0][0], rel=1e-12)
+    (solo,) = loop._step(alone, optimizer_alone, [(x[0], None)], ts, [adjacency],
+                         lambda p, t: (p - t).square().mean(), cfg, world)
+    assert solo.loss == pytest.approx(out[0].loss, rel=1e-12)
     for p, q in zip(models[0].parameters(), alone.parameters(), strict=True):
         assert torch.allclose(p, q, atol=1e-12)
 

@@ -217,17 +217,16 @@ def test_an_ensemble_with_the_path_steps_as_its_members_alone(options):
     before = {k: p.detach().clone() for k, p in models[1].named_parameters()}
     optimizer = Adam([{"params": list(m.parameters())} for m in models], lr=1e-2)
     for _ in range(2):  # the second step sees the moments of the first
-        out = loop._step_members(Ensemble(models), models, optimizer,
-                                 [(x[0], us[0]), (x[1], us[1])], ts, [adjacency] * 2, loss,
-                                 cfg, world, [0, 1])
-        assert all(r[3] is None for r in out)
+        out = loop._step(Ensemble(models), optimizer, [(x[0], us[0]), (x[1], us[1])], ts,
+                         [adjacency] * 2, loss, cfg, world, [0, 1])
+        assert all(r.skip is None for r in out)
     for k, solo in enumerate(alone):
         optimizer_alone = Adam(solo.parameters(), lr=1e-2)
         for step in range(2):
-            result = loop._step(solo, optimizer_alone, x[k], ts, adjacency, us[k], loss, cfg,
-                                world)
+            (result,) = loop._step(solo, optimizer_alone, [(x[k], us[k])], ts, [adjacency],
+                                   loss, cfg, world)
             if step == 1:
-                assert result[0] == pytest.approx(out[k][0], rel=1e-12)
+                assert result.loss == pytest.approx(out[k].loss, rel=1e-12)
         for (name, p), q in zip(models[k].named_parameters(), solo.parameters(), strict=True):
             assert torch.allclose(p, q, rtol=0, atol=1e-12), name
     moved = [k for k, p in models[1].named_parameters() if k.endswith("linear_weight")

@@ -103,9 +103,9 @@ def test_even_batches_leave_no_tiny_tail(gene, tmp_path, monkeypatch):
     sizes = []
     real = loop._step
 
-    def spy(model, optimizer, x, *args):
-        sizes.append(x.shape[0])
-        return real(model, optimizer, x, *args)
+    def spy(model, optimizer, inputs, *args):
+        sizes.append(inputs[0][0].shape[0])  # (x: [B, H, N, D], u) of the one model
+        return real(model, optimizer, inputs, *args)
 
     monkeypatch.setattr(loop, "_step", spy)
     k = int((TrajectoryData.load(gene).split == 0).sum())

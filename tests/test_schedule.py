@@ -9,13 +9,13 @@ import torch
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.schedule import LRSchedule
-from mpnode_cli.training.setup import LoopState
+from mpnode_cli.training.setup import MemberState
 
 
 def schedule(**fields) -> LRSchedule:
     config = TrainConfig(dataset="d.h5", **fields)
     optimizer = Adam([torch.nn.Parameter(torch.zeros(2))], lr=config.lr)
-    return LRSchedule(config, optimizer, LoopState())
+    return LRSchedule(config, optimizer, MemberState())
 
 
 def test_plateau_halves_after_patience_and_stops_at_min_lr():

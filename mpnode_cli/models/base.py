@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import abc
 import itertools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
@@ -189,6 +189,28 @@ class NeuralModel(nn.Module, metaclass=abc.ABCMeta):
         c = self.initial_states
         extra = {"history": x[:, :c]} if c > 1 else {}
         return self.rollout(x[:, 0], ts, adjacency, controls, **options, **extra)
+
+    @property
+    def members(self) -> tuple[NeuralModel, ...]:
+        """The models trained: a single model is an ensemble of one, itself (an ensemble's
+        are its S members, `mpnode_cli.models.ensemble`)."""
+        return (self,)
+
+    def training_losses(self, xs: torch.Tensor, ts: torch.Tensor, graphs: Sequence,
+                        controls: torch.Tensor | None,
+                        loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                        active: Sequence[int] = (0,), solver: SolverOptions | None = None
+                        ) -> list[BatchLoss]:
+        """Each member's training loss on its own batch, the member axis first, as an
+        ensemble's: here S = 1, so `xs: [1, B, H, N, D]`, one graph, `active` is `[0]`.
+
+        Args:
+            xs: `[1, B, H, N, D]`; ts: `[H]`; graphs: one batch's graphs, in a sequence;
+                controls: `[1, B, H, N, U]` or None; loss_fn, solver: as `training_loss`.
+        """
+        return [self.training_loss(x, ts, graph, None if controls is None else controls[i],
+                                   loss_fn, solver=solver)
+                for i, (x, graph) in enumerate(zip(xs, graphs, strict=True))]
 
     def training_loss(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
                       controls: torch.Tensor | None,

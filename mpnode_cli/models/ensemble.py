@@ -12,8 +12,10 @@ How a member's weights reach its rows without a second copy of every model: the 
 parameters are stacked (`[S, ...]`, differentiable, so gradients flow back to each member's
 own tensors) and swapped into one member for the call (`torch.func.functional_call`); the
 models' layers (`mpnode_cli.models.stacked`) see a stacked weight and apply each member's
-to its rows. Everything else a model does (concatenation, activations, the aggregation over
-each sample's graph) acts row by row already.
+to its rows. The rollout is given the stacked members explicitly (`StackedMembers`), so
+that a solve that compacts can re-bind the weights of the members still running.
+Everything else a model does (concatenation, activations, the aggregation over each
+sample's graph) acts row by row already.
 
 Models that are not neural ODEs (L2S, whose training is one-step and whose rollout is
 autoregressive with its own noise) run their members one after another, each exactly as it
@@ -32,7 +34,8 @@ from torch.func import functional_call
 
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout
-from mpnode_cli.models.stacked import StackedLayers
+from mpnode_cli.models.options import ModelOptions
+from mpnode_cli.models.stacked import StackedMembers
 from mpnode_cli.solver.options import SolverOptions
 
 Graph = torch.Tensor | EdgeBatch
@@ -115,7 +118,7 @@ class Ensemble(nn.Module):
             raise ValueError("an ensemble's members must share one kind and config")
         self.members = nn.ModuleList(members)
 
-    # The member's contract, read through.
+    # The `NeuralModel` interface, each name explicit: the members share kind and config.
     @property
     def size(self) -> int:
         """S, the number of members."""
@@ -126,17 +129,40 @@ class Ensemble(nn.Module):
         return self.members[0].kind
 
     @property
+    def transferable(self) -> bool:
+        return self.members[0].transferable
+
+    @property
+    def statistics_need_states(self) -> bool:
+        return self.members[0].statistics_need_states
+
+    @property
+    def options(self) -> ModelOptions:
+        return self.members[0].options
+
+    @property
+    def node_dim(self) -> int:
+        return self.members[0].node_dim
+
+    @property
+    def control_dim(self) -> int:
+        return self.members[0].control_dim
+
+    @property
+    def num_nodes(self) -> int | None:
+        return self.members[0].num_nodes
+
+    @property
+    def initial_states(self) -> int:
+        return self.members[0].initial_states
+
+    @property
     def config(self) -> dict[str, Any]:
         """A member's config, with `members`: S (what `build_model` reads back)."""
         return self.members[0].config | {"members": self.size}
 
-    def __getattr__(self, name: str):
-        try:
-            return super().__getattr__(name)
-        except AttributeError:
-            if name.startswith("_") or name == "members":
-                raise
-            return getattr(self._modules["members"][0], name)
+    def check_states(self, x0: torch.Tensor) -> None:
+        self.members[0].check_states(x0)
 
     @property
     def stackable(self) -> bool:
@@ -149,11 +175,11 @@ class Ensemble(nn.Module):
         for member in self.members:
             member.fit_statistics(states, dt, adjacency)
 
-    def _stacked(self, active: Sequence[int]) -> dict[str, torch.Tensor]:
+    def _stacked(self, active: Sequence[int]) -> StackedMembers:
         """The active members' parameters, each stacked `[S', ...]` (differentiable)."""
         params = [dict(self.members[k].named_parameters()) for k in active]
-        return {"model." + name: torch.stack([p[name] for p in params])
-                for name in params[0]}
+        return StackedMembers({name: torch.stack([p[name] for p in params])
+                               for name in params[0]})
 
     def member_rollouts(self, x0: torch.Tensor, ts: torch.Tensor, graphs: Sequence[Graph],
                         controls: torch.Tensor | None, active: Sequence[int], *,
@@ -183,9 +209,10 @@ class Ensemble(nn.Module):
         flat = x0.flatten(0, 1)  # (S'·B, N, D)
         u = None if controls is None else controls.flatten(0, 1)  # (S'·B, T, N, U)
         template = _Call(self.members[active[0]], "rollout")
-        with StackedLayers(s).made_current():
-            out = functional_call(template, self._stacked(active),
-                                  (flat, ts, stack_graphs(graphs), u), options)
+        stacked = self._stacked(active)
+        out = functional_call(template, {"model." + n: w for n, w in stacked.weights.items()},
+                              (flat, ts, stack_graphs(graphs), u),
+                              options | {"members": stacked})
         return [Rollout(states=states, status=status,
                         messages=None if out.messages is None else messages,
                         n_f_evals=out.n_f_evals)

@@ -12,8 +12,9 @@ in `NeuralODEModel.rollout`:
   training config's `SolverOptions`) from z(t₀) = `initial_state(x0, u0)` (x0, and for
   MP-NODE its initial messages), with dense output at the sample times (float64 `ts`);
   the solve may go on with the trajectories still running only (`SolverOptions.compact`):
-  the vector field is rebuilt for them on their graphs and controls (`restrict`), or, for
-  an ensemble's stacked members, for the members that still run (`StackedLayers.keep`);
+  the vector field is rebuilt for them on their graphs and controls (`restrict`), and, for
+  an ensemble's stacked members (`members`), with the weights of the members that still
+  run (`StackedMembers.kept`);
 - the solution `[B, T, N, D+M]` splits into the states (its first D features per node) and
   the message states (the last M, returned when asked for and M > 0).
 """
@@ -28,7 +29,7 @@ import torch
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.backend import Graph, as_graph
 from mpnode_cli.models.base import NeuralModel, Rollout
-from mpnode_cli.models.stacked import StackedLayers
+from mpnode_cli.models.stacked import StackedMembers
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.solver.runge_kutta import RHS
@@ -66,7 +67,8 @@ class NeuralODEModel(NeuralModel):
 
     def rollout(self, x0: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
                 controls: torch.Tensor | None = None, *, solver: SolverOptions | None = None,
-                return_messages: bool = False) -> Rollout:
+                return_messages: bool = False, members: StackedMembers | None = None
+                ) -> Rollout:
         """Integrate from x(t₀) over the whole horizon.
 
         Args:
@@ -78,6 +80,9 @@ class NeuralODEModel(NeuralModel):
             solver: how to integrate (None: `solve`'s defaults; training passes its
                 config's, `TrainConfig.solver`).
             return_messages: also return the message states (None for a model without).
+            members: the stacked members this call runs with (an ensemble's rollout under
+                `functional_call`, `mpnode_cli.models.ensemble`): the batch is their rows,
+                member after member; None: one model's weights.
 
         Raises:
             ValueError: states of another size than the model's (`check_states`), or
@@ -92,7 +97,7 @@ class NeuralODEModel(NeuralModel):
         options = solver.solve_kwargs() if solver is not None else {}
         graph = as_graph(adjacency, x0)
         restrict, block = self._restriction(graph, controls if u is not None else None, ts,
-                                            z0.shape[0], StackedLayers.current())
+                                            z0.shape[0], members)
         sol = solve(self.vector_field(graph, u), z0, ts, **options, tstops=tstops,
                     restrict=restrict, restrict_block=block)
         d = self.node_dim
@@ -101,39 +106,39 @@ class NeuralODEModel(NeuralModel):
                        n_f_evals=int(sol.stats["n_f_evals"].max()))
 
     def _restriction(self, graph: Graph, controls: torch.Tensor | None, ts: torch.Tensor,
-                     batch: int, stacked: StackedLayers | None
+                     batch: int, members: StackedMembers | None
                      ) -> tuple[Callable[[torch.Tensor], RHS] | None, int]:
         """`solve`'s `restrict` and `restrict_block` for compaction: the vector field of
         some of the batch's trajectories, on their graphs and controls.
 
-        Under an ensemble's `StackedLayers` the batch is its members' rows one member after
-        another, which the stacked layers line up with the members' weights; so trajectories
-        are kept by whole members (blocks of `batch / S`) and the field runs with the kept
-        members' weights (`StackedLayers.keep`).
+        With stacked `members` the batch is their rows one member after another, which the
+        stacked layers line up with the members' weights; so trajectories are kept by whole
+        members (blocks of `batch / S`) and the field runs with the kept members' weights
+        (`StackedMembers.kept`).
 
         Args:
             graph: `[B, N, N]` (or `[1, N, N]`) or an `EdgeBatch`, as `vector_field` takes it.
             controls: `[B, T, N, U]`, or None for a model without controls.
             ts: `[T]` float64; batch: B.
-            stacked: the ensemble rollout in progress (`StackedLayers.current()`), or None.
+            members: the stacked members the rollout runs with, or None (one model).
 
         Returns:
             `(restrict, block)`; restrict None (no compaction) in an ensemble rollout whose
             batch is not whole members.
         """
         block = 1
-        if stacked is not None:
-            if batch % stacked.size:
+        if members is not None:
+            if batch % members.size:
                 return None, 1
-            block = batch // stacked.size
+            block = batch // members.size
 
         def restrict(index: torch.Tensor) -> RHS:
             u = None if controls is None else zoh_controls(controls[index], ts)
             f = self.vector_field(select_graphs(graph, index), u)
-            if stacked is None:
+            if members is None:
                 return f
-            members = index.view(-1, block)[:, 0] // block  # whole members, in order
-            return stacked.keep(members, f)  # the layers take those members' weights
+            kept = index.view(-1, block)[:, 0] // block  # whole members, in order
+            return members.kept(self, kept, f)  # the field runs with those members' weights
 
         return restrict, block
 

@@ -1,78 +1,76 @@
-"""Layers that also take an ensemble's stacked weights, and the context that says which.
+"""Layers that also take an ensemble's stacked weights, and the members a rollout runs.
 
 An ensemble (`mpnode_cli.models.ensemble`) rolls its S members out in one solve: their
 parameters are stacked (`[S, ...]`) and swapped into one member for the call
-(`torch.func.functional_call`). The models' `Linear` and `LayerNorm` are these: with an
-ordinary weight they are torch's; with a stacked one (`weight.dim()` one more than
-torch's) the input's leading rows are member-major (member k's rows k·R … (k+1)·R − 1 of
-S·R), so `x.reshape(S, R, in)` lines each member's rows up with its weight, and the layer
-applies each member's weights to its rows as one batched matmul (`linear` does the same
-for a weight that is a model's own parameter, as an MLP's linear path). Everything else a
-model does acts row by row already.
+(`torch.func.functional_call`, as in PyTorch's `torch.func.stack_module_state` recipe,
+https://pytorch.org/docs/stable/func.api.html). The models' `Linear` and `LayerNorm` are
+these: with an ordinary weight they are torch's; with a stacked one (`weight.dim()` one
+more than torch's) the input's leading rows are member-major (member k's rows k·R …
+(k+1)·R − 1 of S·R), so `x.reshape(S, R, in)` lines each member's rows up with its
+weight, and the layer applies each member's weights to its rows as one batched matmul
+(`linear` does the same for a weight that is a model's own parameter, as an MLP's linear
+path). The layers read nothing but their weights: S is the weights' leading size.
+Everything else a model does acts row by row already.
 
-A solve that goes on with some members' rows only (compaction, `NeuralODEModel.rollout`)
-calls its right-hand side under `StackedLayers.keep`, and the layers then take those
-members' weights.
+The rollout is told its members explicitly (`StackedMembers`). A solve that goes on with
+some members' rows only (compaction, `NeuralODEModel.rollout`) re-binds the kept members'
+weights (`StackedMembers.kept`): each stacked parameter `index_select`ed along its member
+axis and swapped in with `functional_call` for the call, so nothing is shared or mutated.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from contextlib import contextmanager
-from typing import ClassVar
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.func import functional_call
 
 
-class StackedLayers:
-    """The ensemble rollout in progress: how many members are stacked, and which of them
-    still run.
+class _Apply(nn.Module):
+    """`forward(fn, *args)` is `fn(*args)`: runs a function of `model`'s under
+    `functional_call`, whose parameter names are `model.`-prefixed."""
 
-    Args:
-        size: S, the members stacked (the weights' leading axis).
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.model = model
+
+    def forward(self, fn: Callable, *args):
+        return fn(*args)
+
+
+@dataclass(frozen=True)
+class StackedMembers:
+    """The S members a stacked rollout runs: their parameters, each stacked `[S, ...]`.
+
+    The rollout's rows are member-major (member k's are rows k·R … (k+1)·R − 1 of S·R).
+
+    Attributes:
+        weights: by one member's parameter name, the members' values stacked along a new
+            leading axis (differentiable, so gradients reach each member's own tensors).
     """
 
-    _current: ClassVar[list[StackedLayers]] = []
+    weights: Mapping[str, torch.Tensor]
 
-    def __init__(self, size: int):
-        self.size = size
-        self.members: torch.Tensor | None = None  # `[K]` the members whose rows run
+    @property
+    def size(self) -> int:
+        """S, the members stacked."""
+        return next(iter(self.weights.values())).shape[0]
 
-    @staticmethod
-    def current() -> StackedLayers | None:
-        """The ensemble rollout in progress (`made_current`), or None."""
-        return StackedLayers._current[-1] if StackedLayers._current else None
+    def kept(self, model: nn.Module, members: torch.Tensor, f: Callable) -> Callable:
+        """`f` (a function of `model`'s, e.g. its vector field), called with the weights of
+        `members` (`[K]` int64, sorted) only: its input's rows are those members' rows,
+        member after member."""
+        call = _Apply(model)
 
-    @contextmanager
-    def made_current(self):
-        """Within the block, `current()` is this one."""
-        StackedLayers._current.append(self)
-        try:
-            yield self
-        finally:
-            StackedLayers._current.pop()
-
-    def keep(self, members: torch.Tensor, f: Callable) -> Callable:
-        """`f`, called with the weights of `members` (`[K]` int64, sorted) only: its input's
-        rows are those members' rows, member after member."""
         def kept(*args):
-            outer, self.members = self.members, members
-            try:
-                return f(*args)
-            finally:
-                self.members = outer
+            weights = {"model." + name: w.index_select(0, members)
+                       for name, w in self.weights.items()}
+            return functional_call(call, weights, (f, *args))
 
         return kept
-
-
-def _kept(param: torch.Tensor | None) -> torch.Tensor | None:
-    """A stacked parameter's running members (differentiable), all of them outside `keep`."""
-    context = StackedLayers.current()
-    if param is None or context is None or context.members is None:
-        return param
-    return param.index_select(0, context.members)
 
 
 def stacked_linear(x: torch.Tensor, weight: torch.Tensor,
@@ -100,7 +98,7 @@ def stacked_layer_norm(x: torch.Tensor, shape, weight: torch.Tensor,
 def linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
     """`F.linear`, which also takes stacked `[S, out, in]` weights (module docstring)."""
     if weight.dim() == 3:
-        return stacked_linear(x, _kept(weight), _kept(bias))
+        return stacked_linear(x, weight, bias)
     return F.linear(x, weight, bias)
 
 
@@ -116,6 +114,6 @@ class LayerNorm(nn.LayerNorm):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.weight is not None and self.weight.dim() == 2:
-            return stacked_layer_norm(x, self.normalized_shape, _kept(self.weight),
-                                      _kept(self.bias), self.eps)
+            return stacked_layer_norm(x, self.normalized_shape, self.weight, self.bias,
+                                      self.eps)
         return super().forward(x)

@@ -49,16 +49,16 @@ and `warning` (text: something the user asked for that the run does otherwise, e
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
 import os
 import shutil
 import time
+from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -76,7 +76,7 @@ from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.recipe import resolve_config
 from mpnode_cli.training.run_folder import RunFolder
 from mpnode_cli.training.schedule import LRSchedule
-from mpnode_cli.training.setup import Progress, Run, load_data, set_up
+from mpnode_cli.training.setup import Progress, Run, load_data, member_state, set_up
 
 # What other modules use; `resolve_config` lives in the recipe module and is named here
 # too, beside `resolve_compile`, as the two steps that settle a config for its data.
@@ -100,6 +100,16 @@ class TrainingInterrupted(Exception):
 
 class TrainingDiverged(RuntimeError):
     """Bad steps kept coming after the lr was halved down to `min_lr`."""
+
+
+class StepResult(NamedTuple):
+    """One member's optimizer step: the global batch's loss, the gradient norm, this
+    rank's RHS evaluations, and why the step was skipped (None: it was taken)."""
+
+    loss: float
+    grad_norm: float
+    n_f_evals: int
+    skip: str | None
 
 
 def train(config: TrainConfig, *, resume: bool = False,
@@ -139,11 +149,10 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
     config = resolve_compile(data.config, sum(len(t) for t in data.train_sets))
     run = set_up(config, data, resume, folder, finished_ok)
     config, state = run.config, run.state
-    # 2.–3. The lr policy (each member's, for an ensemble), and the checkpointer with its
-    # first snapshot: the starting point.
-    schedules = ([LRSchedule(config, run.optimizer, state)] if not run.ensemble else
-                 [LRSchedule(config, run.optimizer, m, group=k)
-                  for k, m in enumerate(state.members)])
+    # 2.–3. Each member's lr policy (a single model is an ensemble of one), and the
+    # checkpointer with its first snapshot: the starting point.
+    schedules = [LRSchedule(config, run.optimizer, m, group=k)
+                 for k, m in enumerate(state.members)]
     saver = Checkpointer(run)
     if not run.resumed:
         for schedule in schedules:
@@ -189,7 +198,8 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
     """One pass over the shuffled train split (of each dataset: every batch is one
     dataset's, `mpnode_cli.data.pooled.epoch_batches`); an ensemble's members each take
     their own order, batch b of every member in one step. Returns the epoch's step
-    statistics (`horizon`: the longest dataset's; an ensemble's each member's too)."""
+    statistics, the members' mean (`horizon`: the longest dataset's), and each member's
+    under `by_member`."""
     start = time.perf_counter()
     config, world = run.config, run.world
     angles = run_angles(config.wrap_angles, run.facts, run.normalizer.x_std)
@@ -212,36 +222,27 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
             inputs = [_inputs(run, batch, size, horizons[i], run.shuffles[k])
                       for k, batch in zip(active, batches, strict=True)]
             graphs, share = [x.graph(run.device) for x in batches], len(batches[0]) / size
-            if not run.ensemble:  # one model
-                (x, u), = inputs
-                results = [_step(run.model, run.optimizer, x, times[i], graphs[0], u, loss_fn,
-                                 config, world, share)]
-            else:
-                results = _step_members(run.model, run.members, run.optimizer, inputs,
-                                        times[i], graphs, loss_fn, config, world, active, share)
+            results = _step(run.model, run.optimizer, inputs, times[i], graphs, loss_fn,
+                            config, world, active, share)
             raise_if_interrupted()  # a signal a library swallowed inside the step
-            evals_per_batch.append(max(r[2] for r in results))
-            for k, (loss, grad_norm, _, reason) in zip(active, results, strict=True):
-                tallies[k].add(loss, grad_norm, size, reason, f"batch {b}")
-                _after_step(run, schedules, saver, epoch, b, k, reason)
-            losses = [r[0] for r in results if r[3] is None]
+            evals_per_batch.append(max(r.n_f_evals for r in results))
+            for k, r in zip(active, results, strict=True):
+                tallies[k].add(r.loss, r.grad_norm, size, r.skip, f"batch {b}")
+                _after_step(run, schedules, saver, epoch, b, k, r.skip)
+            losses = [r.loss for r in results if r.skip is None]
             if losses:
                 run.emit({"event": "batch", "epoch": epoch, "batch": b,
                           "batches": len(plans[0]), "loss": sum(losses) / len(losses)})
     # A batch's RHS evaluations are its slowest trajectory's, wherever that was solved.
     n_f_evals = int(world.max(torch.tensor(evals_per_batch, dtype=torch.long)).sum())
     rows = {k: t.row() for k, t in tallies.items()}
-    first = rows[active[0]]
-    out = {**first, "horizon": max(horizons), "rhs_evals": n_f_evals,
-           "train_seconds": time.perf_counter() - start}
-    if run.ensemble:
-        out |= {"train_loss": _mean([r["train_loss"] for r in rows.values()]),
-                "grad_norm": _mean([r["grad_norm"] for r in rows.values()]),
-                "skipped": sum(r["skipped"] for r in rows.values()),
-                "skip_reasons": [f"member {k}, {reason}" for k, r in rows.items()
-                                 for reason in r["skip_reasons"]],
-                "by_member": rows}
-    return out
+    return {"train_loss": _mean([r["train_loss"] for r in rows.values()]),
+            "grad_norm": _mean([r["grad_norm"] for r in rows.values()]),
+            "skipped": sum(r["skipped"] for r in rows.values()),
+            "skip_reasons": [_of_member(run, k, reason, ", ") for k, r in rows.items()
+                             for reason in r["skip_reasons"]],
+            "horizon": max(horizons), "rhs_evals": n_f_evals,
+            "train_seconds": time.perf_counter() - start, "by_member": rows}
 
 
 class _Tally:
@@ -274,11 +275,16 @@ def _after_step(run: Run, schedules: list[LRSchedule], saver: Checkpointer, epoc
         member.bad_run = 0
         return
     state.skipped, member.bad_run = state.skipped + 1, member.bad_run + 1
-    several = run.ensemble
     run.emit({"event": "skip", "epoch": epoch, "batch": b,
-              "reason": f"member {k}: {reason}" if several else reason})
+              "reason": _of_member(run, k, reason)})
     if member.bad_run >= run.config.max_bad_steps:
-        _roll_back(run, schedules[k], saver.snapshot, epoch, reason, k if several else None)
+        _roll_back(run, schedules[k], saver.snapshot, epoch, reason, k)
+
+
+def _of_member(run: Run, k: int, text: str, sep: str = ": ") -> str:
+    """`text` about member k, as the run's messages say it: after the member's number in
+    an ensemble's; as it is for one model (whose messages never named a member)."""
+    return f"member {k}{sep}{text}" if len(run.state.members) > 1 else text
 
 
 def _mean(values: list[float]) -> float:
@@ -304,64 +310,42 @@ def _inputs(run: Run, batch, size: int, horizon: int, generator: torch.Generator
 
 
 def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
-               reason: str, member: int | None = None) -> None:
-    """After `max_bad_steps` bad batches in a row: back to the last completed epoch's
-    weights and moments (`snapshot`), on at half the lr; an ensemble's `member` alone.
+               reason: str, k: int) -> None:
+    """After `max_bad_steps` bad batches in a row: member k (the model, for one) back to the
+    last completed epoch's weights and moments (`snapshot`), on at half the lr.
 
     Raises:
         TrainingDiverged: half the lr is below `min_lr` (an ensemble's member then stops
             at its best weights instead, and the others go on).
     """
-    lr = schedule.retry_lr()
-    if lr is None and member is not None:
-        run.state.members[member].stopped = epoch
-        run.emit({"event": "warning", "text": f"member {member} kept failing down to lr "
+    lr, several = schedule.retry_lr(), len(run.state.members) > 1
+    if lr is None and several:
+        run.state.members[k].stopped = epoch
+        run.emit({"event": "warning", "text": f"member {k} kept failing down to lr "
                   f"{schedule.lr:.3g} ({reason}); it stops at its best epoch"})
         return
     if lr is None:
         raise TrainingDiverged(
-            f"{run.state.bad_run} bad steps in a row at lr {schedule.lr:.3g} ({reason}); "
+            f"{schedule.state.bad_run} bad steps in a row at lr {schedule.lr:.3g} ({reason}); "
             "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
-    if member is None:
-        run.model.load_state_dict(snapshot.state_dict)
-        run.optimizer.load_state_dict(copy.deepcopy(snapshot.optimizer))
-    else:
-        prefix = f"members.{member}."
-        run.members[member].load_state_dict({name[len(prefix):]: value for name, value in
-                                             snapshot.state_dict.items()
-                                             if name.startswith(prefix)})
-        run.optimizer.load_group_state(snapshot.optimizer, member)
+    run.members[k].load_state_dict(member_state(snapshot.state_dict, k, len(run.members)))
+    run.optimizer.load_group_state(snapshot.optimizer, k)
     schedule.restart(lr)
     schedule.state.bad_run, run.state.restores = 0, run.state.restores + 1
-    run.emit({"event": "restore", "epoch": epoch, "lr": lr}
-             | ({"member": member} if member is not None else {}))
+    run.emit({"event": "restore", "epoch": epoch, "lr": lr} | ({"member": k} if several else {}))
 
 
-def _step(model, optimizer, x, ts, adjacency, u, loss_fn, config: TrainConfig,
-          world: distributed.World, share: float = 1.0):
-    """One update of a single model from this rank's `x: [B_r, H, N, D]`, the fraction
-    `share` = B_r / B of the global batch (all of it in one process).
+def _step(model, optimizer, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
+          config: TrainConfig, world: distributed.World, active: Sequence[int] = (0,),
+          share: float = 1.0) -> list[StepResult]:
+    """One update of each active member of `model` (one model: its one member, itself)
+    from its own `(x: [B_r, H, N, D], u)` in `inputs` and its graphs, the fraction
+    `share` = B_r / B of the global batch. A member's bad batch (failed solves, non-finite
+    loss or gradient) leaves its weights and moments as they are; the others update.
 
-    Returns (the global batch's loss, grad norm, this rank's RHS evals, skip reason).
+    Returns each active member's `StepResult`.
     """
-    (result,) = _step_members(model, [model], optimizer, [(x, u)], ts, [adjacency], loss_fn,
-                              config, world, [0], share)
-    return result
-
-
-def _step_members(model, members: list, optimizer, inputs: list, ts: torch.Tensor,
-                  graphs: list, loss_fn, config: TrainConfig, world: distributed.World,
-                  active: list[int], share: float = 1.0
-                  ) -> list[tuple[float, float, int, str | None]]:
-    """One update of each active member (of `members`; `model` is the single model or
-    their `Ensemble`) from its own `(x: [B_r, H, N, D], u)` in `inputs` and its graphs, the
-    fraction `share` = B_r / B of the global batch. A member's bad batch (failed solves,
-    non-finite loss or gradient) leaves its weights and moments as they are; the others
-    update.
-
-    Returns, per active member: (the global batch's loss, grad norm, this rank's RHS
-    evals, skip reason).
-    """
+    members = model.members
     optimizer.zero_grad(set_to_none=True)
     batches = (_losses(model, inputs, ts, graphs, loss_fn, active, config.solver)
                if len(inputs[0][0]) else None)
@@ -390,24 +374,21 @@ def _step_members(model, members: list, optimizer, inputs: list, ts: torch.Tenso
     for j, k in enumerate(active):
         evals = batches[j].n_f_evals if batches else 0
         if reasons[j] is not None:
-            out.append((math.nan, math.nan, evals, reasons[j]))
+            out.append(StepResult(math.nan, math.nan, evals, reasons[j]))
             continue
         norm = float(torch.nn.utils.clip_grad_norm_(members[k].parameters(), config.clip))
         if not math.isfinite(norm):
             members[k].zero_grad(set_to_none=True)
-            out.append((math.nan, norm, evals, "non-finite gradient"))
+            out.append(StepResult(math.nan, norm, evals, "non-finite gradient"))
             continue
-        out.append((float(verdict[j, -1]), norm, evals, None))
+        out.append(StepResult(float(verdict[j, -1]), norm, evals, None))
     optimizer.step()
     return out
 
 
-def _losses(model, inputs: list, ts: torch.Tensor, graphs: list, loss_fn, active: list[int],
-            solver) -> list:
+def _losses(model, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
+            active: Sequence[int], solver) -> list:
     """Each active member's `BatchLoss` on its own batch (an ensemble's in one solve)."""
-    if len(inputs) == 1 and not hasattr(model, "training_losses"):
-        (x, u), = inputs
-        return [model.training_loss(x, ts, graphs[0], u, loss_fn, solver=solver)]
     xs = torch.stack([x for x, _ in inputs])  # (S', B_r, H, N, D)
     us = None if inputs[0][1] is None else torch.stack([u for _, u in inputs])
     return model.training_losses(xs, ts, graphs, us, loss_fn, active, solver=solver)

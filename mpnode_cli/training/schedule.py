@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from mpnode_cli.config import TrainConfig
     from mpnode_cli.training.optim import Adam
-    from mpnode_cli.training.setup import LoopState, MemberState
+    from mpnode_cli.training.setup import MemberState
 
 
 class LRSchedule:
@@ -33,12 +33,12 @@ class LRSchedule:
         config: the run's config (`schedule`, `lr`, `min_lr`, `patience`, `epochs`).
         optimizer: its `param_groups[...]["lr"]` is the rate; the optimizer state that a
             checkpoint saves holds it.
-        state: the model's counters (a `LoopState`, or an ensemble member's `MemberState`);
+        state: the counters of the model (or ensemble member) it sets the rate of;
             this policy reads and updates `since_best` and `lr_scale`.
         group: the parameter group this policy sets (an ensemble member's); None: all.
     """
 
-    def __init__(self, config: TrainConfig, optimizer: Adam, state: LoopState | MemberState,
+    def __init__(self, config: TrainConfig, optimizer: Adam, state: MemberState,
                  group: int | None = None):
         self.config, self.optimizer, self.state, self.group = config, optimizer, state, group
 

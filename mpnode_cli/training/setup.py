@@ -84,8 +84,7 @@ class LoopState:
     """The loop's counters, saved in every checkpoint so that a resume continues exactly.
 
     `epoch`, `skipped`, `restores` and `seconds` are the run's; the rest is each member's
-    (`members`, one for a single model). A single model's counters read and write through
-    this object's attributes of the same names (`state.best_val` is `members[0].best_val`).
+    (`members`, one for a single model).
     """
 
     epoch: int = 0
@@ -93,17 +92,6 @@ class LoopState:
     restores: int = 0
     seconds: float = 0.0
     members: list[MemberState] = field(default_factory=lambda: [MemberState()])
-
-    def __getattr__(self, name: str):
-        if name in MemberState.__dataclass_fields__:
-            return self.members[0].__dict__[name]
-        raise AttributeError(name)
-
-    def __setattr__(self, name: str, value) -> None:
-        if name in MemberState.__dataclass_fields__:
-            setattr(self.members[0], name, value)
-        else:
-            object.__setattr__(self, name, value)
 
     def to_dict(self) -> dict[str, Any]:
         """The checkpoint's `loop`: flat for one model, with `members` for several."""
@@ -175,8 +163,8 @@ class Run:
 
     @property
     def members(self) -> list[torch.nn.Module]:
-        """The models trained: an ensemble's members, or the one model."""
-        return list(self.model.members) if self.ensemble else [self.model]
+        """The models trained: an ensemble's members, or the one model (its one member)."""
+        return list(self.model.members)
 
     def active(self) -> list[int]:
         """The members still training (not frozen by early stopping)."""
@@ -266,8 +254,7 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
         _fit_statistics(model, train_sets, normalizer)
     model.to(device=data.device, dtype=getattr(torch, config.dtype))
     world.broadcast_module(model)
-    optimizer = Adam(model.parameters() if seeds == 1 else
-                     [{"params": list(m.parameters())} for m in model.members], lr=config.lr)
+    optimizer = Adam([{"params": list(m.parameters())} for m in model.members], lr=config.lr)
     # Batch order and noise, each member's from its own seed.
     shuffles = [torch.Generator().manual_seed(config.seed + k) for k in range(seeds)]
     state = (LoopState(members=[MemberState() for _ in range(seeds)]) if last is None
@@ -404,6 +391,17 @@ def member_weights(source: Checkpoint, seeds: int) -> dict[str, torch.Tensor]:
         return source.state_dict
     return {f"members.{k}.{name}": value.clone() for k in range(seeds)
             for name, value in source.state_dict.items()}
+
+
+def member_state(state_dict: dict[str, torch.Tensor], k: int, members: int
+                 ) -> dict[str, torch.Tensor]:
+    """Member k's weights in the `state_dict` of a model of `members` members: those under
+    `members.k.` of an ensemble's (the prefix taken off); all of a single model's."""
+    if members == 1:
+        return state_dict
+    prefix = f"members.{k}."
+    return {name.removeprefix(prefix): value for name, value in state_dict.items()
+            if name.startswith(prefix)}
 
 
 def _build_members(kind: str, model_config: dict[str, Any], seed: int, seeds: int):
