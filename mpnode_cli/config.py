@@ -452,13 +452,6 @@ class TrainConfig(BaseModel):
     def _fill_solver(cls, value: Any) -> Any:
         return over_defaults(train_solver, value)
 
-    @field_validator("run_dir", mode="before")
-    @classmethod
-    def _not_empty(cls, value: Any) -> Any:
-        if isinstance(value, str) and not value.strip():  # Path("") would be "."
-            raise ValueError("is empty: name a folder, or leave it out for runs/<name>")
-        return value
-
     @field_validator("dataset")
     @classmethod
     def _one_or_several(cls, value: Path | list[Path]) -> Path | list[Path]:

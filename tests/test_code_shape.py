@@ -31,7 +31,7 @@ FILE_RATCHET: dict[str, int] = {
     "mpnode_cli/data/hdf5.py": 547,
     "mpnode_cli/training/checkpoint.py": 506,
     "mpnode_cli/training/evaluate.py": 561,
-    "mpnode_cli/training/loop.py": 612,
+    "mpnode_cli/training/loop.py": 593,
 }
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).
 FUNCTION_RATCHET: dict[str, int] = {
