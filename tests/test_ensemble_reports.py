@@ -42,7 +42,7 @@ def invoke(*args):
 
 @pytest.fixture(scope="module")
 def ens(tmp_path_factory):
-    """A 3-member MP-NODE ensemble trained 20 epochs on gene dynamics on a 2×2 grid (ER),
+    """A 3-member MP-NODE ensemble trained 8 epochs on gene dynamics on a 2×2 grid (ER),
     and a zero-shot set on a 4×4 Barabási–Albert graph (in-degrees up to 8 against 3)."""
     root = tmp_path_factory.mktemp("ensemble")
     own, big = root / "own.h5", root / "big.h5"
@@ -50,7 +50,7 @@ def ens(tmp_path_factory):
                             dt=0.1, out=own))
     generate(GenerateConfig(system="gene", grid=4, topology="ba", trajectories=16, t_end=2.0,
                             dt=0.1, out=big))
-    train(TrainConfig(dataset=own, run_dir=root / "run", batch_size=16, lr=1e-2, epochs=20,
+    train(TrainConfig(dataset=own, run_dir=root / "run", batch_size=16, lr=1e-2, epochs=8,
                       plots=False, seeds=S, dtype="float64"))
     return SimpleNamespace(root=root, own=own, big=big,
                            path=checkpoint_path(root / "run", "best"))

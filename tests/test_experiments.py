@@ -505,12 +505,19 @@ def _timeless(value):
     return value
 
 
-def test_a_worker_process_runs_steps_as_the_run_does(tmp_path):
+@pytest.fixture(scope="module")
+def pendulum_alone(tmp_path_factory):
+    """messages-pendulum at the tiny scale, run in one process (the reference of the
+    `--jobs` tests)."""
+    return run_experiment(spec.load("messages-pendulum"), scale="tiny", recipe="mpnode",
+                          work=tmp_path_factory.mktemp("alone") / "one")
+
+
+def test_a_worker_process_runs_steps_as_the_run_does(tmp_path, pendulum_alone):
     """What `--jobs` adds: a spawned worker takes steps as they become ready. Here the
     worker runs a whole experiment alone; its results equal a run in one process, the run
     that started it (the same token) counts its steps as run, any other run as done earlier."""
-    experiment = spec.load("messages-pendulum")
-    alone = run_experiment(experiment, scale="tiny", recipe="mpnode", work=tmp_path / "one")
+    experiment, alone = spec.load("messages-pendulum"), pendulum_alone
     steps = experiment_runner.plan(experiment, "tiny", "mpnode", tmp_path / "two")
     workers = experiment_runner._start_workers(steps, "this-run", 1)
     for worker in workers:
@@ -527,11 +534,10 @@ def test_a_worker_process_runs_steps_as_the_run_does(tmp_path):
     assert {record.status for record in later.values()} == {"skipped"}
 
 
-def test_jobs_run_every_step_once_with_the_same_results(tmp_path):
+def test_jobs_run_every_step_once_with_the_same_results(tmp_path, pendulum_alone):
     """`run_experiment(jobs=2)`: every step ran in this run (by the run or its worker),
     each once, and the results are a one-process run's."""
-    experiment = spec.load("messages-pendulum")
-    alone = run_experiment(experiment, scale="tiny", recipe="mpnode", work=tmp_path / "one")
+    experiment, alone = spec.load("messages-pendulum"), pendulum_alone
     events = []
     both = run_experiment(experiment, scale="tiny", recipe="mpnode", work=tmp_path / "two",
                           jobs=2, progress=events.append)
@@ -560,12 +566,14 @@ id = "first"
 verb = "train"
 data = "data"
 epochs = 100000
+solver.compile = false  # compiling (~30 s) is not what is stopped here
 
 [[steps]]
 id = "second"
 verb = "train"
 data = "data"
 epochs = 100000
+solver.compile = false
 seed = 1
 """
 

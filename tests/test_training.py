@@ -45,6 +45,15 @@ def config(dataset, run_dir, **kw) -> TrainConfig:
     return TrainConfig(**(fields | kw))
 
 
+@pytest.fixture(scope="module")
+def four(gene, tmp_path_factory):
+    """`config(gene, ...)` trained whole, 4 epochs in one go: the run folder, which the
+    tests only read (the reference of the resumed runs, and a checkpoint to load)."""
+    run_dir = tmp_path_factory.mktemp("four") / "run"
+    train(config(gene, run_dir))
+    return run_dir
+
+
 def rows(run_dir):
     """Metrics rows without their timings (which differ between identical runs)."""
     return [{k: v for k, v in r.items() if not k.endswith("seconds")}
@@ -75,21 +84,20 @@ def test_learning_cuts_validation_loss_tenfold(gene, tmp_path):
     assert TrainConfig(**json.loads((tmp_path / "run" / "config.json").read_text())).epochs == 20
 
 
-def test_two_plus_two_epochs_equal_four(gene, tmp_path):
-    train(config(gene, tmp_path / "four"))
+def test_two_plus_two_epochs_equal_four(gene, four, tmp_path):
     train(config(gene, tmp_path / "resumed", epochs=2))
     train(config(gene, tmp_path / "resumed"), resume=True)
-    a = load_checkpoint(checkpoint_path(tmp_path / "four", "last"))
+    a = load_checkpoint(checkpoint_path(four, "last"))
     b = load_checkpoint(checkpoint_path(tmp_path / "resumed", "last"))
     for name, value in a.state_dict.items():
         assert torch.equal(value, b.state_dict[name]), name
     for key, state in a.optimizer["state"].items():
         for name, value in state.items():
             assert torch.equal(value, b.optimizer["state"][key][name]), (key, name)
-    assert rows(tmp_path / "four") == rows(tmp_path / "resumed")
+    assert rows(four) == rows(tmp_path / "resumed")
 
 
-def test_ctrl_c_saves_last_completed_epoch_and_resume_continues_it(gene, tmp_path):
+def test_ctrl_c_saves_last_completed_epoch_and_resume_continues_it(gene, four, tmp_path):
     def interrupt(event):
         if event["event"] == "batch" and event["epoch"] == 3:
             raise KeyboardInterrupt
@@ -99,13 +107,11 @@ def test_ctrl_c_saves_last_completed_epoch_and_resume_continues_it(gene, tmp_pat
     assert info.value.epoch == 2
     assert load_checkpoint(checkpoint_path(tmp_path / "cut", "last")).epoch == 2
     train(config(gene, tmp_path / "cut"), resume=True)
-    train(config(gene, tmp_path / "whole"))
-    assert rows(tmp_path / "cut") == rows(tmp_path / "whole")
+    assert rows(tmp_path / "cut") == rows(four)
 
 
-def test_checkpoint_round_trip(gene, tmp_path):
-    train(config(gene, tmp_path / "run", epochs=1))
-    path = checkpoint_path(tmp_path / "run", "best")
+def test_checkpoint_round_trip(gene, four, tmp_path):
+    path = checkpoint_path(four, "best")
     raw = torch.load(path, weights_only=True)  # only tensors and plain data inside
     assert raw["format"] == FORMAT and raw["format_version"] == FORMAT_VERSION
     assert set(raw) >= {"model_kind", "model_config", "state_dict", "normalizer",
@@ -205,9 +211,8 @@ def test_finetune_starts_from_the_checkpoint_with_its_normalization(gene, tmp_pa
         ckpt.normalizer)
 
 
-def test_evaluate_matches_a_direct_computation(gene, tmp_path):
-    train(config(gene, tmp_path / "run", epochs=2))
-    ckpt = load_checkpoint(checkpoint_path(tmp_path / "run", "best"))
+def test_evaluate_matches_a_direct_computation(gene, four):
+    ckpt = load_checkpoint(checkpoint_path(four, "best"))
     model, norm = ckpt.build_model(), ckpt.build_normalizer()
     data = TrajectoryData.load(gene).subset("all")
     result = evaluate(model, data, norm, batch_size=5)  # batches of unequal size
