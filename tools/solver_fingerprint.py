@@ -133,10 +133,13 @@ def sha(x: torch.Tensor) -> str:
     return hashlib.sha256(head + x.numpy().tobytes()).hexdigest()
 
 
-def fingerprint(compile: bool) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
-    """`(hashes, tensors)`, keyed `case/dtype/grad-or-nograd/tensor`."""
+def fingerprint(compile: bool, only: str = "") -> tuple[dict[str, str], dict[str, torch.Tensor]]:
+    """`(hashes, tensors)`, keyed `case/dtype/grad-or-nograd/tensor`, of the cases whose
+    name contains `only`."""
     hashes, tensors = {}, {}
     for name, kw in cases(compile):
+        if only not in name:
+            continue
         for dtype in (torch.float64, torch.float32):
             for grad in (True, False):
                 key = f"{name}/{str(dtype)[6:]}/{'grad' if grad else 'nograd'}"
@@ -148,10 +151,12 @@ def fingerprint(compile: bool) -> tuple[dict[str, str], dict[str, torch.Tensor]]
 
 def compare(a_path: str, b_path: str) -> int:
     a, b = (json.load(open(p)) for p in (a_path, b_path))
-    differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    both = a.keys() & b.keys()  # a fingerprint of some cases (`--only`) against all
+    differ = sorted(k for k in both if a[k] != b[k])
     for k in differ:
         print(f"differs: {k}")
-    print(f"{len(differ)} of {len(a.keys() | b.keys())} entries differ")
+    print(f"{len(differ)} of {len(both)} shared entries differ "
+          f"({len(a.keys() ^ b.keys())} in one only)")
     return 1 if differ else 0
 
 
@@ -160,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("out", nargs="?", help="JSON file of the hashes to write")
     parser.add_argument("--tensors", help="also save the tensors (torch.save) here")
     parser.add_argument("--compile", action="store_true", help="add a compiled solve")
+    parser.add_argument("--only", default="", help="only the cases whose name contains this "
+                        "(e.g. tsit5/adaptive), for a quick look")
     parser.add_argument("--torch-on-cpu", action="store_true",
                         help="where the solver still has its numpy namespace, turn it off")
     parser.add_argument("--compare", nargs=2, metavar="JSON", help="compare two fingerprints")
@@ -171,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.manual_seed(0)
     if args.torch_on_cpu and hasattr(_host, "NUMPY_ON_CPU"):
         _host.NUMPY_ON_CPU = False
-    hashes, tensors = fingerprint(args.compile)
+    hashes, tensors = fingerprint(args.compile, args.only)
     with open(args.out, "w") as fh:
         json.dump(hashes, fh, indent=1, sort_keys=True)
     if args.tensors:
