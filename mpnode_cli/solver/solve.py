@@ -69,24 +69,22 @@ def solve(
         method: a name of `tableau.METHODS`: "tsit5" (default) or "dopri5", 5(4) pairs
             with adaptive steps, or "rk4", the classic 4th-order method, which has no error
             estimate and so needs `fixed_dt`.
-        rtol, atol: per-element tolerances of the controller named by `controller` (None:
-            `controller.RTOL`, `controller.ATOL`, 1e-6 and 1e-8); a step is accepted when
-            the RMS over the sample's elements of `err / (atol + rtol·max(|y|, |y_new|))`
-            is at most 1. Not given with a controller object, which has its own.
+        rtol, atol: the tolerances of the controller `controller` names (None: 1e-6 and
+            1e-8, `controller.RTOL`, `ATOL`); never beside a controller object.
         dt0: first step size (scalar or `[B]`); by default chosen per sample by Hairer's
             heuristic (two extra evaluations of `f`).
         max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
         fixed_dt: if given, take fixed steps (no error control) of at most this size, aligned
             so that every output time and every tstop is hit exactly.
         tstops: times that no step may cross (e.g. where a zero-order-hold control changes).
-        compile: run the adaptive step through `torch.compile` (inductor). The first solve
-            with a new `f`, shape or dtype compiles for ~10 s; later ones run about 2× faster
-            on CPU (bench/results/solver.md). Worth it for long or repeated solves; ignored
-            with `fixed_dt`.
+        compile: run the adaptive step through `torch.compile` (inductor): ~10 s to compile
+            for a new `f`, shape or dtype, then about 2× faster on CPU
+            (bench/results/solver.md); for long or repeated solves; ignored with `fixed_dt`.
         controller: adaptive step-size control, "pi" (proportional-integral, the default)
-            or "i" (integral; fewer steps at loose tolerances on smooth solutions): a name
-            of `controller.CONTROLLERS`, or a controller object with its own tolerances and
-            coefficients, e.g. `PIController(rtol=1e-8, atol=1e-10)`.
+            or "i" (integral; fewer steps at loose tolerances on smooth solutions), or a
+            controller object with its own tolerances and coefficients, e.g.
+            `PIController(rtol=1e-8, atol=1e-10)`: a step is accepted when the RMS over
+            the sample's elements of `err / (atol + rtol·max(|y|, |y_new|))` is ≤ 1.
         progress: if given, called now and then (at most every `PROGRESS_SECONDS`) with
             the fraction of the time span covered so far, the mean over samples, so that a
             long solve can show that it moves. Each call costs one host sync.
@@ -109,19 +107,17 @@ def solve(
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
-        (backpropagation through the solver's operations); the step-size controller is
-        detached. The fused step's backward is first-order only: with `create_graph=True`
-        it raises (`fused=False` takes higher derivatives).
+        (backpropagation through the solver's operations), not through the step-size
+        choice. The fused step's backward is first-order only: `create_graph=True` raises
+        (`fused=False` takes higher derivatives).
     """
     ts = _checked_times(y0, t_eval, fixed_dt)
     tableau = get_method(method, fixed_dt)
     ctrl = _controller(controller, rtol, atol)
 
-    batch, shape = y0.shape[0], y0.shape[1:]
-    n_out = ts.numel()
+    batch, shape, n_out = y0.shape[0], y0.shape[1:], ts.numel()
     y = y0.reshape(batch, -1).contiguous()  # (B, F); steps view it flat, e.g. y0 = x[:, 0]
     fun, shaped = _flat_and_shaped(f, batch, shape, y0.dtype)
-
     if n_out == 1:
         zeros = torch.zeros(batch, dtype=torch.long, device=y0.device)
         return Solution(ts, y0.unsqueeze(1), zeros, {k: zeros for k in STAT_NAMES})
