@@ -1,13 +1,15 @@
-"""The adaptive step's small arithmetic in numpy against torch, on the CPU, in one process.
+"""The dense output's numpy form against its torch form, on the CPU, in one process.
 
-An uncompiled CPU solve runs its step's plan, error control, bookkeeping and dense-output
-weights in numpy (`mpnode_cli/solver/host.py`); `host.NUMPY_ON_CPU = False` runs the same
-code in torch. Both take the same steps bit for bit, so this measures only what numpy
-saves. Each round runs one call of each variant, in random order, and times it in thread
-CPU time and wall time; reported is the median of the per-round ratios numpy / torch
-(below 1: numpy faster), with a bootstrap 95% interval of that median. Interleaving one
-call at a time keeps the comparison fair on a machine busy with other work, where bare
-times are not.
+An uncompiled CPU solve weighs its dense outputs, and where autograd does not record the
+step sums them, in numpy (`mpnode_cli/solver/dense.py`); `dense.NUMPY_ON_CPU = False` takes
+torch's form instead. The rest of the step (its plan, error control and bookkeeping) is
+torch in both: it ran in numpy too until that was measured here to save nothing (0.99× on
+the training step, 0.87× on the Lorenz solve). Both take the same steps bit for bit, so this
+measures only what numpy saves. Each round runs one call of each variant, in random order,
+and times it in thread CPU time and wall time; reported is the median of the per-round
+ratios numpy / torch (below 1: numpy faster), with a bootstrap 95% interval of that median.
+Interleaving one call at a time keeps the comparison fair on a machine busy with other work,
+where bare times are not.
 
 Problems:
 - `fwd`: the training step of `bench/train.py` (MP-NODE, B = 128, float32, tsit5,
@@ -32,7 +34,7 @@ import time
 import numpy as np
 import torch
 
-from mpnode_cli.solver import host, solve
+from mpnode_cli.solver import dense, solve
 
 PROBLEMS = ["fwd", "fwdgrad", "step", "lorenz"]
 
@@ -40,7 +42,7 @@ PROBLEMS = ["fwd", "fwdgrad", "step", "lorenz"]
 def compare(name: str, fn, rounds: int) -> None:
     """Time `fn` with the numpy and the torch namespace, interleaved; print the ratios."""
     for flag in (False, True) * 3:  # warm up both
-        host.NUMPY_ON_CPU = flag
+        dense.NUMPY_ON_CPU = flag
         fn()
     cpu, wall, times = [], [], {False: [], True: []}
     order = [False, True]
@@ -50,7 +52,7 @@ def compare(name: str, fn, rounds: int) -> None:
             rng.shuffle(order)
             got = {}
             for flag in order:
-                host.NUMPY_ON_CPU = flag
+                dense.NUMPY_ON_CPU = flag
                 c0, w0 = time.thread_time(), time.perf_counter()
                 fn()
                 got[flag] = (time.thread_time() - c0, time.perf_counter() - w0)
@@ -58,7 +60,7 @@ def compare(name: str, fn, rounds: int) -> None:
             cpu.append(got[True][0] / got[False][0])
             wall.append(got[True][1] / got[False][1])
     finally:
-        host.NUMPY_ON_CPU = True
+        dense.NUMPY_ON_CPU = True
     boot = np.random.default_rng(0)
     lo, hi = np.percentile([np.median(boot.choice(cpu, len(cpu))) for _ in range(2000)],
                            [2.5, 97.5])

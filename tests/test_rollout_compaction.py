@@ -28,9 +28,9 @@ def solves(monkeypatch):
     sizes = []
     inner = solve_module.solve_adaptive
 
-    def counting(fun, tab, p, ctrl, y, *args, **kwargs):
+    def counting(problem, fun, shaped, y, *args, **kwargs):
         sizes.append(y.shape[0])
-        return inner(fun, tab, p, ctrl, y, *args, **kwargs)
+        return inner(problem, fun, shaped, y, *args, **kwargs)
 
     monkeypatch.setattr(solve_module, "solve_adaptive", counting)
     monkeypatch.setattr(adaptive, "COMPACT_MIN_DROP", 1)

@@ -17,7 +17,7 @@ from conftest import rounding_apart
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from mpnode_cli.solver import METHODS, Status, solve
+from mpnode_cli.solver import METHODS, IController, PIController, Status, solve
 
 ADAPTIVE = [name for name, tableau in METHODS.items() if tableau.adaptive]
 
@@ -334,6 +334,32 @@ def test_integral_controller_meets_loose_tolerances(name):
     assert abs(steps["i"] - steps["pi"]) <= 0.1 * steps["pi"], steps
     with pytest.raises(ValueError, match="controller"):
         solve(f, y0, ts, controller="pid")
+
+
+def test_a_controller_object_carries_its_tolerances_and_coefficients():
+    """`solve(controller=PIController(rtol=..., atol=...))`, as diffrax and torchode take
+    one: it is the named controller with those tolerances (the same steps), its tolerances
+    reach the error test (tighter ones take more steps and land closer to e^{−t}), and so
+    do its coefficients (a smaller safety factor shrinks every proposal: more steps)."""
+    y0 = torch.tensor([[1.0], [3.0]], dtype=torch.float64)
+    ts = torch.linspace(0.0, 2.0, 5, dtype=torch.float64)
+    exact = y0 * torch.exp(-ts)  # (B, T)
+    errors, steps = [], []
+    for rtol in (1e-4, 1e-8):
+        sol = solve(lambda t, y: -y, y0, ts, controller=PIController(rtol=rtol, atol=rtol))
+        named = solve(lambda t, y: -y, y0, ts, controller="pi", rtol=rtol, atol=rtol)
+        assert torch.equal(sol.ys, named.ys)
+        assert torch.equal(sol.stats["n_steps"], named.stats["n_steps"])
+        error = float((sol.ys[..., 0] - exact).abs().max())
+        assert error < 10 * rtol
+        errors.append(error)
+        steps.append(int(sol.stats["n_steps"].sum()))
+    assert steps[1] > steps[0] and errors[1] < errors[0]
+    careful = solve(lambda t, y: -y, y0, ts, controller=PIController(rtol=1e-8, atol=1e-8,
+                                                                       safety=0.5))
+    assert int(careful.stats["n_steps"].sum()) > steps[1]
+    with pytest.raises(ValueError, match="controller object carries rtol and atol"):
+        solve(lambda t, y: -y, y0, ts, controller=IController(), rtol=1e-3)
 
 
 def test_integral_controller_takes_fewer_steps_where_steps_are_far_below_the_bound():

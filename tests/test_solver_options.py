@@ -34,9 +34,18 @@ FLAT = {"rtol": 1e-3, "atol": 1e-6, "fixed_dt": None}
 
 
 def test_defaults_are_solves_own():
+    """Each default of `SolverOptions` is `solve`'s: its own, or for the tolerances (None
+    in `solve`'s signature) the controller's."""
+    from mpnode_cli.solver.controller import CONTROLLERS, StepController
+
     declared = inspect.signature(solve).parameters
     for name, field in SolverOptions.model_fields.items():
-        assert field.default == declared[name].default, name
+        if name in ("rtol", "atol"):
+            assert declared[name].default is None
+            assert field.default == getattr(StepController, name), name
+            assert all(getattr(c, name) == field.default for c in CONTROLLERS.values())
+        else:
+            assert field.default == declared[name].default, name
     assert set(SolverOptions.model_fields["method"].annotation.__args__) == set(METHODS)
 
 
@@ -196,7 +205,11 @@ def test_each_controller_option_names_a_typed_controller():
     from mpnode_cli.solver.controller import CONTROLLERS, IController, PIController, controller_for
 
     assert set(get_args(SolverOptions.model_fields["controller"].annotation)) == set(CONTROLLERS)
-    assert controller_for("pi", 5) == PIController(beta1=0.85 / 5, beta2=0.25 / 5)
-    assert controller_for("i", 5) == IController(beta1=1.0 / 5)
+    assert controller_for("pi") == PIController(beta1=0.85, beta2=0.25, rtol=1e-6, atol=1e-8)
+    assert controller_for("i", 1e-4, 1e-5) == IController(beta1=1.0, rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="choose from: pi, i"):
-        controller_for("pid", 5)
+        controller_for("pid")
+    # The options build the controller, which carries their tolerances to the error test.
+    kwargs = SolverOptions(rtol=1e-4, atol=1e-5, controller="i").solve_kwargs()
+    assert kwargs["controller"] == IController(rtol=1e-4, atol=1e-5)
+    assert "rtol" not in kwargs and "atol" not in kwargs

@@ -6,17 +6,13 @@ sample that fails is frozen and marked while the others go on.
 
 - One host sync per step: the "anyone still running?" flag and the number of outputs to
   write travel together in one `.tolist()`.
-- Dense output uses the method's free interpolant, so steps are never shortened to hit
-  output times; the outputs crossed by a step are written with a bounded, static-shape
-  scatter (no `nonzero`).
-- The step-size controller (`controller.py`) works on detached arrays: gradients flow
+- Dense output uses the method's free interpolant (`dense.py`), so steps are never
+  shortened to hit output times.
+- The step-size controller (`controller.py`) works on detached tensors: gradients flow
   through the stages and the interpolant, not through the step-size choice (a prototype
-  that let r^(−1/5) into autograd produced NaN gradients near r = 0).
-- The step's small arithmetic on `[B]` vectors (`plan_step`, `control`, `dense_weights`,
-  `initial_step`) is written once against an array namespace (`host.py`): numpy views of
-  the tensors in an uncompiled CPU solve, where a torch op that small costs several times
-  a numpy op, and torch on CUDA and under `compile`. Both take the same steps bit for bit;
-  the `State` holds tensors either way.
+  that let r^(−1/5) into autograd produced NaN gradients near r = 0). It owns the error
+  test's tolerances; `Problem` (`problem.py`) holds it with the rest of the solve's
+  settings, and `Constants` what the step reads of them.
 - Two ways through a step, with the same forward: eagerly (the default), the stages are
   `fused.py`'s autograd nodes, whose backward is written for the tableau, and the step's end
   (`fused.end_step`) selects the next state and writes the outputs it crossed into one
@@ -32,15 +28,22 @@ sample that fails is frozen and marked while the others go on.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 
 from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import StepController
+from mpnode_cli.solver.dense import (
+    OutputTimes,
+    dense_weights,
+    gather_outputs,
+    host_lanes,
+    lanes,
+    on_host,
+)
 from mpnode_cli.solver.fused import StepTape, collect_outputs, end_step, fused_stages, start_outputs
-from mpnode_cli.solver.host import Ops, TorchOps, ops_for
+from mpnode_cli.solver.problem import Problem
 from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
 from mpnode_cli.solver.solution import Status
 
@@ -68,20 +71,19 @@ class State(NamedTuple):
 
 
 class Constants(NamedTuple):
-    """What every step of one solve shares."""
+    """What every step of one solve reads (of its `Problem`, and the buffers it made);
+    a NamedTuple, which the compiled step takes as it is."""
 
     tab: StageTableau
-    ctrl: StepController
+    ctrl: StepController  # with the error test's tolerances
+    order: int  # p, the error estimate's order + 1 (the controller's exponents' divisor)
     stages: Stages | None  # the recorded step's stage buffer (None: fused steps)
     tape: StepTape | None  # the fused steps' buffers (None: recorded steps)
-    ts: object  # [T] float64 output times, an array of `ops`
-    stops_pad: object  # [S + 1] float64 stops, the last repeated, an array of `ops`
+    ts: torch.Tensor  # [T] float64 output times
+    stops_pad: torch.Tensor  # [S + 1] float64 stops, the last repeated
     n_stops: int
-    rtol: float
-    atol: float
     max_steps: int
     block: int = 0  # compaction's block of samples kept or dropped together (0: no count)
-    ops: Ops = TorchOps  # the namespace of the step's small arithmetic (`host.py`)
 
 
 class Restart(NamedTuple):
@@ -115,123 +117,113 @@ class Attempt(NamedTuple):
     rec: object = None  # the fused step's `StepRecord`, which `end_step` finishes
 
 
-def initial_step(fun, t0, y, k1, rtol, atol, span, p, xp: Ops = TorchOps):
+def _rms(x: torch.Tensor) -> torch.Tensor:
+    """`[B, F]` → `[B]` root mean square over each row, in float64 (the norm itself in
+    x's dtype)."""
+    return torch.linalg.vector_norm(x, dim=1).double() / math.sqrt(x.shape[1])
+
+
+def initial_step(fun: RHS, t0: torch.Tensor, y: torch.Tensor, k1: torch.Tensor,
+                 ctrl: StepController, span: torch.Tensor, p: int) -> torch.Tensor:
     """Hairer, Nørsett & Wanner, Solving ODEs I, §II.4: a first step size per sample.
 
-    p: the error estimate's order + 1 (5 for a 5(4) pair), as in Hairer's DOPRI5 (`IORD`);
-    xp: the namespace of the arithmetic (`host.py`), f's own in torch.
+    Args:
+        fun: the right-hand side on flat states; t0: `[B]` float64 start times;
+        y: `[B, F]` states there; k1: `[B, F]` f(t0, y); ctrl: its `scale` weighs y;
+        span: `[B]` float64 the time span; p: the error estimate's order + 1 (5 for a 5(4)
+            pair), as in Hairer's DOPRI5 (`IORD`).
+
+    Returns:
+        `[B]` float64 step sizes, finite and positive.
     """
-    t0, y, k1, span = xp.arrays(t0, y, k1, span)
     with torch.no_grad():
-        scale = atol + rtol * abs(y)
-        d0, d1 = xp.rms(y / scale), xp.rms(k1 / scale)
-        h0 = xp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / xp.clip(d1, 1e-300))
-        h0 = xp.minimum(h0, span)
-        y1 = y + xp.astype(h0, y)[:, None] * k1
-        f1, = xp.arrays(fun(*xp.tensors(t0 + h0, y1)))
-        d2 = xp.rms((f1 - k1) / scale) / h0
-        dmax = xp.maximum(d1, d2)
-        h1 = xp.where(
-            dmax <= 1e-15,
-            xp.clip(h0 * 1e-3, 1e-6),
-            xp.pow(0.01 / xp.clip(dmax, 1e-300), 1.0 / p),
-        )
-        h = xp.minimum(xp.minimum(100 * h0, h1), span)
-        h = xp.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0
-    return xp.tensors(h)[0]
+        scale = ctrl.scale(y)
+        d0, d1 = _rms(y / scale), _rms(k1 / scale)
+        h0 = torch.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1.clamp(1e-300))
+        h0 = torch.minimum(h0, span)
+        y1 = y + h0.to(y.dtype)[:, None] * k1
+        f1 = fun(t0 + h0, y1)
+        d2 = _rms((f1 - k1) / scale) / h0
+        dmax = torch.maximum(d1, d2)
+        # A tensor numerator: torch's `0.01 / x` is 0.01 · (1/x), rounded twice.
+        h1 = torch.where(dmax <= 1e-15, (h0 * 1e-3).clamp(1e-6),
+                         torch.pow(torch.full_like(dmax, 0.01) / dmax.clamp(1e-300), 1.0 / p))
+        h = torch.minimum(torch.minimum(100 * h0, h1), span)
+        return torch.where((h > 0) & (h < math.inf), h, span * 1e-6)  # finite and > 0
 
 
-def solve_adaptive(fun: RHS, tab: StageTableau, p: int, ctrl: StepController,
-                   y: torch.Tensor, ts: torch.Tensor, stops: torch.Tensor, rtol: float,
-                   atol: float, dt0, max_steps: int, compile: bool = False,
-                   report: Callable[[torch.Tensor], None] | None = None,
-                   shaped: RHS | None = None, shape: tuple[int, ...] | None = None,
-                   start: Restart | None = None, block: int = 0):
-    """Integrate with adaptive steps.
+def solve_adaptive(problem: Problem, fun: RHS, shaped: RHS, y: torch.Tensor,
+                   start: Restart | None = None):
+    """Integrate `problem` with adaptive steps.
 
     Args:
+        problem: the solve's settings (`problem.controller` set).
         fun: the right-hand side on flat states, `fun(t [B], y [B, F]) -> [B, F]`.
-        p: the error estimate's order + 1 (for the first step size; `ctrl` has its own).
-        y: `[B, F]` initial states at `ts[0]`; ts: `[T]` float64 output times;
-        stops: sorted float64 times in (t0, t_end] that steps land on, t_end last.
-        dt0: the first step size, scalar or `[B]`, or None for `initial_step`'s.
-        compile: run `attempt_step` compiled (`STEP`).
-        report: called with each sample's time `[B]` after every step.
-        shaped: the right-hand side on `[B, *S]` states (`shape`), for fused steps; None
-            records every op of the step instead (`attempt_step`, as compiled).
+        shaped: the same on `[B, *S]` states, for fused steps (`problem.fused`).
+        y: `[B, F]` initial states at `ts[0]`.
         start: go on from where an earlier solve of these samples stopped (its `Restart`,
             the samples selected) instead of starting at `ts[0]`; `y` is then its `state.y`.
-        block: stop early for compaction, once the samples still running, counted in whole
-            blocks of `block` consecutive samples, make at most half of the batch and at
-            least `COMPACT_MIN_DROP` rows could be dropped (0: run to the end). The caller
-            passes a block that divides the batch, and 0 when compiled
-            (`solve._compaction_block`).
-        The rest are `solve`'s.
 
     Returns:
         `(ys [B, T, F], status [B], stats, restart)`, the first three as `solve` returns
-        them, and `restart`, None where the solve ran to the end; else it stopped early
-        (`block`): outputs beyond a running sample's progress are NaN and its stats are
+        them, and `restart`, None where the solve ran to the end; else it stopped early for
+        compaction (`problem.block`: once the samples still running, counted in whole
+        blocks, make at most half of the batch and at least `COMPACT_MIN_DROP` rows could
+        be dropped): outputs beyond a running sample's progress are NaN and its stats are
         those so far, and `restart` says where to go on from.
     """
-    batch = y.shape[0]
-    dev, f64 = y.device, torch.float64
-    n_out = ts.numel()
-    t0 = ts[0]
-    xp = ops_for(dev, compile)
-
-    stops_pad = torch.cat([stops, stops[-1:]])  # finished samples index one past the end
-    if start is not None:
-        state, status, n_f = start
-    else:
-        t = t0.expand(batch).clone()  # (B,) float64
-        k1 = fun(t, y)
-        n_f = torch.ones(batch, dtype=torch.long, device=dev)
-        span = (ts[-1] - t0).expand(batch)
-        if dt0 is None:
-            dt = initial_step(fun, t, y, k1, rtol, atol, span, p, xp)
-            n_f += 1
-        else:
-            dt = torch.as_tensor(dt0, dtype=f64, device=dev).expand(batch).clone()
-
-        stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
-        start_ok = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
-        status = torch.where(start_ok, Status.SUCCESS, Status.NON_FINITE)
-        state = State(
-            t=t, dt=dt, y=y, k1=k1, running=start_ok, stop_idx=stop_idx,
-            stop_t=stops_pad[stop_idx],
-            err_prev=torch.full((batch,), ctrl.initial_history(), dtype=f64, device=dev),
-            n_steps=torch.zeros_like(stop_idx), n_accepted=torch.zeros_like(stop_idx),
-            n_nonfinite=torch.zeros_like(stop_idx),
-            out_idx=torch.ones(batch, dtype=torch.long, device=dev))
-    k1 = state.k1
-    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
-    fused = shaped is not None and not compile
-    ts_xp, stops_xp = xp.arrays(ts, stops_pad)
-    # The dense outputs' sums in numpy only where autograd does not record the step: the
-    # recorded step (`fused=False`) needs torch's to differentiate, and the two kinds of
-    # step agree bit for bit.
-    lanes = TorchOps if record else xp
-    if fused:
-        tape = StepTape(tab, y, shape, record, n_out, lanes)
+    batch, tab = y.shape[0], problem.tab
+    stops_pad = torch.cat([problem.stops, problem.stops[-1:]])  # finished samples: past the end
+    state, status, n_f = _first_state(problem, fun, y, stops_pad) if start is None else start
+    record = torch.is_grad_enabled() and (state.k1.requires_grad or y.requires_grad)
+    host = on_host(y.device, problem.compile)
+    stages = tape = None
+    if problem.fused and not problem.compile:
+        tape = StepTape(tab, y, problem.batch_shape(batch), record, problem.ts.numel(), host)
         start_outputs(tape, y)
-        consts = Constants(tab, ctrl, None, tape, ts_xp, stops_xp, stops.numel(), rtol, atol,
-                           max_steps, block, xp)
-        steps = FusedSteps(tape, ts, shaped, xp)
+        steps = FusedSteps(tape, problem.ts, shaped, host)
     else:
-        consts = Constants(tab, ctrl, Stages(tab.stages, batch, y.shape[1], y, not record),
-                           None, ts_xp, stops_xp, stops.numel(), rtol, atol, max_steps, block,
-                           xp)
-        steps = RecordedSteps(y, ts, tab, xp, lanes)
+        stages = Stages(tab.stages, batch, y.shape[1], y, not record)
+        steps = RecordedSteps(y, problem.ts, tab, host, host and not record)
+    consts = Constants(tab, problem.controller, problem.order, stages, tape, problem.ts,
+                       stops_pad, problem.stops.numel(), problem.max_steps, problem.block)
     # Stop for compaction when few enough rows still run and enough could be dropped.
-    keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP) if block
-                else -1)
-    state, status, n_f, early = _loop(fun, consts, state, status, n_f, steps, compile,
-                                      report, keep_max)
+    keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP)
+                if problem.block else -1)
+    state, status, n_f, early = _loop(fun, consts, state, status, n_f, steps, problem.compile,
+                                      problem.report, keep_max)
     stats = {"n_steps": state.n_steps, "n_accepted": state.n_accepted,
              "n_rejected": state.n_steps - state.n_accepted,
              "n_f_evals": n_f + (tab.stages - 1) * state.n_steps}
     return steps.result(y, state), status, stats, Restart(state, status, n_f) if early else None
+
+
+def _first_state(problem: Problem, fun: RHS, y: torch.Tensor, stops_pad: torch.Tensor):
+    """`(state, status, n_f)` of the batch at `ts[0]`: f there, the first step size
+    (`problem.dt0` or `initial_step`'s), and NON_FINITE where y₀ or f(y₀) is not finite."""
+    batch, dev, f64 = y.shape[0], y.device, torch.float64
+    t0 = problem.ts[0]
+    t = t0.expand(batch).clone()  # (B,) float64
+    k1 = fun(t, y)
+    n_f = torch.ones(batch, dtype=torch.long, device=dev)
+    if problem.dt0 is None:
+        span = (problem.ts[-1] - t0).expand(batch)
+        dt = initial_step(fun, t, y, k1, problem.controller, span, problem.order)
+        n_f += 1
+    else:
+        dt = torch.as_tensor(problem.dt0, dtype=f64, device=dev).expand(batch).clone()
+    stop_idx = torch.zeros(batch, dtype=torch.long, device=dev)
+    start_ok = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
+    status = torch.where(start_ok, Status.SUCCESS, Status.NON_FINITE)
+    state = State(
+        t=t, dt=dt, y=y, k1=k1, running=start_ok, stop_idx=stop_idx,
+        stop_t=stops_pad[stop_idx],
+        err_prev=torch.full((batch,), problem.controller.initial_history(), dtype=f64,
+                            device=dev),
+        n_steps=torch.zeros_like(stop_idx), n_accepted=torch.zeros_like(stop_idx),
+        n_nonfinite=torch.zeros_like(stop_idx),
+        out_idx=torch.ones(batch, dtype=torch.long, device=dev))
+    return state, status, n_f
 
 
 # Compaction stops a solve only when at least this many rows would be dropped (restarting
@@ -268,81 +260,81 @@ def _loop(fun, consts, state, status, n_f, steps, compile, report, keep_max):
             report(state.t)
 
 
-def plan_step(consts: Constants, state: State):
+def plan_step(state: State):
     """`(h, t_new, land)`, each `[B]`: the step to attempt, clipped so as not to cross the
     next stop (0 for a sample that does not run), where it ends, and whether it lands on
     the stop."""
-    xp = consts.ops
-    t, dt, running, stop_t = xp.arrays(state.t, state.dt, state.running, state.stop_t)
-    with xp.no_grad():
-        to_stop = stop_t - t
-        land = dt >= to_stop
-        h = xp.where(running, xp.minimum(dt, to_stop), 0.0)
-        t_new = xp.where(land, stop_t, t + h)
-    return xp.tensors(h, t_new, land)
+    with torch.no_grad():
+        to_stop = state.stop_t - state.t
+        land = state.dt >= to_stop
+        h = torch.where(state.running, torch.minimum(state.dt, to_stop), 0.0)
+        t_new = torch.where(land, state.stop_t, state.t + h)
+    return h, t_new, land
 
 
 def control(consts: Constants, state: State, h, t_new, land, y_new, err):
-    """Error control and bookkeeping of an attempted step, outside autograd, in the
-    solve's namespace (`consts.ops`).
+    """Error control and bookkeeping of an attempted step, outside autograd.
 
     Returns:
         `(state, flags, attempt)`: the next `State` with `y` and `k1` still the step's start
-        (the caller advances them); `flags`, a `[4]` int64 array (anyone still running, the
-        most outputs one sample crossed, anyone landed on an interior stop, anyone failed;
-        with `consts.block`, a fifth: the rows of the blocks still running), read by the
-        loop in its one sync (a tensor in torch; in numpy, host values already); and the
-        `Attempt`.
+        (the caller advances them); `flags`, a `[4]` int64 tensor (anyone still running,
+        the most outputs one sample crossed, anyone landed on an interior stop, anyone
+        failed; with `consts.block`, a fifth: the rows of the blocks still running), read
+        by the loop in its one sync; and the `Attempt`.
     """
-    _, ctrl, _, _, ts, stops_pad, n_stops, rtol, atol, max_steps, block, xp = consts
-    t, dt, running, stop_idx, err_prev, n_steps, n_acc, n_nonfinite, out_idx = xp.arrays(
-        state.t, state.dt, state.running, state.stop_idx, state.err_prev, state.n_steps,
-        state.n_accepted, state.n_nonfinite, state.out_idx)
-    h_step = h  # the tensor, for the `Attempt`
-    h, t_new, land, y, y_new, err = xp.arrays(h, t_new, land, state.y, y_new, err)
-    with xp.no_grad():
-        scale = xp.maximum(abs(y), abs(y_new))
-        scale *= rtol
-        scale += atol
-        r = xp.rms(err / scale)
+    ctrl, running = consts.ctrl, state.running
+    with torch.no_grad():
+        r = _rms(err / ctrl.scale(state.y, y_new))
         finite = r < math.inf  # r ≥ 0, so this is isfinite in one op instead of three
-        r = ctrl.ratio(r, finite, xp)
+        r = ctrl.ratio(r, finite)
         accept = running & (r <= 1.0)
-        dt_next, err_prev = ctrl.propose(h, r, err_prev, accept, xp)
+        dt_next, err_prev = ctrl.propose(h, r, state.err_prev, accept, consts.order)
         landed = accept & land
         # A step clipped at a stop says little about the step size the solution allows:
         # keep the proposal it was clipped from.
-        dt_next = xp.where(landed, xp.maximum(dt_next, dt), dt_next)
-        dt = xp.where(running, dt_next, dt)
+        dt_next = torch.where(landed, torch.maximum(dt_next, state.dt), dt_next)
+        dt = torch.where(running, dt_next, state.dt)
 
-        n_cross = xp.where(accept, xp.searchsorted(ts, t_new) - out_idx, 0)
-        n_steps = n_steps + running
-        n_acc = n_acc + accept
-        stop_idx = stop_idx + landed
-        stop_t = xp.take(stops_pad, stop_idx)
-        n_nonfinite = xp.where(finite, 0, n_nonfinite + running)
-        live = running & (stop_idx < n_stops)
+        n_cross = torch.where(
+            accept, torch.searchsorted(consts.ts, t_new, right=True) - state.out_idx, 0)
+        n_steps = state.n_steps + running
+        stop_idx = state.stop_idx + landed
+        n_nonfinite = torch.where(finite, 0, state.n_nonfinite + running)
+        live = running & (stop_idx < consts.n_stops)
         too_many = n_nonfinite >= _MAX_NON_FINITE_REJECTS
         # The next step would not move the clock. Checked after accepted steps too: near a
         # blow-up the step shrinks geometrically while every step is accepted, and checking
         # only rejections let such a sample take thousands of steps that advance no time.
-        t_next = xp.where(accept, t_new, t)
+        t_next = torch.where(accept, t_new, state.t)
         underflow = t_next + dt <= t_next
-        failed = (too_many | underflow | (n_steps >= max_steps)) & live
+        failed = (too_many | underflow | (n_steps >= consts.max_steps)) & live
         running_next = live ^ failed  # failed ⊆ live
         # Landing on an interior stop invalidates FSAL: f may change there (a new control).
         jumped = landed & live
-        kept = ()
-        if block:  # the rows of the blocks that still run, for compaction
-            kept = (running_next.sum() if block == 1 else
-                    running_next.reshape(-1, block).any(1).sum() * block),
-        flags = xp.flags(running_next, n_cross, jumped, failed, *kept)
-    step = Attempt(*xp.tensors(jumped, n_cross, failed, too_many, underflow, accept), state.t,
-                   h_step, state.y)
-    state = State(*xp.tensors(t_next, dt), state.y, state.k1,
-                  *xp.tensors(running_next, stop_idx, stop_t, err_prev, n_steps, n_acc,
-                              n_nonfinite), state.out_idx)
+        flags = _flags(running_next, n_cross, jumped, failed, *_kept(running_next, consts.block))
+    step = Attempt(jumped, n_cross, failed, too_many, underflow, accept, state.t, h, state.y)
+    state = State(t_next, dt, state.y, state.k1, running_next, stop_idx,
+                  torch.take(consts.stops_pad, stop_idx), err_prev, n_steps,
+                  state.n_accepted + accept, n_nonfinite, state.out_idx)
     return state, flags, step
+
+
+def _kept(running: torch.Tensor, block: int) -> tuple[torch.Tensor, ...]:
+    """The rows of the blocks that still run, for compaction (none without a block)."""
+    if not block:
+        return ()
+    return (running.sum() if block == 1 else running.reshape(-1, block).any(1).sum() * block),
+
+
+def _flags(*xs: torch.Tensor) -> torch.Tensor:
+    """One int64 tensor of each `[B]` tensor's max (a bool's any) and any scalars after
+    them: what the loop reads in its one sync (`.tolist()`)."""
+    # One stack and one amax (type promotion makes the bools 0/1), against a reduction
+    # per vector and a stack of their results.
+    vectors = [x for x in xs if x.ndim]
+    flags = torch.stack(vectors).amax(1)
+    scalars = [x.view(1) for x in xs if not x.ndim]
+    return torch.cat([flags, *scalars]) if scalars else flags
 
 
 def attempt_step(fun: RHS, consts: Constants, state: State):
@@ -353,7 +345,7 @@ def attempt_step(fun: RHS, consts: Constants, state: State):
         `(state, flags, attempt)` as `control`'s, with the state advanced: an accepted
         sample moves to the new state; FSAL, the last stage is f there.
     """
-    h, t_new, land = plan_step(consts, state)
+    h, t_new, land = plan_step(state)
     y_new, err, f_new, hk = rk_step(fun, consts.tab, consts.stages, state.t, h, state.y,
                                     state.k1, t_new)
     state_next, flags, step = control(consts, state, h, t_new, land, y_new, err)
@@ -366,51 +358,18 @@ def attempt_step(fun: RHS, consts: Constants, state: State):
 STEP = CompileCache(attempt_step)  # the step, compiled once per process when asked
 
 
-class OutputTimes(NamedTuple):
-    """What dense output needs of a solve, as arrays of its namespace `ops`."""
-
-    ops: Ops
-    ts: object  # [T] float64 output times
-    arange: object  # [T] int64 0, 1, ..., T − 1
-    interp_t: object  # [s, K] float64 the interpolant's coefficients (`StageTableau`)
-
-    @classmethod
-    def of(cls, ts: torch.Tensor, tab: StageTableau, xp: Ops) -> OutputTimes:
-        return cls(xp, *xp.arrays(ts, torch.arange(ts.numel(), device=ts.device),
-                                  tab.interp_t))
-
-
-def dense_weights(out: OutputTimes, step: Attempt, out_idx: torch.Tensor, width: int):
-    """The interpolant's weights at the ≤ `width` output times each sample's step crossed.
-
-    Returns:
-        `(cols [B, W], valid [B, W], coef [B, W, s])`, arrays of `out.ops`: lane `w` of
-        sample `b` belongs in output column `cols[b, w] = out_idx[b] + w` where `valid`
-        (`w < n_cross[b]`), and is y + Σ_i coef[b, w, i]·h·k_i, coef (float64) the b_i(θ)
-        of its time.
-    """
-    xp, ts = out.ops, out.ts
-    out_idx, n_cross, t, h = xp.arrays(out_idx, step.n_cross, step.t, step.h)
-    w = out.arange[:width]
-    cols = out_idx[:, None] + w  # (B, W)
-    valid = w < n_cross[:, None]
-    with xp.no_grad():
-        h_safe = xp.where(h > 0, h, 1.0)
-        theta = (xp.take(ts, xp.clip(cols, None, ts.shape[0] - 1)) - t[:, None]) / h_safe[:, None]
-        theta = xp.clip(theta, 0.0, 1.0)  # (B, W)
-        coef = xp.interpolant(theta, out.interp_t)  # (B, W, s): b_i(θ)
-    return cols, valid, coef
-
-
 class RecordedSteps:
     """Steps recorded op by op (`attempt_step`, compiled or not), and their outputs:
     `(column index [B, W], value [B, W, F])` per writing step, scattered into the result
     once at the end (one gather in the backward pass instead of one full-size copy per
     step); a spare column at index T takes the writes of masked-out lanes."""
 
-    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau, xp: Ops,
-                 lanes: Ops):
-        self.n_out, self.out, self.lanes = ts.numel(), OutputTimes.of(ts, tab, xp), lanes
+    def __init__(self, y: torch.Tensor, ts: torch.Tensor, tab: StageTableau,
+                 host_weights: bool, host_sums: bool):
+        """`host_weights`, `host_sums`: the dense output's weights and its (untracked)
+        sums in numpy (`dense.py`)."""
+        self.n_out, self.out = ts.numel(), OutputTimes.of(ts, tab, host_weights)
+        self.sums = host_lanes if host_sums else lanes
         self.cols = [torch.zeros(y.shape[0], 1, dtype=torch.long, device=y.device)]
         self.vals = [y.unsqueeze(1)]
 
@@ -421,11 +380,11 @@ class RecordedSteps:
     def end(self, state: State, step: Attempt, width: int) -> State:
         """Collect the outputs the step crossed (the step has advanced the state)."""
         if width > 0:
-            cols, valid, coef = self.out.ops.tensors(*dense_weights(self.out, step,
-                                                                    state.out_idx, width))
+            cols, valid, coef = dense_weights(self.out, step.t, step.h, state.out_idx,
+                                              step.n_cross, width)
             coef = coef.to(step.y.dtype)
             self.cols.append(torch.where(valid, cols, self.n_out))
-            self.vals.append(self.lanes.lanes(coef, step.hk, step.y))
+            self.vals.append(self.sums(coef, step.hk, step.y))
         return state
 
     def result(self, y0: torch.Tensor, state: State) -> torch.Tensor:
@@ -437,16 +396,16 @@ class FusedSteps:
     """Steps whose stages are `fused.py`'s autograd nodes; each step's end writes the
     outputs it crossed into the tape's output buffer."""
 
-    def __init__(self, tape: StepTape, ts: torch.Tensor, shaped: RHS, xp: Ops):
+    def __init__(self, tape: StepTape, ts: torch.Tensor, shaped: RHS, host_weights: bool):
         batch, dev = tape.shape[0], ts.device
-        self.tape, self.shaped, self.out = tape, shaped, OutputTimes.of(ts, tape.tab, xp)
-        # (B, 1) each sample's row of column 0 in the output buffer, an array of `xp`
-        self.base, = xp.arrays(torch.arange(batch, device=dev)[:, None] * ts.numel())
+        self.tape, self.shaped = tape, shaped
+        self.out = OutputTimes.of(ts, tape.tab, host_weights)
+        self.base = torch.arange(batch, device=dev)[:, None] * ts.numel()  # (B, 1) column 0
         self.spare = batch * ts.numel()  # the output buffer's spare row
 
     def attempt(self, fun: RHS, consts: Constants, state: State, compile: bool):
         """`control`'s `(state, flags, attempt)`; `end` then advances y and k₁."""
-        h, t_new, land = plan_step(consts, state)
+        h, t_new, land = plan_step(state)
         rec, y_new, err, f_new = fused_stages(self.shaped, consts.tab, self.tape, state.t, h,
                                               state.y, state.k1, t_new)
         state, flags, step = control(consts, state, h, t_new, land, y_new, err)
@@ -456,33 +415,12 @@ class FusedSteps:
         """Advance the accepted samples and write the outputs the step crossed."""
         rows = coef = None
         if width > 0:
-            xp = self.out.ops
-            cols, valid, coef = dense_weights(self.out, step, state.out_idx, width)
-            rows = xp.where(valid, self.base + cols, self.spare).reshape(-1)  # (B·W,)
-            rows, coef = xp.tensors(rows, coef)
+            cols, valid, coef = dense_weights(self.out, step.t, step.h, state.out_idx,
+                                              step.n_cross, width)
+            rows = torch.where(valid, self.base + cols, self.spare).reshape(-1)  # (B·W,)
         y, k1 = end_step(step.rec, step.f_new, step.accept, rows, coef)
         return state._replace(y=y, k1=k1)
 
     def result(self, y0: torch.Tensor, state: State) -> torch.Tensor:
         """`[B, T, F]` the outputs, NaN where none was written."""
         return collect_outputs(self.tape, y0, state.y, state.k1)
-
-
-def gather_outputs(cols: list[torch.Tensor], vals: list[torch.Tensor], n_out: int):
-    """`[B, T, F]` outputs from the steps' `(cols [B, W], values [B, W, F])`, NaN where none.
-
-    Whole rows are copied into a flat `[B·T + B·L, F]` buffer (`index_copy`, whose backward
-    is one `index_select`); each masked-out lane gets a row of its own past `B·T`, so no
-    index repeats.
-    """
-    cols_all = torch.cat(cols, dim=1)  # (B, L)
-    vals_all = torch.cat(vals, dim=1)  # (B, L, F)
-    batch, lanes, feat = vals_all.shape
-    dev = cols_all.device
-    rows = torch.arange(batch, device=dev)[:, None] * n_out + cols_all
-    spare = batch * n_out + torch.arange(batch * lanes, device=dev).view(batch, lanes)
-    rows = torch.where(cols_all < n_out, rows, spare).reshape(-1)
-    out = torch.full((batch * (n_out + lanes), feat), math.nan, dtype=vals_all.dtype,
-                     device=dev)
-    out = out.index_copy(0, rows, vals_all.reshape(batch * lanes, feat))
-    return out[: batch * n_out].view(batch, n_out, feat)

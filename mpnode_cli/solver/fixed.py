@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import torch
 
 from mpnode_cli.solver.fused import StepTape, end_step, fused_stages
-from mpnode_cli.solver.runge_kutta import RHS, Stages, StageTableau, rk_step
+from mpnode_cli.solver.problem import Problem
+from mpnode_cli.solver.runge_kutta import RHS, Stages, rk_step
 from mpnode_cli.solver.solution import Status
 
 
@@ -31,28 +32,25 @@ def fixed_grid(ts: torch.Tensor, stops: torch.Tensor, fixed_dt: float) -> Iterat
         yield b
 
 
-def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
-                stops: torch.Tensor, fixed_dt: float, max_steps: int,
-                report: Callable[[torch.Tensor], None] | None = None,
-                shaped: RHS | None = None, shape: tuple[int, ...] | None = None):
-    """Integrate with fixed steps.
+def solve_fixed(problem: Problem, fun: RHS, shaped: RHS, y: torch.Tensor):
+    """Integrate `problem` with fixed steps of at most `problem.fixed_dt`.
 
     Args:
+        problem: the solve's settings (`problem.fixed_dt` set).
         fun: the right-hand side on flat states, `fun(t [B], y [B, F]) -> [B, F]`.
-        y: `[B, F]` initial states at `ts[0]`; ts: `[T]` float64 output times;
-        stops: sorted float64 times in (t0, t_end] that steps land on, t_end last.
-        report: called with the time `[B]` after every step.
-        shaped: the right-hand side on `[B, *S]` states (`shape`), for fused steps
-            (`fused.py`); None records every op of the step instead.
+        shaped: the same on `[B, *S]` states, for fused steps (`problem.fused`, `fused.py`);
+            else every op of the step is recorded.
+        y: `[B, F]` initial states at `ts[0]`.
 
     Returns:
         `(ys [B, T, F], status [B], stats)`, as `solve` returns them.
     """
+    tab, ts, stops, report = problem.tab, problem.ts, problem.stops, problem.report
     batch = y.shape[0]
     dev = y.device
     n_out = ts.numel()
     out_times = ts.tolist()
-    grid = fixed_grid(ts, stops, fixed_dt)
+    grid = fixed_grid(ts, stops, problem.fixed_dt)
     interior_stops = set(stops[:-1].tolist())
     zero = torch.zeros((), dtype=torch.float64, device=dev)
     n_extra = 0
@@ -60,11 +58,7 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
     t_prev = out_times[0]
     t = torch.full((batch,), t_prev, dtype=torch.float64, device=dev)
     k1 = fun(t, y)
-    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
-    if shaped is None:
-        stages = Stages(tab.stages, batch, y.shape[1], y, reuse=not record)
-    else:
-        tape = StepTape(tab, y, shape, record)
+    advance = _stepper(problem, fun, shaped if problem.fused else None, y, k1)
     running = torch.isfinite(k1).all(dim=1) & torch.isfinite(y).all(dim=1)
     status = torch.where(running, Status.SUCCESS, Status.NON_FINITE)
     n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
@@ -72,25 +66,15 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
     nan_row = torch.full_like(y, math.nan)
     j = 1
     for step, t_next in enumerate(grid):
-        if step >= max_steps:
+        if step >= problem.max_steps:
             status = torch.where(running, Status.MAX_STEPS, status)
             running = torch.zeros_like(running)
             break
         h = torch.where(running, t_next - t_prev, zero)
         t_end = torch.full_like(t, t_next)
-        if shaped is None:
-            y_new, _, f_new, _ = rk_step(fun, tab, stages, t, h, y, k1, t_end)
-        else:
-            rec, y_new, _, f_new = fused_stages(shaped, tab, tape, t, h, y, k1, t_end)
-        ok = (running & torch.isfinite(y_new).all(dim=1)
-              & torch.isfinite(f_new).flatten(1).all(dim=1))
+        y, k1, ok = advance(t, h, y, k1, t_end, running)
         status = torch.where(running & ~ok, Status.NON_FINITE, status)
         n_steps += running
-        if shaped is None:
-            y = torch.where(ok[:, None], y_new, y)
-            k1 = torch.where(ok[:, None], f_new, k1)
-        else:
-            y, k1 = end_step(rec, f_new, ok)
         running = ok
         t = t_end
         t_prev = t_next
@@ -109,3 +93,32 @@ def solve_fixed(fun: RHS, tab: StageTableau, y: torch.Tensor, ts: torch.Tensor,
              "n_rejected": torch.zeros_like(n_steps),
              "n_f_evals": 1 + (tab.stages - 1) * n_steps + n_extra}
     return ys, status, stats
+
+
+def _stepper(problem: Problem, fun: RHS, shaped: RHS | None, y: torch.Tensor,
+             k1: torch.Tensor):
+    """`advance(t, h, y, k1, t_end, running) -> (y, k1, ok)`: one step of every sample,
+    recorded op by op (`shaped` None) or fused; `ok` `[B]`: running and finite after it,
+    the others kept where they were."""
+    tab, batch = problem.tab, y.shape[0]
+    record = torch.is_grad_enabled() and (k1.requires_grad or y.requires_grad)
+    if shaped is None:
+        stages = Stages(tab.stages, batch, y.shape[1], y, reuse=not record)
+    else:
+        tape = StepTape(tab, y, problem.batch_shape(batch), record)
+
+    def finite(running, y_new, f_new):
+        return (running & torch.isfinite(y_new).all(dim=1)
+                & torch.isfinite(f_new).flatten(1).all(dim=1))
+
+    def recorded(t, h, y, k1, t_end, running):
+        y_new, _, f_new, _ = rk_step(fun, tab, stages, t, h, y, k1, t_end)
+        ok = finite(running, y_new, f_new)
+        return torch.where(ok[:, None], y_new, y), torch.where(ok[:, None], f_new, k1), ok
+
+    def fused(t, h, y, k1, t_end, running):
+        rec, y_new, _, f_new = fused_stages(shaped, tab, tape, t, h, y, k1, t_end)
+        ok = finite(running, y_new, f_new)
+        return (*end_step(rec, f_new, ok), ok)
+
+    return recorded if shaped is None else fused

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import torch
 
-from mpnode_cli.solver.host import Ops, TorchOps
+from mpnode_cli.solver.dense import write_lanes
 from mpnode_cli.solver.runge_kutta import RHS, StageTableau
 
 
@@ -54,15 +54,15 @@ class StepTape:
         out: `[B·T + 1, F]` the dense outputs, NaN until written; the spare last row takes
             the writes of masked-out lanes (None for a solve without dense output).
         g_out: `[B·T + 1, F]` the outputs' gradient (last row 0), set by `_Outputs`' backward.
-        ops: the namespace that writes the dense outputs (`host.py`): torch where autograd
-            records the steps.
+        host_sums: write the dense outputs' sums in numpy (`dense.host_lanes`; never where
+            autograd records the steps).
     """
 
     def __init__(self, tab: StageTableau, y: torch.Tensor, shape: tuple[int, ...],
-                 record: bool, n_out: int | None = None, ops: Ops = TorchOps):
+                 record: bool, n_out: int | None = None, host_sums: bool = False):
         batch, feat = y.shape
         self.tab, self.shape, self.feat, self.record = tab, shape, feat, record
-        self.ops = ops
+        self.host_sums = host_sums and not record
         self.hk = torch.empty(tab.stages, batch, feat, dtype=y.dtype, device=y.device)
         hk_t = self.hk.view(tab.stages, -1).T  # (B·F, s)
         self.cols = [hk_t[:, :i] for i in range(tab.stages + 1)]
@@ -209,7 +209,7 @@ def _end(rec: StepRecord, k_last: torch.Tensor):
     y_next = torch.where(rec.accept, rec.y_new, rec.y)
     k1_next = torch.where(rec.accept, k_last.reshape(rec.y.shape), rec.k1)
     if rec.rows is not None:
-        tape.ops.write_lanes(tape.out, rec.rows, rec.coef, tape.hk, rec.y)
+        write_lanes(tape.out, rec.rows, rec.coef, tape.hk, rec.y, tape.host_sums)
     rec.y = rec.k1 = rec.y_new = rec.y_flat = rec.last = None  # not needed past the step
     return y_next, k1_next
 

@@ -2,9 +2,11 @@
 
 The generate and train configs each hold one as their `solver` field (with their own
 defaults, `mpnode_cli.config`), and the layers between pass it on unchanged until
-`solve(f, y0, t_eval, **options.solve_kwargs())`. The field defaults here are `solve`'s own
-(tests/test_solver_options.py checks that they agree). Torch-free, like `tableau`, so that
-configs and the CLI's help can be built without importing torch.
+`solve(f, y0, t_eval, **options.solve_kwargs())`, which builds the step-size controller
+from `controller`, `rtol` and `atol`. The field defaults are declared once: the method's and
+`max_steps`' here (`solve` takes them from here), the tolerances' and the controller's in
+`controller.py`. Torch-free, like `tableau` and `controller`, so that configs and the CLI's
+help can be built without importing torch.
 """
 
 from __future__ import annotations
@@ -13,9 +15,13 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mpnode_cli.solver.controller import ATOL, CONTROLLER, CONTROLLERS, RTOL, controller_for
 from mpnode_cli.solver.tableau import METHODS, get_method
 
 Method = Literal[tuple(METHODS)]  # the registered methods' names
+Controller = Literal[tuple(CONTROLLERS)]  # the registered controllers' names
+METHOD = "tsit5"  # the default method of `solve` and `SolverOptions`
+MAX_STEPS = 100_000  # the default attempted steps per sample
 
 _METHOD_HELP = "Runge–Kutta method: " + ", ".join(
     f"{name} ({tableau.summary})" for name, tableau in METHODS.items()) + "."
@@ -26,14 +32,15 @@ class SolverOptions(BaseModel):
 
     Attributes:
         method: a name of `mpnode_cli.solver.tableau.METHODS`.
-        rtol, atol: per-element tolerances of adaptive steps.
+        rtol, atol: per-element tolerances of adaptive steps (the controller's).
         fixed_dt: take fixed steps of at most this size instead (no error control).
         max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
         compile: run the adaptive step through `torch.compile`; "auto" lets the verb decide
             (training compiles long runs: `mpnode_cli.training.loop.resolve_compile`), and
             stands for False where nothing decides.
         controller: adaptive step-size control, "pi" or "i" (a name of
-            `controller.CONTROLLERS`, which builds the typed controller for the method).
+            `controller.CONTROLLERS`; `solve_kwargs` builds the typed controller, with
+            `rtol` and `atol`).
         compact: once most samples have finished, go on with the running ones only (where
             the caller can restrict its right-hand side to them: the neural ODEs' rollouts);
             the same result up to rounding, fewer rows stepped.
@@ -41,17 +48,17 @@ class SolverOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    method: Method = Field("tsit5", description=_METHOD_HELP)
-    rtol: float = Field(1e-6, gt=0, lt=1, description="Solver relative tolerance.")
-    atol: float = Field(1e-8, gt=0, description="Solver absolute tolerance.")
+    method: Method = Field(METHOD, description=_METHOD_HELP)
+    rtol: float = Field(RTOL, gt=0, lt=1, description="Solver relative tolerance.")
+    atol: float = Field(ATOL, gt=0, description="Solver absolute tolerance.")
     fixed_dt: float | None = Field(
         None, gt=0, description="Fixed steps of at most this size instead of adaptive ones.")
-    max_steps: int = Field(100_000, ge=1, description="Attempted steps per trajectory.")
+    max_steps: int = Field(MAX_STEPS, ge=1, description="Attempted steps per trajectory.")
     compile: bool | Literal["auto"] = Field(
         False, description="torch.compile the adaptive step (auto: training decides by the "
         "run's length).")
-    controller: Literal["pi", "i"] = Field(
-        "pi", description="Adaptive step-size control: pi (proportional-integral) or i "
+    controller: Controller = Field(
+        CONTROLLER, description="Adaptive step-size control: pi (proportional-integral) or i "
         "(integral; fewer steps at loose tolerances).")
     compact: bool = Field(
         True, description="Once most trajectories have finished, step the running ones only "
@@ -63,5 +70,8 @@ class SolverOptions(BaseModel):
         return self
 
     def solve_kwargs(self) -> dict[str, Any]:
-        """The keyword arguments of `solve` these options stand for ("auto" compile: no)."""
-        return self.model_dump() | {"compile": self.compile is True}
+        """The keyword arguments of `solve` these options stand for: the controller built
+        from its name and the tolerances ("auto" compile: no)."""
+        kwargs = self.model_dump(exclude={"rtol", "atol"})
+        return kwargs | {"compile": self.compile is True,
+                         "controller": controller_for(self.controller, self.rtol, self.atol)}

@@ -7,13 +7,13 @@ result does not depend on what else is in the batch (torchdiffeq shares one step
 the batch; see docs/solver.md), and a sample that fails is frozen and marked while the others
 go on.
 
-This module checks the arguments, flattens each sample's state to `[F]`, and hands over to
-one of two loops over the same Runge–Kutta step (`runge_kutta.py`, recorded op by op by
-autograd, or `fused.py`, with a backward written for the tableau): `adaptive.py` (error
-control, dense output, an optional compiled step) or `fixed.py` (`fixed_dt`). The result
-types are in `solution.py`, the step-size controllers in `controller.py`, and the adaptive
-step's small arithmetic, run in numpy on the CPU and in torch elsewhere, in `host.py`.
-Given `restrict`, the adaptive solve compacts (`_Adaptive`): once most samples are done it
+This module checks the arguments, flattens each sample's state to `[F]`, gathers the
+solve's settings into one `Problem` (`problem.py`), and hands over to one of two loops over
+the same Runge–Kutta step (`runge_kutta.py`, recorded op by op by autograd, or `fused.py`,
+with a backward written for the tableau): `adaptive.py` (error control, dense output in
+`dense.py`, an optional compiled step) or `fixed.py` (`fixed_dt`). The result types are in
+`solution.py`, the step-size controllers, which own the tolerances, in `controller.py`.
+Given `restrict`, the adaptive solve compacts (`_adaptive`): once most samples are done it
 restarts on the running ones, each from its own state, and merges their later outputs back.
 """
 
@@ -25,8 +25,10 @@ from collections.abc import Callable, Sequence
 import torch
 
 from mpnode_cli.solver.adaptive import solve_adaptive
-from mpnode_cli.solver.controller import controller_for
+from mpnode_cli.solver.controller import ATOL, CONTROLLER, RTOL, StepController, controller_for
 from mpnode_cli.solver.fixed import solve_fixed
+from mpnode_cli.solver.options import MAX_STEPS, METHOD
+from mpnode_cli.solver.problem import Problem
 from mpnode_cli.solver.runge_kutta import RHS, stage_tableau
 from mpnode_cli.solver.solution import STAT_NAMES, Solution, Status
 from mpnode_cli.solver.tableau import get_method
@@ -39,15 +41,15 @@ def solve(
     y0: torch.Tensor,
     t_eval: torch.Tensor | Sequence[float],
     *,
-    method: str = "tsit5",
-    rtol: float = 1e-6,
-    atol: float = 1e-8,
+    method: str = METHOD,
+    rtol: float | None = None,
+    atol: float | None = None,
     dt0: float | torch.Tensor | None = None,
-    max_steps: int = 100_000,
+    max_steps: int = MAX_STEPS,
     fixed_dt: float | None = None,
     tstops: torch.Tensor | Sequence[float] | None = None,
     compile: bool = False,
-    controller: str = "pi",
+    controller: str | StepController = CONTROLLER,
     progress: Callable[[float], None] | None = None,
     fused: bool = True,
     compact: bool = True,
@@ -67,21 +69,22 @@ def solve(
         method: a name of `tableau.METHODS`: "tsit5" (default) or "dopri5", 5(4) pairs
             with adaptive steps, or "rk4", the classic 4th-order method, which has no error
             estimate and so needs `fixed_dt`.
-        rtol, atol: per-element tolerances; a step is accepted when the RMS over the
-            sample's elements of `err / (atol + rtol·max(|y|, |y_new|))` is at most 1.
+        rtol, atol: the tolerances of the controller `controller` names (None: 1e-6 and
+            1e-8, `controller.RTOL`, `ATOL`); never beside a controller object.
         dt0: first step size (scalar or `[B]`); by default chosen per sample by Hairer's
             heuristic (two extra evaluations of `f`).
         max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
         fixed_dt: if given, take fixed steps (no error control) of at most this size, aligned
             so that every output time and every tstop is hit exactly.
         tstops: times that no step may cross (e.g. where a zero-order-hold control changes).
-        compile: run the adaptive step through `torch.compile` (inductor). The first solve
-            with a new `f`, shape or dtype compiles for ~10 s; later ones run about 2× faster
-            on CPU (bench/results/solver.md). Worth it for long or repeated solves; ignored
-            with `fixed_dt`.
+        compile: run the adaptive step through `torch.compile` (inductor): ~10 s to compile
+            for a new `f`, shape or dtype, then about 2× faster on CPU
+            (bench/results/solver.md); for long or repeated solves; ignored with `fixed_dt`.
         controller: adaptive step-size control, "pi" (proportional-integral, the default)
-            or "i" (integral; fewer steps at loose tolerances on smooth solutions): a name
-            of `controller.CONTROLLERS`.
+            or "i" (integral; fewer steps at loose tolerances on smooth solutions), or a
+            controller object with its own tolerances and coefficients, e.g.
+            `PIController(rtol=1e-8, atol=1e-10)`: a step is accepted when the RMS over
+            the sample's elements of `err / (atol + rtol·max(|y|, |y_new|))` is ≤ 1.
         progress: if given, called now and then (at most every `PROGRESS_SECONDS`) with
             the fraction of the time span covered so far, the mean over samples, so that a
             long solve can show that it moves. Each call costs one host sync.
@@ -104,36 +107,48 @@ def solve(
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
-        (backpropagation through the solver's operations); the step-size controller is
-        detached. The fused step's backward is first-order only: with `create_graph=True`
-        it raises (`fused=False` takes higher derivatives).
+        (backpropagation through the solver's operations), not through the step-size
+        choice. The fused step's backward is first-order only: `create_graph=True` raises
+        (`fused=False` takes higher derivatives).
     """
     ts = _checked_times(y0, t_eval, fixed_dt)
     tableau = get_method(method, fixed_dt)
+    ctrl = _controller(controller, rtol, atol)
 
-    batch, shape = y0.shape[0], y0.shape[1:]
-    n_out = ts.numel()
+    batch, shape, n_out = y0.shape[0], y0.shape[1:], ts.numel()
     y = y0.reshape(batch, -1).contiguous()  # (B, F); steps view it flat, e.g. y0 = x[:, 0]
     fun, shaped = _flat_and_shaped(f, batch, shape, y0.dtype)
-
     if n_out == 1:
         zeros = torch.zeros(batch, dtype=torch.long, device=y0.device)
         return Solution(ts, y0.unsqueeze(1), zeros, {k: zeros for k in STAT_NAMES})
 
-    stops = _stop_times(ts, tstops)
-    tab = stage_tableau(tableau, y.dtype, y0.device)
-    report = _Reporter(progress, ts)
-    shaped = shaped if fused else None
-    if fixed_dt is not None:
-        ys, status, stats = solve_fixed(fun, tab, y, ts, stops, fixed_dt, max_steps, report,
-                                        shaped, (batch, *shape))
+    adaptive = fixed_dt is None
+    problem = Problem(
+        tab=stage_tableau(tableau, y.dtype, y0.device), ts=ts, stops=_stop_times(ts, tstops),
+        shape=tuple(shape), dtype=y0.dtype, max_steps=max_steps, fused=fused,
+        report=_Reporter(progress, ts), controller=ctrl,
+        order=tableau.controller_order if adaptive else 0, dt0=dt0, compile=compile,
+        restrict=restrict, fixed_dt=fixed_dt,
+        block=_compaction_block(adaptive and compact and not compile, restrict,
+                                restrict_block, batch))
+    if adaptive:
+        ys, status, stats = _adaptive(problem, fun, shaped, y)
     else:
-        p = tableau.controller_order
-        block = _compaction_block(compact and not compile, restrict, restrict_block, batch)
-        run = _Adaptive(tab, p, controller_for(controller, p), ts, stops, rtol, atol, dt0,
-                        max_steps, compile, report, fused, shape, y0.dtype, restrict, block)
-        ys, status, stats = run(fun, shaped, y, None, None)
+        ys, status, stats = solve_fixed(problem, fun, shaped, y)
     return Solution(ts, ys.view(batch, n_out, *shape), status, stats)
+
+
+def _controller(controller: str | StepController, rtol: float | None,
+                atol: float | None) -> StepController:
+    """The step-size controller `solve` was given, or the one it names, with `rtol` and
+    `atol` (ValueError, one line, for an unknown name or tolerances beside an object)."""
+    if isinstance(controller, StepController):
+        if rtol is not None or atol is not None:
+            raise ValueError("the controller object carries rtol and atol: give them to it "
+                             f"({type(controller).__name__}(rtol=..., atol=...)), not to solve")
+        return controller
+    return controller_for(controller, RTOL if rtol is None else rtol,
+                          ATOL if atol is None else atol)
 
 
 def _checked_times(y0: torch.Tensor, t_eval, fixed_dt: float | None) -> torch.Tensor:
@@ -161,47 +176,37 @@ def _compaction_block(compact: bool, restrict, restrict_block: int, batch: int) 
     return restrict_block
 
 
-class _Adaptive:
-    """The adaptive solve with compaction: `solve_adaptive` until it stops early, then the
-    same on the samples that still run (`restrict`), from where each one was, their later
-    outputs, statuses and stats merged back into the batch's."""
+def _adaptive(problem: Problem, fun: RHS, shaped: RHS, y: torch.Tensor, start=None,
+              index: torch.Tensor | None = None):
+    """The adaptive solve with compaction: `(ys [B, T, F], status [B], stats)` of the
+    samples `index` (None: the batch) from `start` (None: from `ts[0]`).
 
-    def __init__(self, tab, p, ctrl, ts, stops, rtol, atol, dt0, max_steps, compile, report,
-                 fused, shape, dtype, restrict, block):
-        self.tab, self.p, self.ctrl, self.ts, self.stops = tab, p, ctrl, ts, stops
-        self.rtol, self.atol, self.dt0, self.max_steps = rtol, atol, dt0, max_steps
-        self.compile, self.report, self.fused, self.shape = compile, report, fused, shape
-        self.dtype, self.restrict, self.block = dtype, restrict, block
-
-    def __call__(self, fun, shaped, y, start, index):
-        """`(ys [B, T, F], status [B], stats)` of the samples `index` (None: the batch)
-        from `start` (None: from `ts[0]`)."""
-        batch = y.shape[0]
-        ys, status, stats, rest = solve_adaptive(
-            fun, self.tab, self.p, self.ctrl, y, self.ts, self.stops, self.rtol, self.atol,
-            self.dt0, self.max_steps, self.compile, self.report,
-            shaped if self.fused else None, (batch, *self.shape), start, self.block)
-        if rest is None:
-            return ys, status, stats
-        running = rest.state.running
-        if self.block > 1:  # whole blocks with any sample still running
-            running = running.view(-1, self.block).any(1).repeat_interleave(self.block)
-        keep = running.nonzero().squeeze(1)  # (B',) sorted
-        sub = rest.select(keep)
-        full = keep if index is None else index.index_select(0, keep)
-        sub_fun, sub_shaped = _flat_and_shaped(self.restrict(full), keep.numel(), self.shape,
-                                               self.dtype)
-        ys_k, status_k, stats_k = self(sub_fun, sub_shaped, sub.state.y, sub, full)
-        # The kept samples' outputs from where each stopped on come from the restart.
-        cols = torch.arange(self.ts.numel(), device=y.device)
-        later = (cols >= sub.state.out_idx[:, None])[..., None]  # (B', T, 1)
-        ys = ys.index_copy(0, keep, torch.where(later, ys_k, ys.index_select(0, keep)))
-        status = status.index_copy(0, keep, status_k)
-        stats = {k: v.index_copy(0, keep, stats_k[k]) for k, v in stats.items()}
+    `solve_adaptive` until it stops early, then the same on the samples that still run
+    (`problem.restrict`), from where each one was, their later outputs, statuses and stats
+    merged back into the batch's.
+    """
+    ys, status, stats, rest = solve_adaptive(problem, fun, shaped, y, start)
+    if rest is None:
         return ys, status, stats
+    running, block = rest.state.running, problem.block
+    if block > 1:  # whole blocks with any sample still running
+        running = running.view(-1, block).any(1).repeat_interleave(block)
+    keep = running.nonzero().squeeze(1)  # (B',) sorted
+    sub = rest.select(keep)
+    full = keep if index is None else index.index_select(0, keep)
+    sub_fun, sub_shaped = _flat_and_shaped(problem.restrict(full), keep.numel(),
+                                           problem.shape, problem.dtype)
+    ys_k, status_k, stats_k = _adaptive(problem, sub_fun, sub_shaped, sub.state.y, sub, full)
+    # The kept samples' outputs from where each stopped on come from the restart.
+    cols = torch.arange(problem.ts.numel(), device=y.device)
+    later = (cols >= sub.state.out_idx[:, None])[..., None]  # (B', T, 1)
+    ys = ys.index_copy(0, keep, torch.where(later, ys_k, ys.index_select(0, keep)))
+    status = status.index_copy(0, keep, status_k)
+    stats = {k: v.index_copy(0, keep, stats_k[k]) for k, v in stats.items()}
+    return ys, status, stats
 
 
-def _flat_and_shaped(f: RHS, batch: int, shape: torch.Size, dtype: torch.dtype):
+def _flat_and_shaped(f: RHS, batch: int, shape: tuple[int, ...], dtype: torch.dtype):
     """f on flat `[B, F]` states (the recorded steps') and on `[B, *S]` ones (the fused
     steps' nodes make and take them as they are), each returning the solve's dtype."""
     flat = len(shape) == 1  # f sees (B, F) already: skip two reshapes per evaluation

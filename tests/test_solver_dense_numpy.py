@@ -1,12 +1,12 @@
-"""The adaptive step's small arithmetic in numpy (`mpnode_cli/solver/host.py`), which every
-uncompiled CPU solve runs, against the same code in torch (`host.NUMPY_ON_CPU = False`):
-the same steps, accepts, rejections, evaluations and statuses per sample (equal: the
-arithmetic that decides them is the same in both), outputs within the rounding bound of
+"""The dense output's numpy form (`mpnode_cli/solver/dense.py`), which every uncompiled CPU
+solve takes, against its torch form (`dense.NUMPY_ON_CPU = False`): the same steps,
+accepts, rejections, evaluations and statuses per sample (equal: only the outputs' weights
+and sums differ, and the step never reads them), outputs within the rounding bound of
 their dense sums (`dense_rounding_bound`: it scales with the state's size and holds on any
 CPU and BLAS) and gradients to 1e-10 in float64, for both adaptive pairs and
 both controllers, with tstops, several outputs crossed per step, failing samples and
-compaction; the namespaces' pieces against each other; and a solve in numpy against a
-closed form."""
+compaction; the two forms' pieces against each other; and a solve against a closed
+form."""
 
 from __future__ import annotations
 
@@ -14,12 +14,11 @@ import contextlib
 import importlib
 import math
 
-import numpy as np
 import pytest
 import torch
 
-from mpnode_cli.solver import Status, adaptive, host, solve
-from mpnode_cli.solver.host import NumpyOps, TorchOps, ops_for
+from mpnode_cli.solver import Status, dense, solve
+from mpnode_cli.solver.dense import on_host
 from mpnode_cli.solver.tableau import METHODS
 
 SWITCH = 0.37  # where the zero-order-hold input of `forced` changes
@@ -28,13 +27,13 @@ solve_module = importlib.import_module("mpnode_cli.solver.solve")
 
 @contextlib.contextmanager
 def torch_on_cpu():
-    """Run the torch namespace on the CPU inside the block."""
-    before = host.NUMPY_ON_CPU
-    host.NUMPY_ON_CPU = False
+    """Run the dense output's torch form on the CPU inside the block."""
+    before = dense.NUMPY_ON_CPU
+    dense.NUMPY_ON_CPU = False
     try:
         yield
     finally:
-        host.NUMPY_ON_CPU = before
+        dense.NUMPY_ON_CPU = before
 
 
 def forced(theta: torch.Tensor):
@@ -50,8 +49,8 @@ def forced(theta: torch.Tensor):
 
 
 def both(run):
-    """`run()` with the numpy namespace (the default on the CPU), then with torch's."""
-    assert ops_for(torch.device("cpu"), compile=False) is NumpyOps
+    """`run()` with the numpy form (the default on the CPU), then with torch's."""
+    assert on_host(torch.device("cpu"), compile=False)
     got = run()
     with torch_on_cpu():
         want = run()
@@ -69,11 +68,10 @@ def two_sums_apart(terms: int, magnitude, dtype=torch.float64):
 
 
 def dense_rounding_bound(method: str, largest_state, dtype=torch.float64):
-    """How far the two namespaces' dense outputs may differ, taking the same steps.
+    """How far the two forms' dense outputs may differ, taking the same steps.
 
     Both take bit for bit the same steps, stages and step ends: the stats, compared
-    exactly, are decided by arithmetic that is the same in both (torch's `pow` and sums of
-    squares on numpy's memory). They differ only in how a dense output
+    exactly, are decided by the same torch code in both. They differ only in how a dense output
     y(t₀ + θh) = y₀ + Σ_i b_i(θ)·h·k_i is formed: numpy's powers and matmul against torch's
     cumprod and bmm, whose order and vector width depend on the CPU and the BLAS. Each
     weight b_i(θ) = Σ_k P_ik θ^k is a sum of K products (θ^k itself k − 1 products), so
@@ -115,7 +113,7 @@ def recording(f, seen: torch.Tensor, ts: torch.Tensor | None = None):
 
 def assert_same_steps(got, want):
     """The same statuses and counts of steps, accepts, rejections and evaluations: these
-    are decided by arithmetic that is the same in both namespaces, so they are equal."""
+    are decided by the same code in both forms, so they are equal."""
     assert got.status.tolist() == want.status.tolist()
     for name in want.stats:
         assert torch.equal(got.stats[name], want.stats[name]), name
@@ -205,7 +203,7 @@ def test_failing_samples_get_the_same_statuses():
     """A blow-up (y' = y², singular at t = 1: DT_UNDERFLOW), a field that is NaN after
     t = 0 (NON_FINITE after 20 rejections), a stiff one that runs out of steps
     (MAX_STEPS), a NaN initial state, and decaying samples that succeed: the same statuses
-    and step counts in both namespaces, and outputs within `dense_rounding_bound`.
+    and step counts in both forms, and outputs within `dense_rounding_bound`.
 
     The blow-up's output at t = 1 (1.2e8) comes from the step that jumps the numerical
     pole, whose stages reach Y = 8e14: there the two paths may differ by ~9e3 and differed
@@ -268,7 +266,7 @@ def test_compaction_agrees(block, monkeypatch):
 
 
 def test_a_linear_ode_matches_its_closed_form():
-    """y' = λ·y + sin(ωt), scalar per sample, in the numpy namespace (the CPU default):
+    """y' = λ·y + sin(ωt), scalar per sample, with the numpy form (the CPU default):
     y(t) = e^{λt}·(y₀ + ω/(λ² + ω²)) − (λ·sin ωt + ω·cos ωt)/(λ² + ω²)."""
     lam = torch.tensor([-3.0, -1.0, -0.2, 0.0, 0.5], dtype=torch.float64)
     omega = 2.0
@@ -284,94 +282,37 @@ def test_a_linear_ode_matches_its_closed_form():
     torch.testing.assert_close(sol.ys[..., 0], exact, rtol=1e-8, atol=1e-9)
 
 
-def test_the_namespace_is_chosen_by_device_compile_and_the_switch():
+def test_the_form_is_chosen_by_device_compile_and_the_switch():
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
-    assert ops_for(cpu, compile=False) is NumpyOps
-    assert ops_for(cpu, compile=True) is TorchOps  # the compiled step is tensor code
-    assert ops_for(cuda, compile=False) is TorchOps
+    assert on_host(cpu, compile=False)
+    assert not on_host(cpu, compile=True)  # the compiled step is tensor code
+    assert not on_host(cuda, compile=False)
     with torch_on_cpu():
-        assert ops_for(cpu, compile=False) is TorchOps
+        assert not on_host(cpu, compile=False)
 
 
-def test_state_dtypes_are_the_same_in_both():
-    """Every field of the loop's `State` and `Attempt` after each step: float64 time, step
-    and history, int64 counters, bool masks, the same in numpy as in torch."""
-    seen = {}
-    inner = adaptive.control
-
-    def spy(*args):
-        state, flags, step = inner(*args)
-        key = host.NUMPY_ON_CPU
-        fields = {**state._asdict(), **{f"attempt.{k}": v for k, v in step._asdict().items()
-                                        if isinstance(v, torch.Tensor)}}
-        seen.setdefault(key, set()).add(tuple((k, v.dtype, tuple(v.shape))
-                                              for k, v in fields.items()))
-        assert [int(x) for x in flags.tolist()] == flags.tolist()
-        return state, flags, step
-
-    adaptive.control = spy
-    try:
-        y0, theta = problem(torch.float32)
-        both(lambda: solve(forced(theta), y0, [0.0, 0.5, 1.0], tstops=[SWITCH]))
-    finally:
-        adaptive.control = inner
-    assert len(seen[True]) == 1 and seen[True] == seen[False]
-    dtypes = dict((k, d) for k, d, _ in next(iter(seen[True])))
-    assert dtypes["t"] == dtypes["dt"] == dtypes["err_prev"] == torch.float64
-    assert dtypes["n_steps"] == dtypes["out_idx"] == torch.int64
-    assert dtypes["running"] == dtypes["attempt.accept"] == torch.bool
-
-
-def arrays(*xs):
-    return [x.numpy() for x in xs]
-
-
-def test_the_namespaces_pieces_agree():
+def test_the_two_forms_pieces_agree():
     gen = torch.Generator().manual_seed(0)
-    x32 = torch.randn(64, 18, generator=gen)
-    x32[0, 0] = 1e20  # its square overflows float32: r = inf in both (a non-finite error)
-    x64 = torch.randn(64, 30, generator=gen, dtype=torch.float64)
-    for x in (x32, x64):
-        r_t, r_n = TorchOps.rms(x), torch.from_numpy(NumpyOps.rms(x.numpy()))
-        assert r_n.dtype == r_t.dtype == torch.float64
-        torch.testing.assert_close(r_n, r_t, rtol=2e-7 if x is x32 else 1e-15, atol=0)
-    assert math.isinf(TorchOps.rms(x32)[0]) and math.isinf(NumpyOps.rms(x32.numpy())[0])
-
-    ts = torch.linspace(0.0, 1.0, 11, dtype=torch.float64)
-    v = torch.tensor([-1.0, 0.0, 0.05, 0.1, 0.55, 1.0, 2.0], dtype=torch.float64)
-    assert NumpyOps.searchsorted(*arrays(ts, v)).tolist() == TorchOps.searchsorted(ts, v).tolist()
-
     theta = torch.rand(16, 3, generator=gen, dtype=torch.float64)
     interp_t = torch.randn(7, 4, generator=gen, dtype=torch.float64)
-    coef = NumpyOps.interpolant(*arrays(theta, interp_t))
-    assert coef.shape == (16, 3, 7) and coef.flags.c_contiguous
-    # b_i(θ) = Σ_k P_ik θ^k: K products and their sum in each namespace (see
+    coef = dense._interpolant_numpy(theta, interp_t)
+    assert coef.shape == (16, 3, 7) and coef.is_contiguous()
+    # b_i(θ) = Σ_k P_ik θ^k: K products and their sum in each form (see
     # `dense_rounding_bound`), to γ_{2K}·Σ_k |P_ik|·θ^k each.
     size = interp_t.abs() @ (theta[..., None] ** torch.arange(1, 5)).reshape(-1, 4).T  # (s, B·W)
     apart = two_sums_apart(2 * 4, size.T.reshape(16, 3, 7))
-    assert bool(((torch.from_numpy(coef) - TorchOps.interpolant(theta, interp_t)).abs()
-                 <= apart).all())
+    assert bool(((coef - dense._interpolant(theta, interp_t)).abs() <= apart).all())
 
     hk = torch.randn(7, 16, 5, generator=gen, dtype=torch.float64)
     y = torch.randn(16, 5, generator=gen, dtype=torch.float64)
-    c = torch.from_numpy(coef)
-    # y + Σ_i c_i·hk_i: s + 1 terms, summed by numpy's matmul and by torch's bmm.
-    apart = two_sums_apart(8, y.abs()[:, None] + torch.einsum("bws,sbf->bwf", c.abs(), hk.abs()))
-    assert bool(((NumpyOps.lanes(c, hk, y) - TorchOps.lanes(c, hk, y)).abs() <= apart).all())
-    out_t, out_n = torch.zeros(16 * 3 + 1, 5, dtype=torch.float64), torch.zeros(16 * 3 + 1, 5,
-                                                                                dtype=torch.float64)
+    # y + Σ_i c_i·hk_i: s + 1 terms, summed by numpy's matmul and by torch's einsum / bmm.
+    apart = two_sums_apart(8, y.abs()[:, None] + torch.einsum("bws,sbf->bwf", coef.abs(),
+                                                              hk.abs()))
+    assert bool(((dense.host_lanes(coef, hk, y) - dense.lanes(coef, hk, y)).abs()
+                 <= apart).all())
+    out_t, out_n = (torch.zeros(16 * 3 + 1, 5, dtype=torch.float64) for _ in range(2))
     rows = torch.randperm(16 * 3, generator=gen)
-    TorchOps.write_lanes(out_t, rows, c, hk, y)
-    NumpyOps.write_lanes(out_n, rows, c, hk, y)
+    dense.write_lanes(out_t, rows, coef, hk, y, numpy=False)
+    dense.write_lanes(out_n, rows, coef, hk, y, numpy=True)
     assert bool(((out_n - out_t)[rows].abs() <= apart.reshape(-1, 5)).all())
     assert not out_n[-1].any() and not out_t[-1].any()  # the row no lane names is untouched
-
-    mask = torch.tensor([False, True, False])
-    count = torch.tensor([0, 3, 1])
-    none = torch.zeros(3, dtype=torch.bool)
-    want = TorchOps.flags(mask, count, none, mask, count.sum()).tolist()
-    assert want == [1, 3, 0, 1, 4]
-    assert NumpyOps.flags(*arrays(mask, count, none, mask), count.numpy().sum()).tolist() == want
-    a = np.array([-1.0, 0.5, 2.0])
-    assert NumpyOps.clip(a, 0.0, 1.0).tolist() == [0.0, 0.5, 1.0]
-    assert NumpyOps.clip(a, None, 1.0).tolist() == [-1.0, 0.5, 1.0]
