@@ -36,7 +36,6 @@ FILE_RATCHET: dict[str, int] = {
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).
 FUNCTION_RATCHET: dict[str, int] = {
     "mpnode_cli/data/shards.py::_check_shards": 66,
-    "mpnode_cli/solver/fixed.py::solve_fixed": 61,
 }
 
 
