@@ -247,6 +247,9 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
     parent_sha = last.parent_sha256 if last else (
         file_sha256(config.init_checkpoint) if parent else None)
 
+    # The run's precision before any weights load: the model is built in float32, which
+    # would round a float64 checkpoint's weights (a float64 resume would then drift).
+    model.to(dtype=getattr(torch, config.dtype))
     if source is not None:
         model.load_state_dict(member_weights(source, seeds))
     if source is None or renormalize:
