@@ -2,9 +2,9 @@
 metrics of 2 epochs uninterrupted, to the bit.
 
 Models are built in float32 and cast to the run's dtype. A float64 checkpoint's weights
-loaded into the float32 model before the cast lose their last 29 mantissa bits; training
-from these weights moves every later number by about 1e-9 relative. In float32 nothing is
-rounded, so `tests/test_training.py`'s float32 resume test cannot see it.
+loaded into the float32 model before the cast would lose their last 29 mantissa bits, and
+every later number would move by float32 round-off (about 1e-9 relative). In float32
+nothing is rounded, so `tests/test_training.py`'s float32 resume test cannot see it.
 """
 
 from __future__ import annotations
@@ -63,3 +63,13 @@ def test_float64_resume_is_bit_identical_to_uninterrupted(gene, tmp_path, seeds)
         for name, value in state.items():
             assert torch.equal(value, b.optimizer["state"][key][name]), (key, name)
     assert _rows(whole) == _rows(resumed)
+
+
+def test_float64_finetune_starts_from_the_parents_exact_weights(gene, tmp_path):
+    # The same code path fails the same way for a finetune: its epoch 0 validates the
+    # starting weights, on the same data with the parent's normalization.
+    train(_config(gene, tmp_path / "parent", epochs=1))
+    parent = load_checkpoint(checkpoint_path(tmp_path / "parent", "best"))
+    assert parent.epoch == 1  # trained weights, which float32 cannot hold
+    train(_config(gene, tmp_path / "child", epochs=1, init_checkpoint=parent.path))
+    assert read_metrics(tmp_path / "child")[0]["val_loss"] == parent.metrics["val_loss"]
