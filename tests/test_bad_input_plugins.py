@@ -10,6 +10,7 @@ one mistake put in.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -91,6 +92,7 @@ def test_a_plugins_mistake_names_its_file_class_and_method(tmp_path, mistake):
     ("import sys\nsys.exit(0)\n", "called sys.exit(0) as it was imported"),
     ("raise SystemExit('bye')\n", "called sys.exit('bye') as it was imported"),
     (EXAMPLE + "\nimport sys\nsys.exit()\n", "called sys.exit(None)"),
+    ("import os\nos._exit(0)\n", "called os._exit(0)"),  # would end the test run itself
 ])
 def test_a_plugin_that_exits_as_it_is_imported_is_one_line(tmp_path, source, words):
     path = tmp_path / "mine.py"
@@ -99,6 +101,7 @@ def test_a_plugin_that_exits_as_it_is_imported_is_one_line(tmp_path, source, wor
     line = one_line_error(invoke("generate", "--system-file", path, "--out", out))
     assert f"--system-file {path} does not import: it {words}" in line, line
     assert not out.exists()
+    assert os._exit.__module__ == "posix" or os._exit.__name__ == "_exit"  # given back
 
 
 @pytest.mark.parametrize(("old", "new", "words"), [

@@ -15,11 +15,13 @@ built-in ones. A plug-in cannot take a built-in system's name.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.util
 import inspect
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -113,6 +115,30 @@ def entry_point_systems() -> dict[str, type[System]]:
     return found
 
 
+class _HardExit(SystemExit):
+    """`os._exit(code)` called by a plug-in while it is imported."""
+
+    def __str__(self) -> str:
+        return f"it called os._exit({self.code}), which would end mpnode without a word"
+
+
+@contextlib.contextmanager
+def _no_hard_exit():
+    """While a plug-in file is imported, `os._exit` raises `_HardExit` instead of ending the
+    process at once (which would skip every message and leave exit code 0); a plug-in has
+    no reason to end mpnode. An exit from C code cannot be caught this way."""
+    real = os._exit
+
+    def refuse(code: int = 0) -> None:
+        raise _HardExit(code)
+
+    os._exit = refuse
+    try:
+        yield
+    finally:
+        os._exit = real
+
+
 def load_system_file(path: str | Path) -> type[System]:
     """Import a Python file and register the one `System` subclass it defines.
 
@@ -136,7 +162,8 @@ def load_system_file(path: str | Path) -> type[System]:
         module = importlib.util.module_from_spec(spec)
         sys.modules[module_name] = module
         try:
-            spec.loader.exec_module(module)
+            with _no_hard_exit():
+                spec.loader.exec_module(module)
         except BaseException as exc:  # the user's code: any error, or exit, is "cannot load"
             del sys.modules[module_name]
             if isinstance(exc, KeyboardInterrupt):
@@ -161,6 +188,8 @@ def load_system_file(path: str | Path) -> type[System]:
 
 def _failure(exc: BaseException) -> str:
     """Why importing a plug-in failed, in a few words (`sys.exit` said as such)."""
+    if isinstance(exc, _HardExit):
+        return str(exc)
     if isinstance(exc, SystemExit):
         return f"it called sys.exit({exc.code!r}) as it was imported"
     return f"{type(exc).__name__}: {exc}"
