@@ -283,6 +283,18 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
     assert claims.barely_learned("on.test.mse < off.test.mse", results) == []
     assert claims.verdict("near.test.mse < on.test.mse", results)[2] == (
         "**no** (near: barely learned, 1.01× below the time mean)")
+    # Neither side learned: the claim is not tested, whichever way the numbers fall.
+    results["flat2"] = {"best_epoch": 9, "test": {"mse": 1.2, "time_mean": 1.0}}
+    holds, _, said = claims.verdict("off.test.mse < flat2.test.mse", results)
+    assert holds is None and said == ("not tested (no run it compares learned) (off: not "
+                                      "below the time mean; flat2: not below the time mean)")
+    assert claims.verdict("off.test.mse < 2 * off.test.mse", results)[2].startswith("not tested")
+    # One side learned (on), or a member of an ensemble did: tested, with the notes.
+    assert claims.verdict("on.test.mse < flat2.test.mse", results)[2].startswith("yes")
+    mixed = {"best_epoch": 9, "test": {"mse": 1.2, "time_mean": 1.0},
+             "members": [{"best_epoch": 9, "test": {"mse": 1.2, "time_mean": 1.0}},
+                         {"best_epoch": 9, "test": {"mse": 0.1, "time_mean": 1.0}}]}
+    assert not claims.nothing_learned("m.test.mse < 2", {"m": mixed})
 
 
 def test_a_verdict_says_when_the_model_is_not_the_papers():

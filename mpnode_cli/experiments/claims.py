@@ -97,6 +97,19 @@ def barely_learned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
             if any(ratio > 1 for ratio in ratios.values())]
 
 
+def nothing_learned(text: str, results: dict[str, dict[str, Any]]) -> bool:
+    """Whether every training run a claim compares, every member of it, is not below the
+    time-mean predictor: then the claim is not tested, whichever way its numbers fall."""
+    named = _named(text, results)
+    first = members.view(named, 0) if named else {}
+    runs = [step for step, r in first.items() if isinstance(r, dict) and "best_epoch" in r]
+    found = member_learning(text, results)
+    size = members.count(named)
+    return bool(runs) and all(
+        len(found.get(step, {})) == size and all(r <= 1 for r in found[step].values())
+        for step in runs)
+
+
 def learning_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str]:
     """What `member_learning` finds, a phrase per run: `not below the time mean` or
     `barely learned, 1.3× below the time mean`; for an ensemble `member 1 not below the
@@ -145,7 +158,8 @@ def departures(text: str, results: dict[str, dict[str, Any]],
 def verdict(text: str, results: dict[str, dict[str, Any]],
             experiment: Experiment | None = None) -> tuple[bool | None, str, str]:
     """Whether a claim holds (None: undecided, or a number missing), the numbers shown, and
-    the verdict as the reports write it: yes, **no**, undecided or — (a number missing),
+    the verdict as the reports write it: yes, **no**, undecided, not tested (no training run
+    it compares beat the time mean, `nothing_learned`) or — (a number missing),
     followed by what it rests on: for an ensemble, how many members it holds for and
     whether the means differ by more than their combined std (`members.decide`); the
     runs (members) that did not beat the time mean or barely did; and a model that is not
@@ -157,6 +171,8 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     holds = {"holds": True, "fails": False}.get(decision.outcome or "")
     said = {"holds": "yes", "fails": "**no**", "undecided": "undecided"}.get(
         decision.outcome or "", "—")
+    if decision.outcome and nothing_learned(text, results):
+        holds, said = None, "not tested (no run it compares learned)"
     notes = [decision.reason()] if _ensemble(_named(text, results)) and decision.outcome else []
     notes += [f"{step}: {note}" for step, note in learning_notes(text, results).items()]
     notes += departures(text, results, experiment)
