@@ -12,17 +12,14 @@ module free of imports from higher floors.
 
 from __future__ import annotations
 
-import json
 import math
-import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from mpnode_cli.solver.options import SolverOptions
-from mpnode_cli.textfiles import read_text
 
 # Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
 SEED_MAX = 2**63 - 1
@@ -475,47 +472,3 @@ class TrainConfig(BaseModel):
     def datasets(self) -> list[Path]:
         """The training datasets, in the order given (one or several)."""
         return list(self.dataset) if isinstance(self.dataset, list) else [self.dataset]
-
-
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """Read a config file's fields: TOML, or JSON (e.g. a dataset's stored `config`).
-
-    Args:
-        path: `.toml` or `.json` file whose top-level keys are config fields.
-
-    Returns:
-        The raw fields, to be merged with presets and options and then validated.
-
-    Raises:
-        ValueError: a missing file, or one that does not parse.
-    """
-    path = Path(path)
-    text = read_text(path, "config file")
-    try:
-        if path.suffix == ".json":
-            data = json.loads(text)
-        else:
-            data = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"config file {path} does not parse: {exc}") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"config file {path} must hold a table of fields")
-    return data
-
-
-def error_line(exc: ValidationError) -> str:
-    """One line for a user out of a pydantic error: the first problem, where and what.
-
-    Example: `trajectories: Input should be greater than or equal to 1 (got -5)`.
-    """
-    err = exc.errors()[0]
-    msg = str(err["msg"]).removeprefix("Value error, ")
-    loc = ".".join(str(p) for p in err["loc"])
-    if err["type"] == "extra_forbidden":
-        return f"unknown config field '{loc}'"
-    if err["type"] == "missing":
-        return f"missing config field '{loc}'"
-    # Our own ValueErrors already quote the value; pydantic's built-in ones do not.
-    quoted = err["type"] == "value_error" or isinstance(err.get("input"), dict)
-    got = "" if quoted else f" (got {err['input']!r})"
-    return f"{loc}: {msg}{got}" if loc else msg

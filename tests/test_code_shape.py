@@ -26,10 +26,8 @@ FUNCTION_LIMIT = 60
 # Over the limit today: path → lines. Lower an entry when its file shrinks; remove it once
 # the file meets the limit.
 FILE_RATCHET: dict[str, int] = {
-    "mpnode_cli/config.py": 521,
     "mpnode_cli/data/generate.py": 641,
     "mpnode_cli/data/hdf5.py": 547,
-    "mpnode_cli/training/checkpoint.py": 506,
     "mpnode_cli/training/evaluate.py": 561,
     "mpnode_cli/training/loop.py": 593,
 }

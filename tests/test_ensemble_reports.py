@@ -26,7 +26,8 @@ from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.ensemble import spread_error_correlation
 from mpnode_cli.report.tables import fmt
-from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
+from mpnode_cli.training.checkpoint import load_checkpoint
+from mpnode_cli.training.checkpoint_members import member_checkpoint
 from mpnode_cli.training.evaluate import evaluate_checkpoint
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.predict import rollout_solver, simulate

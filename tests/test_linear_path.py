@@ -18,9 +18,9 @@ from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import (
     checkpoint_problems,
     load_checkpoint,
-    member_checkpoint,
     save_checkpoint,
 )
+from mpnode_cli.training.checkpoint_members import member_checkpoint
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.run import checkpoint_path

@@ -5,7 +5,7 @@ not. `--json` prints the report as one JSON object on stdout instead (either way
 
 `mpnode check CKPT --member K --out FILE` also writes member K of a valid ensemble
 checkpoint (`train --seeds S`) as a checkpoint of one model
-(`mpnode_cli.training.checkpoint.export_member`), which every verb takes as it takes
+(`mpnode_cli.training.checkpoint_members.export_member`), which every verb takes as it takes
 `--member K` with the ensemble.
 """
 
@@ -65,7 +65,7 @@ def check_command(
 def _export(report, member: int, out: Path, force: bool) -> dict:
     """Write member `member` of the checked checkpoint to `out`: what `--json` adds as
     `exported` (path, member, seed); a refusal is one line and exit 2."""
-    from mpnode_cli.training.checkpoint import export_member
+    from mpnode_cli.training.checkpoint_members import export_member
 
     if report.kind != "checkpoint":
         fail(f"--member: {report.path} is a {report.kind}, not an ensemble checkpoint")

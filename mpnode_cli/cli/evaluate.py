@@ -166,7 +166,8 @@ def extrapolated_nodes(row: dict[str, Any], name: str | None = None) -> None:
 
 def _load_checkpoint(path: Path, member: int | None = None):
     """The checkpoint at `path` (`member`: that member of an ensemble's, alone)."""
-    from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.checkpoint_members import member_checkpoint
 
     try:
         ckpt = load_checkpoint(path)

@@ -219,7 +219,7 @@ def _layered_config(preset: str | None, config_file: Path | None, system_file: P
         ValueError: a system file, preset or config file that does not load, no system,
             or fields the config refuses.
     """
-    from mpnode_cli.config import read_config_file
+    from mpnode_cli.config_file import read_config_file
     from mpnode_cli.config_upgrade import upgrade_solver_fields
     from mpnode_cli.data.presets import get_preset, merge_layers
 

@@ -150,7 +150,7 @@ def _config(config_file: Path | None, options: dict[str, Any],
     """The train config: the file's fields (upgraded if written by an earlier version),
     beneath the options given; model options and solver options are merged into the file's
     `[model_options]` and `[solver]` tables one by one."""
-    from mpnode_cli.config import read_config_file
+    from mpnode_cli.config_file import read_config_file
     from mpnode_cli.config_upgrade import upgrade_train_fields
 
     fields = upgrade_train_fields(read_config_file(config_file)) if config_file else {}

@@ -254,7 +254,7 @@ def load(name_or_path: str | Path) -> Experiment:
     try:
         experiment = Experiment(**fields)
     except ValidationError as exc:
-        from mpnode_cli.config import error_line
+        from mpnode_cli.config_file import error_line
 
         raise ValueError(f"{path.name}: {error_line(exc)}") from None
     check(experiment)
@@ -381,7 +381,7 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1) -> dict[str, A
 
 
 def _validated(model: type[BaseModel], fields: dict[str, Any]) -> Any:
-    from mpnode_cli.config import error_line
+    from mpnode_cli.config_file import error_line
 
     try:
         return model(**fields)

@@ -191,7 +191,8 @@ def _zeroshot(step, options, folder: Path, inputs, status, emit):
 
 def _evaluate(step, options, folder: Path, inputs, status, emit):
     from mpnode_cli.data.dataset import TrajectoryData
-    from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.checkpoint_members import member_checkpoint
     from mpnode_cli.training.evaluate import evaluate_checkpoint
 
     best = _best(inputs[step.checkpoint])

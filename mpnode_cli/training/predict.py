@@ -345,7 +345,8 @@ def _simulate(config, out: Path, confirm, progress: Progress | None) -> Simulate
     import time as clock
 
     from mpnode_cli.data.importers import load_controls, load_graph, load_initial_states
-    from mpnode_cli.training.checkpoint import load_checkpoint, member_checkpoint
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.checkpoint_members import member_checkpoint
     from mpnode_cli.training.extrapolation import extrapolation
 
     ckpt = load_checkpoint(config.checkpoint)

@@ -85,7 +85,7 @@ def file_changes(config: TrainConfig, config_file: Path, run_dir: Path) -> dict[
         ValueError: a file that does not read or validate, or one that would change the
             run (one line naming its fields that differ).
     """
-    from mpnode_cli.config import read_config_file
+    from mpnode_cli.config_file import read_config_file
     from mpnode_cli.config_upgrade import upgrade_train_fields
 
     fields = upgrade_train_fields(read_config_file(config_file))
