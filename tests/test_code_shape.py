@@ -27,9 +27,7 @@ FUNCTION_LIMIT = 60
 # the file meets the limit.
 FILE_RATCHET: dict[str, int] = {
     "mpnode_cli/data/generate.py": 641,
-    "mpnode_cli/data/hdf5.py": 547,
-    "mpnode_cli/training/evaluate.py": 561,
-    "mpnode_cli/training/loop.py": 593,
+    "mpnode_cli/training/loop.py": 582,
 }
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).
 FUNCTION_RATCHET: dict[str, int] = {

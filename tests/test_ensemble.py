@@ -18,7 +18,7 @@ from mpnode_cli.models.registry import build_model
 from mpnode_cli.models.stacked import LayerNorm, Linear, StackedMembers
 from mpnode_cli.training import loop
 from mpnode_cli.training.checkpoint import checkpoint_problems, load_checkpoint
-from mpnode_cli.training.evaluate import EvalResult
+from mpnode_cli.training.eval_result import EvalResult
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.run import checkpoint_path, read_metrics

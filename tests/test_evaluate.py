@@ -18,11 +18,11 @@ from mpnode_cli.data.generate import generate
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.checkpoint import load_checkpoint
+from mpnode_cli.training.eval_result import pooled
 from mpnode_cli.training.evaluate import (
     baseline_mse,
     evaluate,
     evaluate_checkpoint,
-    pooled,
     train_reference,
 )
 from mpnode_cli.training.loop import train

@@ -131,7 +131,7 @@ def merge_shards(paths: list[str | Path], out: str | Path, *, overwrite: bool = 
     so memory stays bounded whatever the dataset's size; with `virtual` they are mapped
     instead (an HDF5 virtual dataset whose sources are the shard files, by their paths
     relative to the merged file's folder; every reader refuses the file, naming the shard,
-    once a shard is moved or deleted: `mpnode_cli.data.hdf5.virtual_source_problems`).
+    once a shard is moved or deleted: `mpnode_cli.data.virtual.virtual_source_problems`).
 
     Args:
         paths: every shard of the dataset, once each, in any order.
@@ -334,7 +334,7 @@ def _copy(f, name: str, src, shards: list[_Shard], check, progress: Progress | N
 def _map(f, name: str, src, shards: list[_Shard], out: Path) -> None:
     """`name` as a virtual dataset over the shards'. HDF5 reads a shard it cannot open as
     the fill value (NaN, or the largest integer); readers check the shards first
-    (`mpnode_cli.data.hdf5.virtual_source_problems`), so the fill value is a second line
+    (`mpnode_cli.data.virtual.virtual_source_problems`), so the fill value is a second line
     of defence."""
     import h5py
 

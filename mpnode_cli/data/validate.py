@@ -32,8 +32,8 @@ from mpnode_cli.data.hdf5 import (
     SPLIT_NAMES,
     DatasetFormatError,
     _py,
-    virtual_source_problems,
 )
+from mpnode_cli.data.virtual import virtual_source_problems
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.progress import Progress
 from mpnode_cli.terminal import suggested

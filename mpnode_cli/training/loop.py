@@ -28,7 +28,7 @@ Several datasets (`config.dataset` a list: one system, any N) are trained on at 
 (`mpnode_cli.data.pooled`): each batch is one dataset's, the batches of all of them are
 interleaved in a seeded order, the normalization and the model's statistics are fitted on
 the train splits pooled, and validation and test are each dataset's and pooled (an
-element-weighted mean, `mpnode_cli.training.evaluate.pooled`), the pooled validation loss
+element-weighted mean, `mpnode_cli.training.eval_result.pooled`), the pooled validation loss
 choosing the best epoch. One dataset runs exactly as it did before several were possible.
 
 With `config.stream` the data stay in the file (`mpnode_cli.data.stream`): the batches are
@@ -71,7 +71,8 @@ from mpnode_cli.training import distributed
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint
 from mpnode_cli.training.checkpointer import Checkpointer
-from mpnode_cli.training.evaluate import EvalResult, evaluate, evaluate_datasets, pooled
+from mpnode_cli.training.eval_result import EvalResult, by_dataset, pooled
+from mpnode_cli.training.evaluate import evaluate, evaluate_datasets
 from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.recipe import resolve_config
 from mpnode_cli.training.run_folder import RunFolder
@@ -441,8 +442,8 @@ def _record(run: Run, schedules: list[LRSchedule], epoch: int, val: EvalResult,
     by_member = steps.pop("by_member", {})
     row = {"epoch": epoch, **steps, "val_loss": val.loss(config.loss), "val_mse": val.mse,
            "val_failed": val.failed, "val_rhs_evals": val.n_f_evals, "lr": lrs[0],
-           "seconds": seconds, "improved": bool(improved)} | _by_dataset(run.names, each,
-                                                                          config)
+           "seconds": seconds, "improved": bool(improved)} | by_dataset(run.names, each,
+                                                                         config.loss)
     if len(results) > 1:
         row |= _member_rows(run, val, lrs, improved, by_member)
     return row
@@ -463,18 +464,6 @@ def _member_rows(run: Run, val: EvalResult, lrs: list[float], improved: list[int
             "val_mse": float(mses.mean()), "val_mse_std": float(mses.std(correction=0)),
             "ensemble_val_mse": val.mse, "lr": sum(lrs) / len(lrs), "members": members,
             "improved_members": improved}
-
-
-def _by_dataset(names: list[str], each: list[EvalResult], config: TrainConfig
-                ) -> dict[str, Any]:
-    """A metrics row's per-dataset validation values (none for one dataset, whose row keeps
-    the keys it always had)."""
-    if len(each) == 1:
-        return {}
-    pairs = list(zip(names, each, strict=True))
-    return {"val_loss_by_dataset": {n: r.loss(config.loss) for n, r in pairs},
-            "val_mse_by_dataset": {n: r.mse for n, r in pairs},
-            "val_failed_by_dataset": {n: r.failed for n, r in pairs}}
 
 
 def _finish(run: Run) -> runs.TrainSummary:
