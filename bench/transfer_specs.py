@@ -31,6 +31,11 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "relu": ("--activation", "relu"),
     "relu-linear-path": ("--activation", "relu", "--linear-path"),
     "softplus": ("--activation", "softplus"),
+    # The gain of the affine update as an affine map of the node's own inputs, the form of
+    # every Barzel-Barabasi coupling (mpnode_cli/models/mpnode.py), alone and with a linear
+    # path beside the drift's MLP.
+    "linear-gain": ("--gain", "linear"),
+    "linear-gain-path": ("--gain", "linear", "--linear-path"),
     "l2s": ("--model", "l2s"),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
 }
 

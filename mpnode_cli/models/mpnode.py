@@ -23,6 +23,14 @@ linear in the neighbour sum, what it learns from nodes of degree 1–8 holds at 
 messages' own dynamics see the mean, so their feedback gain does not grow with the degree.
 `message_init="learned"` starts the message states from a learned function of
 `[x_i(t₀), u_i(t₀)]` instead of zero, for coupling that acts from the first instant.
+`gain="linear"` (off by default) makes the gains G_x and G_m affine functions of the
+node's own inputs, `G(x, u) = W·[x, u] + b`, instead of outputs of the drift's MLP. Every
+Barzel–Barabási coupling has this form (Barzel & Barabási 2013; `docs/systems.md`): a gain
+that is constant (regulatory, neuronal, population dynamics, `gene`) or linear in x_i
+(epidemic 1 − x_i, biochemical −R·x_i), and with embedded angles Kuramoto's and the swing
+equation's cos θ_i, sin θ_i. A hub's state grows with its degree beyond what the training
+graphs held; a linear gain carries what it learned there linearly, where an MLP's
+output is unconstrained (`docs/transfer.md`).
 `linear_path=True` (off by default) adds a linear map of its input beside each of these
 MLPs (`mpnode_cli.models.base.LinearPathMLP`), zero at first: where states leave the
 training range the tanh MLPs saturate, the linear path goes on linearly.
@@ -48,12 +56,14 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
+from torch import nn
 
 from mpnode_cli.models.aggregate import DegreeAwareAggregation, aggregator, channels
 from mpnode_cli.models.backend import Graph
 from mpnode_cli.models.base import mlp
 from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import MPNODEOptions
+from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.runge_kutta import RHS
 
 
@@ -68,8 +78,9 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             MLP; graph ("sys" or "full"); messages (False clamps incoming messages to zero,
             the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
             update ("mlp", the paper's, or "affine"); message_init ("zero", the paper's,
-            or "learned"); linear_path (a linear map beside each MLP, off by default);
-            periodic ("off" or "embed"); backend ("auto", "dense" or "scatter").
+            or "learned"); gain ("mlp" or "linear", with the affine update); linear_path
+            (a linear map beside each MLP, off by default); periodic ("off" or "embed");
+            backend ("auto", "dense" or "scatter").
         periodic_dims: the state indices that are angles (the dataset's periodic states);
             used only with `periodic="embed"`, which needs at least one.
     """
@@ -92,6 +103,9 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         if any(not 0 <= i < node_dim for i in self.periodic_dims):
             raise ValueError(f"periodic_dims {list(self.periodic_dims)} outside the "
                              f"{node_dim} states")
+        if o.gain == "linear" and o.update != "affine":
+            raise ValueError("gain linear shapes the affine update's gain; update "
+                             f"'{o.update}' has none (use update affine)")
         self._angles = list(self.periodic_dims)
         self._plain = [i for i in range(node_dim) if i not in self.periodic_dims]
         self.message_dim, self.graph, self.messages = o.message_dim, o.graph, o.messages
@@ -103,9 +117,15 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         if o.update == "affine":
             # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M);
             # a second one, ψ, is what a node sends: a function of its own [x, u, m].
-            self.net = mlp(e + control_dim, o.hidden, o.layers, d + m + d * c + m * m,
-                           o.activation, o.linear_path)
+            gains = d * c + m * m
+            linear_gain = o.gain == "linear"
+            self.net = mlp(e + control_dim, o.hidden, o.layers,
+                           d + m + (0 if linear_gain else gains), o.activation, o.linear_path)
             self.emit = mlp(e + control_dim + m, o.hidden, 1, m, o.activation, o.linear_path)
+            if linear_gain:
+                self.gain = Linear(e + control_dim, gains)
+                nn.init.zeros_(self.gain.weight)
+                nn.init.zeros_(self.gain.bias)
             with torch.no_grad():  # G = 0: training starts from uncoupled nodes
                 self.net[-1].weight[d + m:].zero_()
         else:
@@ -164,7 +184,10 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
                 sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
             else:
                 sent = own.new_zeros(*own.shape[:-1], m_dim)
-            return self._affine(self.net(own), aggregate(sent), average(sent))
+            out = self.net(own)
+            if self.options.gain == "linear":
+                out = torch.cat([out, self.gain(own)], dim=-1)
+            return self._affine(out, aggregate(sent), average(sent))
 
         return f
 
