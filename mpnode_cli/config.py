@@ -129,6 +129,10 @@ class GenerateConfig(BaseModel):
         hubs: degree coverage: in every graph this many nodes (those of highest degree)
             are joined to every other node, so the data hold in-degrees up to N − 1
             (`mpnode_cli.topologies.join_hubs`; docs/transfer.md). Not with an edge list.
+        hub_multiplicity: W ≥ 1: the hubs are joined by parallel edges (a multigraph), w_g
+            of them each way in graph g, w_g spread evenly from 1 to W over the G graphs
+            (`hub_multiplicities`), so hubs reach in-degree W·(N − 1) on N nodes. Needs
+            hubs, and N ≤ 256 (graphs held as matrices).
         directed: read the edge list's `i j` as one edge from i to j, not an undirected
             edge.
         trajectories: K.
@@ -161,6 +165,7 @@ class GenerateConfig(BaseModel):
     graph_seed: int = Field(0, ge=0, le=SEED_MAX)
     edge_list: Path | None = None
     hubs: int = Field(0, ge=0)
+    hub_multiplicity: int = Field(1, ge=1, le=255)
     directed: bool = False
     trajectories: int | None = Field(None, ge=1)
     t_end: float | None = Field(None, gt=0)
@@ -215,6 +220,12 @@ class GenerateConfig(BaseModel):
                              "it is (add the edges to the file instead)")
         if self.nodes is not None and self.hubs > self.nodes:
             raise ValueError(f"hubs ({self.hubs}) must be at most nodes ({self.nodes})")
+        if self.hub_multiplicity > 1 and not self.hubs:
+            raise ValueError("hub multiplicity sets the edges that join the hubs; give "
+                             "hubs too (--hubs H)")
+        if self.hub_multiplicity > 1 and self.nodes is not None and self.nodes > 256:
+            raise ValueError(f"hub multiplicity needs graphs of at most 256 nodes (held as "
+                             f"matrices), not {self.nodes}")
         if self.trajectories is not None and self.trajectories < self.graphs:
             raise ValueError(
                 f"trajectories ({self.trajectories}) must be at least graphs ({self.graphs}) "

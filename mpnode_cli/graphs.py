@@ -187,20 +187,28 @@ def edges(adjacency: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Edge list of a graph, one entry per directed message.
 
     Args:
-        adjacency: `[N, N]`, `A[i, j] != 0` iff j sends to i.
+        adjacency: `[N, N]`, `A[i, j]` the number of edges j → i (0 or 1, or more in a
+            multigraph: `mpnode generate --hub-multiplicity`).
 
     Returns:
         `(senders, receivers)`, int64 `[E]` each, sorted by receiver then sender; an
-        undirected edge appears once in each direction.
+        undirected edge appears once in each direction, and an edge of multiplicity w
+        w times.
     """
-    receivers, senders = np.nonzero(np.asarray(adjacency))
+    adjacency = np.asarray(adjacency)
+    receivers, senders = np.nonzero(adjacency)
+    counts = adjacency[receivers, senders].astype(np.int64)
+    if counts.size and counts.max() > 1:
+        senders, receivers = np.repeat(senders, counts), np.repeat(receivers, counts)
     return senders.astype(np.int64), receivers.astype(np.int64)
 
 
-def _canonical(n: int, senders: np.ndarray, receivers: np.ndarray) -> tuple[np.ndarray,
-                                                                           np.ndarray]:
-    """Messages sorted by receiver, then sender (the order `edges` gives), duplicates merged."""
-    key = np.unique(np.asarray(receivers, np.int64) * n + np.asarray(senders, np.int64))
+def _canonical(n: int, senders: np.ndarray, receivers: np.ndarray, repeats: bool = False
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Messages sorted by receiver, then sender (the order `edges` gives), duplicates merged
+    unless `repeats` (a multigraph's edge of multiplicity w stays w messages)."""
+    key = np.asarray(receivers, np.int64) * n + np.asarray(senders, np.int64)
+    key = np.sort(key) if repeats else np.unique(key)
     return key % n, key // n
 
 
@@ -210,8 +218,9 @@ class EdgeList:
 
     Attributes:
         num_nodes: N.
-        senders, receivers: int64 `[E]`, sorted by receiver then sender, no duplicates
-            (the order `edges(A)` gives, so a graph has one edge list).
+        senders, receivers: int64 `[E]`, sorted by receiver then sender (the order
+            `edges(A)` gives, so a graph has one edge list); a message repeats only in a
+            multigraph, once per edge.
     """
 
     num_nodes: int
@@ -219,9 +228,10 @@ class EdgeList:
     receivers: np.ndarray
 
     @staticmethod
-    def build(n: int, senders: np.ndarray, receivers: np.ndarray) -> EdgeList:
+    def build(n: int, senders: np.ndarray, receivers: np.ndarray,
+              repeats: bool = False) -> EdgeList:
         """The graph of the messages `senders[e] → receivers[e]` on `n` nodes, in canonical
-        order with duplicates merged.
+        order with duplicates merged, or kept as a multigraph's parallel edges (`repeats`).
 
         Raises:
             ValueError: a node id outside 0..n−1.
@@ -230,7 +240,7 @@ class EdgeList:
         if senders.size and (min(senders.min(), receivers.min()) < 0
                              or max(senders.max(), receivers.max()) >= n):
             raise ValueError(f"edge node ids must lie in 0..{n - 1}")
-        return EdgeList(n, *_canonical(n, senders, receivers))
+        return EdgeList(n, *_canonical(n, senders, receivers, repeats))
 
     @staticmethod
     def from_adjacency(adjacency: np.ndarray) -> EdgeList:
@@ -248,9 +258,10 @@ class EdgeList:
         return len(self.senders)
 
     def to_dense(self) -> np.ndarray:
-        """uint8 `[N, N]`: the adjacency matrix (O(N²): for small graphs or on request)."""
+        """uint8 `[N, N]`: the adjacency matrix, `A[i, j]` the edges j → i (O(N²): for small
+        graphs or on request)."""
         a = np.zeros(self.shape, dtype=np.uint8)
-        a[self.receivers, self.senders] = 1
+        np.add.at(a, (self.receivers, self.senders), 1)
         return a
 
     def in_degree(self) -> np.ndarray:
@@ -259,7 +270,7 @@ class EdgeList:
 
     def symmetric(self) -> bool:
         """Whether every message j → i has its reverse i → j (an undirected graph)."""
-        back = _canonical(self.num_nodes, self.receivers, self.senders)
+        back = _canonical(self.num_nodes, self.receivers, self.senders, repeats=True)
         return (np.array_equal(back[0], self.senders)
                 and np.array_equal(back[1], self.receivers))
 
@@ -308,7 +319,7 @@ class Graphs:
     def from_concatenated(n: int, senders: np.ndarray, receivers: np.ndarray,
                           num_edges: np.ndarray) -> Graphs:
         """Graphs from concatenated edge lists in any order (as a file may hold them),
-        each graph's put in canonical order.
+        each graph's put in canonical order (a multigraph's repeated messages kept).
 
         Raises:
             ValueError: `num_edges` that do not add up to the edges, or an id outside 0..n−1.
@@ -319,7 +330,7 @@ class Graphs:
                              f"{len(senders)} edges")
         bounds = np.concatenate([[0], np.cumsum(num_edges)])
         return Graphs.from_edge_lists(n, [
-            EdgeList.build(n, senders[a:b], receivers[a:b])
+            EdgeList.build(n, senders[a:b], receivers[a:b], repeats=True)
             for a, b in itertools.pairwise(bounds)])
 
     def __len__(self) -> int:
@@ -375,8 +386,17 @@ class Graphs:
         stored = None if self.stored is None else self.stored[index]
         return Graphs(self.num_nodes, taken.senders, taken.receivers, taken.num_edges, stored)
 
+    @cached_property
+    def multigraph(self) -> bool:
+        """Whether some graph holds a message more than once (an edge of multiplicity > 1:
+        `mpnode generate --hub-multiplicity`)."""
+        graph_of_edge = np.repeat(np.arange(len(self)), self.num_edges)
+        key = (graph_of_edge * self.num_nodes + self.receivers) * self.num_nodes + self.senders
+        return len(np.unique(key)) != len(key)
+
     def in_degree(self) -> np.ndarray:
-        """int64 `[G, N]`: each node's number of senders in each graph."""
+        """int64 `[G, N]`: each node's number of senders in each graph (an edge of
+        multiplicity w counted w times)."""
         graph_of_edge = np.repeat(np.arange(len(self)), self.num_edges)
         flat = graph_of_edge * self.num_nodes + self.receivers
         return np.bincount(flat, minlength=len(self) * self.num_nodes).reshape(
@@ -477,7 +497,7 @@ class EdgeBatch:
         return self.senders[position] + shift, self.receivers[position] + shift
 
     def to_dense(self, dtype: torch.dtype | None = None) -> torch.Tensor:
-        """`[B, N, N]` matrices (1 where j sends to i).
+        """`[B, N, N]` matrices (the number of edges j → i: 1, or more in a multigraph).
 
         Raises:
             ValueError: N > `DENSE_GRAPH_MAX_NODES`.
@@ -491,5 +511,6 @@ class EdgeBatch:
         senders, receivers = self.flat()
         a = torch.zeros(self.batch * n * n, dtype=dtype or torch.float32, device=self.device)
         owner, i = receivers // n, receivers % n
-        a[owner * n * n + i * n + senders % n] = 1
+        a.index_put_((owner * n * n + i * n + senders % n,), a.new_ones(len(senders)),
+                     accumulate=True)
         return a.view(self.batch, n, n)

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from mpnode_cli.graphs import EdgeList
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList
 from mpnode_cli.s1_graph import s1_edges
 
 TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws", "s1")
@@ -173,29 +173,44 @@ def _require(kw: dict[str, float], name: str, topology: str) -> float:
     return kw[name]
 
 
-def join_hubs(graph: np.ndarray | EdgeList, hubs: int) -> np.ndarray | EdgeList:
+MULTIPLICITY_MAX = 255  # a dataset's matrices are uint8
+
+
+def join_hubs(graph: np.ndarray | EdgeList, hubs: int,
+              multiplicity: int = 1) -> np.ndarray | EdgeList:
     """Degree coverage: `graph` with its `hubs` nodes of highest in-degree (the lowest
-    index first among equals) joined to every other node, both ways.
+    index first among equals) joined to every other node, both ways, by `multiplicity`
+    parallel edges each.
 
     Node models trained on small graphs meet hubs with more neighbours than any node they
     saw when run on larger ones (docs/transfer.md). A hub joined to all N − 1 others has the
     largest in-degree a graph of N nodes allows, so a pool of such graphs spans in-degrees
-    up to N − 1 beside the topology's own. Symmetric graphs stay symmetric.
+    up to N − 1 beside the topology's own. With `multiplicity` w > 1 the hub hears each
+    other node w times (a multigraph: A[hub, j] = w), so its in-degree is w·(N − 1) and
+    its neighbour sum that of a hub with w times as many neighbours, on the same N
+    nodes; every other node hears the hub w times too. Symmetric graphs stay symmetric.
 
     Args:
-        graph: uint8 `[N, N]` (`A[i, j] = 1` iff j sends to i) or an `EdgeList`.
+        graph: uint8 `[N, N]` (`A[i, j]` the edges j → i) or an `EdgeList`.
         hubs: how many nodes to join to all others, 0 ≤ hubs ≤ N.
+        multiplicity: the edges joining a hub to each other node, each way, 1–255; above
+            1 only for a matrix (N ≤ `DENSE_GRAPH_MAX_NODES`).
 
     Returns:
         a new graph of the input's kind.
 
     Raises:
-        ValueError: `hubs` outside 0..N.
+        ValueError: `hubs` outside 0..N, or `multiplicity` outside 1..255 or above 1 for
+            an edge list.
     """
     dense = isinstance(graph, np.ndarray)
     n = graph.shape[0]
     if not 0 <= hubs <= n:
         raise ValueError(f"hubs must lie in 0..{n} (the graph's nodes), got {hubs}")
+    if not 1 <= multiplicity <= MULTIPLICITY_MAX or (multiplicity > 1 and not dense):
+        raise ValueError(f"hub multiplicity must lie in 1..{MULTIPLICITY_MAX}, and be 1 for "
+                         f"graphs held as edge lists (above {DENSE_GRAPH_MAX_NODES} nodes); "
+                         f"got {multiplicity} for {n} nodes")
     if hubs == 0:
         return graph
     degree = (graph != 0).sum(axis=1) if dense else np.bincount(graph.receivers, minlength=n)
@@ -207,7 +222,7 @@ def join_hubs(graph: np.ndarray | EdgeList, hubs: int) -> np.ndarray | EdgeList:
     senders, receivers = senders[keep], receivers[keep]
     if dense:
         out = graph.copy()
-        out[receivers, senders] = 1
+        out[receivers, senders] = multiplicity
         return out
     return EdgeList.build(n, np.concatenate([graph.senders, senders]),
                           np.concatenate([graph.receivers, receivers]))

@@ -31,7 +31,8 @@ def loop_reference(adj: torch.Tensor, m: torch.Tensor, how: str, delta: float | 
     out = torch.zeros(batch, nodes, channels(how, feats))
     for b in range(batch):
         for i in range(nodes):
-            nbrs = [j for j in range(nodes) if adj[b, i, j] != 0]
+            # an edge of multiplicity w is w neighbours (a multigraph)
+            nbrs = [j for j in range(nodes) for _ in range(int(adj[b, i, j]))]
             if not nbrs:
                 continue  # an isolated node receives zeros
             total = sum(m[b, j] for j in nbrs)
@@ -51,7 +52,7 @@ def loop_reference(adj: torch.Tensor, m: torch.Tensor, how: str, delta: float | 
 def test_aggregation_matches_its_definition(how, backend):
     adj = random_graph(3, 7, 0.4, seed=2)
     adj[1, 4, :] = 0.0  # node 4 of graph 1 hears nobody
-    adj[2, 0, 3] = 2.5  # a weight is read as one edge
+    adj[2, 0, 3] = 3.0  # an edge of multiplicity 3 counts three times
     m = torch.randn(3, 7, 5)
     delta = 1.3
     got = aggregator(adj, how, backend, delta)(m)

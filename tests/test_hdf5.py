@@ -146,8 +146,8 @@ def test_interrupted_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
 def test_newer_version_is_rejected(tmp_path):
     path = write_dataset(tmp_path / "d.h5", _dataset())
     with h5py.File(path, "a") as f:
-        f.attrs["format_version"] = 4
-    with pytest.raises(DatasetFormatError, match=r"version 4, newer.*upgrade mpnode"):
+        f.attrs["format_version"] = 5
+    with pytest.raises(DatasetFormatError, match=r"version 5, newer.*upgrade mpnode"):
         read_dataset(path)
     with pytest.raises(DatasetFormatError, match="newer"):
         read_header(path)

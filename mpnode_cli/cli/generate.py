@@ -142,6 +142,10 @@ def generate_command(
     hubs: str | None = typer.Option(
         None, metavar="H", help="Degree coverage: join the H highest-degree nodes of every "
         "graph to all others, so in-degrees reach N − 1 (docs/transfer.md)."),
+    hub_multiplicity: str | None = typer.Option(
+        None, metavar="W", help="Join the hubs by parallel edges, 1 to W of them over the "
+        "graphs, so hubs reach in-degree W·(N − 1) on N ≤ 256 nodes (a multigraph; "
+        "docs/transfer.md)."),
     directed: bool = typer.Option(
         False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
     trajectories: str | None = typer.Option(None, metavar="N", help="Number of trajectories K."),
@@ -177,7 +181,7 @@ def generate_command(
         "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
         "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
         "chunk_size": chunk_size, "directed": directed or None, "system_file": system_file,
-        "shard": shard, "hubs": hubs,
+        "shard": shard, "hubs": hubs, "hub_multiplicity": hub_multiplicity,
     }  # fmt: skip
     solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
     try:

@@ -98,6 +98,7 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
         "samples": t, "dt": attrs["dt"], "t_end": attrs["dt"] * (t - 1),
         "graphs": len(graphs), "topology": config.get("topology"),
         "hubs": config.get("hubs") or 0,
+        "hub_multiplicity": config.get("hub_multiplicity") or 1,
         "directed": directed, "edges_mean": float(edges.mean()),
         "parameters": header["scalar_params"],
         "per_graph_parameters": {name.removeprefix("params/"): list(shape)
@@ -144,6 +145,8 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
         ("samples", f"{facts['samples']} (dt {facts['dt']:g}, t_end {facts['t_end']:g})"),
         ("graphs", f"{facts['graphs']} × {facts['topology'] or '?'}"
                    + (f" + {facts['hubs']} hubs joined to all" if facts["hubs"] else "")
+                   + (f" by up to {facts['hub_multiplicity']} parallel edges"
+                      if facts["hub_multiplicity"] > 1 else "")
                    + f", {facts['edges_mean']:g} {kind} edges on average"),
         ("parameters", scalars or "none"),
         ("per-graph parameters", per_graph or "none"),

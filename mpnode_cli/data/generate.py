@@ -164,7 +164,9 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
         fields["out"] = Path(
             "datasets",
             f"{config.system}-n{fields['nodes']}-{fields['topology']}"
-            f"{f'-h{config.hubs}' if config.hubs else ''}-s{config.seed}.h5",
+            f"{f'-h{config.hubs}' if config.hubs else ''}"
+            f"{f'w{config.hub_multiplicity}' if config.hub_multiplicity > 1 else ''}"
+            f"-s{config.seed}.h5",
         )
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
     trajectory_range(resolved)  # a shard spec that fits these trajectories
@@ -531,7 +533,14 @@ def _graph(system: CheckedSystem, config: GenerateConfig, g: int) -> np.ndarray 
         graph = read_edges(config.edge_list, directed=config.directed)
         return graph.to_dense() if graph.num_nodes <= DENSE_GRAPH_MAX_NODES else graph
     graph = system.graph(config.topology, config.nodes, config.graph_seed + g)
-    return join_hubs(graph, config.hubs) if config.hubs else graph
+    return join_hubs(graph, config.hubs, hub_multiplicity(config, g)) if config.hubs else graph
+
+
+def hub_multiplicity(config: GenerateConfig, g: int) -> int:
+    """The parallel edges joining graph g's hubs: `hub_multiplicity` W spread evenly from 1
+    (graph 0) to W (graph G − 1), so the G graphs span hub in-degrees N − 1 … W·(N − 1)."""
+    w, last = config.hub_multiplicity, config.graphs - 1
+    return w if last == 0 else 1 + round(g * (w - 1) / last)
 
 
 def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):

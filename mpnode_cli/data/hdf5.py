@@ -34,7 +34,8 @@ from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 from mpnode_cli.progress import Progress
 
 FORMAT = "mpnode-dataset"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4  # the newest this mpnode reads; files without multigraphs are written as 3
+PLAIN_GRAPHS_VERSION = 3
 SPLIT_NAMES: tuple[str, ...] = ("train", "validation", "test")
 
 # Root attributes every file must have, and those a file may leave out (with the value a
@@ -195,7 +196,7 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None,
         {
             **provenance,
             "format": FORMAT,
-            "format_version": FORMAT_VERSION,
+            "format_version": FORMAT_VERSION if ds.graphs.multigraph else PLAIN_GRAPHS_VERSION,
             "system": ds.system,
             "num_nodes": n,
             "node_dim": d,

@@ -155,19 +155,20 @@ def graph_messages(system: Any, config: GenerateConfig) -> int:
     """Messages (directed edges) of one of the config's graphs, before it is built: the
     topology's expected count for the system's parameters of it, an upper bound for an edge
     list (from its file size), `_EDGES_PER_NODE` per node where neither is known; plus
-    the edges `--hubs` adds."""
+    the edges `--hubs` adds (times `--hub-multiplicity`)."""
     n = config.nodes
     if config.edge_list is not None:  # each line `i j` takes at least 4 bytes
         from pathlib import Path
 
         lines = Path(config.edge_list).stat().st_size // 4
         return min(2 * lines, n * (n - 1))
-    hubs = 2 * config.hubs * (n - 1)  # `--hubs`: each joined to all others, both ways
+    w = config.hub_multiplicity  # `--hubs`: each joined to all others, both ways, w times
+    hubs = 2 * config.hubs * (n - 1) * w
     try:
         drawn = expected_messages(config.topology, n, **system.graph_kwargs(config.topology, n))
     except Exception:  # a system's own graphs: their size is its own business
         drawn = n * _EDGES_PER_NODE
-    return min(drawn + hubs, n * (n - 1))
+    return min(drawn + hubs, n * (n - 1) * w)
 
 
 def generate_estimate(config: GenerateConfig, system: Any, k: int) -> Estimate:

@@ -284,9 +284,11 @@ class _Checker:
 
     def _graph(self, k: int, n: int, version: Any) -> int:
         """The graphs: edge lists (version 2) and the matrices (required in version 1,
-        optional in version 2, where they must agree with the edges); returns G."""
+        optional in version 2, where they must agree with the edges; version 4 allows a
+        multigraph: an edge of multiplicity w is w messages, and w in the matrix); returns G."""
         v1 = version == 1
-        g = self._edges(n) if not v1 else None
+        multi = _is_int(version) and version >= 4
+        g = self._edges(n, multi) if not v1 else None
         adjacency = self._array("graph/adjacency", required=v1)
         if adjacency is not None and self._shape("graph/adjacency", adjacency, (None, n, n),
                                                   "[G, N, N]"):
@@ -297,13 +299,16 @@ class _Checker:
             if g < 1:
                 self.problem("graph/adjacency holds no graph (G = 0)")
             # Above the threshold a matrix is only scanned, one graph at a time.
-            bad = any(not np.isin(adjacency[i], (0, 1)).all() for i in range(g))
+            bad = any(not _counts(adjacency[i], multi) for i in range(g))
             if bad:
                 self.problem("graph/adjacency must hold only 0 and 1 "
-                             "(A[g, i, j] = 1 iff node j sends to node i)")
+                             "(A[g, i, j] = 1 iff node j sends to node i)" if not multi else
+                             "graph/adjacency must hold whole numbers 0–255 (A[g, i, j] the "
+                             "edges from node j to node i)")
             elif self.edge_graphs is not None and n <= DENSE_GRAPH_MAX_NODES and (
                     len(self.edge_graphs) == g):
-                if not np.array_equal(self.edge_graphs.dense(), adjacency[()] != 0):
+                stored = adjacency[()] if multi else adjacency[()] != 0
+                if not np.array_equal(self.edge_graphs.dense(), stored):
                     self.problem("graph/adjacency and graph/edges hold different graphs")
         g = g or 0
         self.summary["graphs"] = g
@@ -316,9 +321,10 @@ class _Checker:
                              f"{int(np.min(index))}..{int(np.max(index))}, graphs 0..{g - 1}")
         return g
 
-    def _edges(self, n: int) -> int | None:
+    def _edges(self, n: int, multi: bool = False) -> int | None:
         """`graph/edges [2, E]` and `graph/num_edges [G]`: ids in 0..N−1, counts that add
-        up, no message twice within a graph. Returns G (None when unreadable)."""
+        up, no message twice within a graph unless `multi` (format version 4: a multigraph).
+        Returns G (None when unreadable)."""
         edges = self._array("graph/edges", required=True)
         counts = self._array("graph/num_edges", required=True)
         if edges is None or counts is None:
@@ -343,9 +349,10 @@ class _Checker:
             return g
         graph_of_edge = np.repeat(np.arange(g, dtype=np.int64), per_graph)
         key = (graph_of_edge * n + ids[1]) * n + ids[0]
-        if len(np.unique(key)) != len(key):
+        if not multi and len(np.unique(key)) != len(key):
             self.problem("graph/edges holds a message twice within a graph (graphs are "
-                         "unweighted: each sender → receiver pair at most once)")
+                         "unweighted: each sender → receiver pair at most once, unless "
+                         "format_version 4 says it is a multigraph)")
         else:
             self.edge_graphs = Graphs.from_concatenated(n, ids[0], ids[1], per_graph)
         self.summary["edges"] = int(ids.shape[1])
@@ -494,3 +501,11 @@ def _json_list(raw: Any) -> list:
 
 def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _counts(matrix: np.ndarray, multi: bool) -> bool:
+    """Whether an adjacency matrix holds 0 and 1, or (`multi`) whole numbers 0–255."""
+    if not multi:
+        return bool(np.isin(matrix, (0, 1)).all())
+    values = np.asarray(matrix)
+    return bool(((values >= 0) & (values <= 255) & (values == np.round(values))).all())

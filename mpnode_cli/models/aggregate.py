@@ -23,11 +23,11 @@ AGGREGATES: tuple[str, ...] = get_args(Aggregate)
 
 
 def in_degree(adjacency: Graph) -> torch.Tensor:
-    """`adjacency: [B, N, N]` (nonzero entries counted) or an `EdgeBatch` → in-degree
-    `[B, N]` float64."""
+    """`adjacency: [B, N, N]` (the edges j → i, counted with their multiplicity) or an
+    `EdgeBatch` → in-degree `[B, N]` float64."""
     if isinstance(adjacency, EdgeBatch):
         return adjacency.in_degree()
-    return adjacency.ne(0).sum(dim=2).to(torch.float64)
+    return adjacency.to(torch.float64).sum(dim=2)
 
 
 def mean_log_degree(adjacency: Graph | Sequence[Graph]) -> float:

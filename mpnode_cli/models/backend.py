@@ -1,8 +1,10 @@
 """How an aggregation is computed over a batch of graphs: dense matrices or an edge list.
 
-Connectivity convention (jraph's `senders`/`receivers`, PyG's `x_j → x_i`): `A[b, i, j] ≠ 0`
-iff node j sends to node i, so node i aggregates over row i. The graph is taken as
-unweighted (any nonzero entry is one edge). An isolated node receives zeros (the authors'
+Connectivity convention (jraph's `senders`/`receivers`, PyG's `x_j → x_i`): `A[b, i, j]`
+is the number of edges from node j to node i, so node i aggregates over row i: 0 or 1, or
+more in a multigraph (`mpnode generate --hub-multiplicity`), where an edge of
+multiplicity w counts as w neighbours, in the sum, the mean and the in-degree. An isolated
+node receives zeros (the authors'
 `SegmentedMean` returns its zero default for an empty bag: MPNODE.jl, src/empde.jl:53-67).
 
 Two strategies, each giving the sum and the mean over in-neighbours, tested equal
@@ -80,13 +82,17 @@ class EdgeIndex:
 
     @staticmethod
     def from_adjacency(adjacency: Graph) -> EdgeIndex:
-        """`adjacency: [B, N, N]` (nonzero = edge j → i) or an `EdgeBatch` → the batch's
-        edge list (in the same order either way: by trajectory, receiver, sender)."""
+        """`adjacency: [B, N, N]` (the edges j → i) or an `EdgeBatch` → the batch's edge
+        list (in the same order either way: by trajectory, receiver, sender; an edge of
+        multiplicity w w times)."""
         if isinstance(adjacency, EdgeBatch):
             return EdgeIndex.from_edges(adjacency)
         batch, nodes, _ = adjacency.shape
         b, i, j = torch.nonzero(adjacency, as_tuple=True)
-        degree = adjacency.ne(0).sum(dim=2).reshape(-1, 1).to(adjacency.dtype)  # [B·N, 1]
+        counts = adjacency[b, i, j].round().to(torch.int64)
+        if counts.numel() and int(counts.max()) > 1:  # a multigraph
+            b, i, j = (t.repeat_interleave(counts) for t in (b, i, j))
+        degree = adjacency.sum(dim=2).reshape(-1, 1)  # [B·N, 1]
         inv = torch.where(degree > 0, 1.0 / degree.clamp_min(1), torch.zeros_like(degree))
         return EdgeIndex(b * nodes + j, b * nodes + i, inv, batch, nodes)
 
@@ -136,15 +142,14 @@ class Dense(Strategy):
 
     def __init__(self, adjacency: Graph):
         super().__init__(adjacency)
-        matrices = dense(adjacency)
-        self.ones = matrices.ne(0).to(matrices.dtype)  # (B, N, N), unweighted
+        self.counts = dense(adjacency)  # (B, N, N), the edges j → i
 
     def sum(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        a = self.ones
+        a = self.counts
         return lambda m: torch.bmm(a.to(m.dtype), m)
 
     def mean(self) -> Callable[[torch.Tensor], torch.Tensor]:
-        a = self.ones / self.ones.sum(dim=2, keepdim=True).clamp_min(1.0)  # isolated rows: 0
+        a = self.counts / self.counts.sum(dim=2, keepdim=True).clamp_min(1.0)  # isolated: 0
         return lambda m: torch.bmm(a.to(m.dtype), m)
 
 
