@@ -45,6 +45,7 @@ sys.path.insert(0, str(HERE))
 from quality import ROOT, command, git_commit, mpnode, priorities, schedule  # noqa: E402
 from transfer_specs import (  # noqa: E402
     BB,
+    COVERAGE_VARIANTS,
     EVAL_SECONDS,
     GAMMAS,
     PROCESS_SECONDS,
@@ -53,6 +54,7 @@ from transfer_specs import (  # noqa: E402
     VARIANTS,
     Bench,
     Data,
+    coverage,
     curriculum_share,
     epoch_seconds,
     generate_seconds,
@@ -111,9 +113,10 @@ def generate(args, d: Data) -> None:
         head = (("--system-file", FHN_FILE) if d.system == "fhn" else (d.system,))
         extra = [x for key, v in d.params for x in ("-p", f"{key}={v:g}")]
         split = ("--split", d.fractions()) if d.counts else ()
+        hubs = ("--hubs", d.hubs, "--hub-multiplicity", d.multiplicity) if d.hubs else ()
         mpnode("generate", *head, "--nodes", d.nodes, "--topology", d.topology,
                "--trajectories", d.k, "--graphs", d.graphs, "--graph-seed", d.graph_seed,
-               "--seed", d.seed, *extra, *split, "--threads", 1, "--out", tmp, "-y",
+               "--seed", d.seed, *extra, *split, *hubs, "--threads", 1, "--out", tmp, "-y",
                log=args.data / f"{d.name}.log")
     tmp.replace(path)
 
@@ -182,7 +185,16 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
     shutil.rmtree(run, ignore_errors=True)
     run.parent.mkdir(parents=True, exist_ok=True)
     clock: dict[str, float] = {}
-    mpnode("train", data_path(args, bench.source), "--epochs", bench.epochs, "--seed", seed,
+    extra: dict[str, Any] = {}
+    datasets = [data_path(args, bench.source)]
+    if args.variant in COVERAGE_VARIANTS:
+        reach = max(max_in_degree(data_path(args, d)) for d in bench.targets.values())
+        cov = coverage(bench.source, reach)
+        generate(args, cov)
+        datasets.append(data_path(args, cov))
+        extra = {"coverage": cov.name, "coverage_multiplicity": cov.multiplicity,
+                 "targets_max_in_degree": reach}
+    mpnode("train", *datasets, "--epochs", bench.epochs, "--seed", seed,
            "--run-dir", run, "--no-plots", "--threads", 1, *VARIANTS[args.variant],
            log=run.parent / "log.txt", clock=clock)
     summary = json.loads((run / "summary.json").read_text())
@@ -190,9 +202,22 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
     record = {**base_record(args, bench, seed, "source", "own", bench.source),
               "epochs": epochs, "best_epoch": best, "train_seconds": seconds,
               "cpu_seconds": clock.get("cpu"), "process_seconds": clock.get("wall"),
-              "model": summary["model"], "options": list(VARIANTS[args.variant])}
+              "model": summary["model"], "options": list(VARIANTS[args.variant]), **extra}
     write_json(record_path(args, name), record)
     return record
+
+
+def max_in_degree(path: Path) -> int:
+    """The largest in-degree over a dataset's graphs, from its edge lists alone."""
+    import h5py
+    import numpy as np
+
+    with h5py.File(path, "r") as f:
+        receivers = f["graph/edges"][1].astype(np.int64)
+        counts = f["graph/num_edges"][()]
+        n = int(f["states"].shape[2])
+    graph = np.repeat(np.arange(len(counts)), counts)
+    return int(np.bincount(graph * n + receivers).max(initial=0))
 
 
 def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
@@ -272,7 +297,9 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
     def recorded(name: str) -> Callable[[], bool]:
         return lambda: record_path(args, name).is_file()
 
-    jobs.append(Job(source, bench.system, train_s + PROCESS_SECONDS, (f"gen:{src.name}",),
+    needs = (f"gen:{src.name}",) + (tuple(f"gen:{d.name}" for d in bench.targets.values())
+                                     if args.variant in COVERAGE_VARIANTS else ())
+    jobs.append(Job(source, bench.system, train_s + PROCESS_SECONDS, needs,
                     lambda: train_source(args, bench, seed), recorded(source)))
     for label, d in {"own": src, **bench.targets}.items():
         name = job_name(args, bench, seed, f"zeroshot-{label}")

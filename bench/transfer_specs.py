@@ -36,7 +36,10 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # path beside the drift's MLP.
     "linear-gain": ("--gain", "linear"),
     "linear-gain-path": ("--gain", "linear", "--linear-path"),
-    "l2s": ("--model", "l2s"),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
+    "l2s": ("--model", "l2s"),
+    # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
+    # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
+    "hub-coverage": (),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -82,12 +85,15 @@ class Data:
     seed: int = 0
     params: tuple[tuple[str, float], ...] = ()
     counts: tuple[int, int, int] | None = None
+    hubs: int = 0
+    multiplicity: int = 1
 
     @property
     def name(self) -> str:
         extra = "".join(f"-{k}{v:g}" for k, v in self.params)
-        return (f"{self.system}-{self.topology}-n{self.nodes}{extra}-k{self.k}-G{self.graphs}"
-                f"-gs{self.graph_seed}-s{self.seed}")
+        hubs = f"-h{self.hubs}w{self.multiplicity}" if self.hubs else ""
+        return (f"{self.system}-{self.topology}-n{self.nodes}{extra}{hubs}-k{self.k}"
+                f"-G{self.graphs}-gs{self.graph_seed}-s{self.seed}")
 
     def split(self) -> tuple[int, int, int]:
         return self.counts or split_counts(self.k, SPLIT)
@@ -196,6 +202,24 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
         targets[f"n{n}"] = replace(t, graphs=t.k)  # one graph per trajectory
     epochs = SMOKE_EPOCHS if smoke else SOURCE_EPOCHS[system]
     return Bench(system, "s1", f"s1/{system}-g{gamma:g}", source, targets, epochs, gamma)
+
+
+COVERAGE_VARIANTS = ("hub-coverage",)
+COVERAGE_HUBS = 2  # hubs per coverage graph
+COVERAGE_SEED = 500  # the coverage data's graph and data seeds are the source's + this
+
+
+def coverage(source: Data, max_in_degree: int) -> Data:
+    """The `hub-coverage` variant's second training dataset: half as many trajectories as
+    the source, on graphs of the source's size and topology whose `COVERAGE_HUBS` hubs are
+    joined to every other node by parallel edges, 1 to W over the graphs, with W the
+    least that reaches `max_in_degree` (the targets' largest: W·(N − 1) ≥ it). Only the
+    targets' graphs are read, never their trajectories: a user knows the graphs a model
+    will be deployed to."""
+    w = max(1, math.ceil(max_in_degree / (source.nodes - 1)))
+    return replace(source, k=max(source.k // 2, source.graphs), hubs=COVERAGE_HUBS,
+                   multiplicity=w, graph_seed=source.graph_seed + COVERAGE_SEED,
+                   seed=source.seed + COVERAGE_SEED, counts=None)
 
 
 def set_of(system: str) -> str:
