@@ -31,6 +31,7 @@ import json
 import math
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
@@ -96,8 +97,20 @@ def data_path(args, d: Data) -> Path:
     return args.data / f"{d.name}.h5"
 
 
+_GENERATING: dict[str, threading.Lock] = {}  # one lock per dataset: jobs are threads
+_GENERATING_LOCK = threading.Lock()
+
+
 def generate(args, d: Data) -> None:
-    """Write dataset `d` (to a temporary name, renamed when complete)."""
+    """Write dataset `d` (to a temporary name, renamed when complete), once even when
+    several jobs ask for it at the same time (a source's coverage data)."""
+    with _GENERATING_LOCK:
+        lock = _GENERATING.setdefault(d.name, threading.Lock())
+    with lock:
+        _generate(args, d)
+
+
+def _generate(args, d: Data) -> None:
     path = data_path(args, d)
     if path.is_file():
         return
