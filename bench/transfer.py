@@ -49,6 +49,10 @@ from transfer_specs import (  # noqa: E402
     COVERAGE_VARIANTS,
     EVAL_SECONDS,
     GAMMAS,
+    LONG_SOURCE_EPOCHS,
+    LONG_SOURCE_PATIENCE,
+    LONG_SOURCE_SECONDS,
+    LONG_VARIANTS,
     PROCESS_SECONDS,
     SETS,
     SYSTEMS,
@@ -207,7 +211,11 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
         datasets.append(data_path(args, cov))
         extra = {"coverage": cov.name, "coverage_multiplicity": cov.multiplicity,
                  "targets_max_in_degree": reach}
-    mpnode("train", *datasets, "--epochs", bench.epochs, "--seed", seed,
+    budget: tuple[Any, ...] = ("--epochs", bench.epochs)
+    if args.variant in LONG_VARIANTS and args.scale == "full":
+        budget = ("--epochs", LONG_SOURCE_EPOCHS, "--stop-patience", LONG_SOURCE_PATIENCE,
+                  "--time-limit", LONG_SOURCE_SECONDS)
+    mpnode("train", *datasets, *budget, "--seed", seed,
            "--run-dir", run, "--no-plots", "--threads", 1, *VARIANTS[args.variant],
            log=run.parent / "log.txt", clock=clock)
     summary = json.loads((run / "summary.json").read_text())

@@ -39,7 +39,11 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "l2s": ("--model", "l2s"),
     # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
     # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
-    "hub-coverage": (),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
+    "hub-coverage": (),
+    # The same two, with the source trained like an oracle: until its best validation is
+    # `LONG_SOURCE_PATIENCE` epochs old (capped), not for the system's fixed epochs.
+    "default-long": (),
+    "hub-coverage-long": (),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -204,7 +208,11 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
     return Bench(system, "s1", f"s1/{system}-g{gamma:g}", source, targets, epochs, gamma)
 
 
-COVERAGE_VARIANTS = ("hub-coverage",)
+COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long")
+LONG_VARIANTS = ("default-long", "hub-coverage-long")
+LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
+LONG_SOURCE_EPOCHS = 1000
+LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
 COVERAGE_HUBS = 2  # hubs per coverage graph
 COVERAGE_SEED = 500  # the coverage data's graph and data seeds are the source's + this
 

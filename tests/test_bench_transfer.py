@@ -201,3 +201,25 @@ def test_identity_normalizer_is_physical():
     norm = ts._identity(3)
     x = torch.randn(2, 4, 5, 3, dtype=torch.float64)
     assert torch.equal(norm.norm_x(x), x)
+
+
+def test_coverage_data_reach_the_targets_in_degree_on_the_sources_size():
+    source = spec.size_bench("gene", smoke=False).source
+    for reach in (1, 8, 9, 34, 40, 41):
+        cov = spec.coverage(source, reach)
+        w = cov.multiplicity
+        assert w * (source.nodes - 1) >= reach > (w - 1) * (source.nodes - 1) or w == 1
+        assert (cov.nodes, cov.topology, cov.graphs) == (source.nodes, source.topology,
+                                                         source.graphs)
+        assert cov.hubs == spec.COVERAGE_HUBS and f"-h2w{w}-" in cov.name
+        assert (cov.graph_seed, cov.seed) != (source.graph_seed, source.seed)
+
+
+def test_max_in_degree_counts_a_multigraphs_edges(tmp_path):
+    from conftest import invoke
+
+    out = tmp_path / "hubs.h5"
+    assert invoke("generate", "gene", "--nodes", 9, "--topology", "ba", "--graphs", 2,
+                  "--trajectories", 2, "--hubs", 1, "--hub-multiplicity", 3, "--t-end", 1,
+                  "--dt", 0.5, "-o", out).exit_code == 0
+    assert transfer.max_in_degree(out) == 3 * 8
