@@ -223,10 +223,12 @@ def coverage(source: Data, max_in_degree: int) -> Data:
     joined to every other node by parallel edges, 1 to W over the graphs, with W the
     least that reaches `max_in_degree` (the targets' largest: W·(N − 1) ≥ it). Only the
     targets' graphs are read, never their trajectories: a user knows the graphs a model
-    will be deployed to."""
+    will be deployed to. Kuramoto keeps the source's graph seed, as its targets do: its
+    natural frequencies are drawn per graph seed, and only shared ones carry over."""
     w = max(1, math.ceil(max_in_degree / (source.nodes - 1)))
+    graph_seed = source.graph_seed + (0 if source.system == "kuramoto" else COVERAGE_SEED)
     return replace(source, k=max(source.k // 2, source.graphs), hubs=COVERAGE_HUBS,
-                   multiplicity=w, graph_seed=source.graph_seed + COVERAGE_SEED,
+                   multiplicity=w, graph_seed=graph_seed,
                    seed=source.seed + COVERAGE_SEED, counts=None)
 
 

@@ -213,6 +213,9 @@ def test_coverage_data_reach_the_targets_in_degree_on_the_sources_size():
                                                          source.graphs)
         assert cov.hubs == spec.COVERAGE_HUBS and f"-h2w{w}-" in cov.name
         assert (cov.graph_seed, cov.seed) != (source.graph_seed, source.seed)
+    kuramoto = spec.size_bench("kuramoto", smoke=False).source
+    cov = spec.coverage(kuramoto, 22)
+    assert cov.graph_seed == kuramoto.graph_seed and cov.multiplicity == 3  # ω shared
 
 
 def test_max_in_degree_counts_a_multigraphs_edges(tmp_path):
