@@ -125,7 +125,7 @@ class GenerateConfig(BaseModel):
             coupling, kuramoto ω) are drawn from `default_rng([graph_seed, g])`, so datasets
             that share a graph seed share their systems whatever their trajectory seed.
         edge_list: a user's graph as a text file of `i j` lines (then `topology` is
-            `"edgelist"`; see `mpnode_cli.graphs.read_edge_list`).
+            `"edgelist"`; see `mpnode_cli.edge_files.read_edge_list`).
         hubs: degree coverage: in every graph this many nodes (those of highest degree)
             are joined to every other node, so the data hold in-degrees up to N − 1
             (`mpnode_cli.topologies.join_hubs`; docs/transfer.md). Not with an edge list.
@@ -250,7 +250,7 @@ class ImportConfig(BaseModel):
         adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory),
             `A[i, j] = 1` iff node j sends to node i.
         edge_list: the graph as a text file of `i j` lines (or `i j w`, w 0 or 1);
-            `mpnode_cli.graphs.read_edge_list`. Exactly one of the two.
+            `mpnode_cli.edge_files.read_edge_list`. Exactly one of the two.
         directed: read the edge list's `i j` as one edge from i to j.
         dt: sample spacing (a time column or array must step by it).
         controls: `.npy` of `[K, T, N, U]` zero-order-hold controls.

@@ -227,3 +227,14 @@ def join_hubs(graph: np.ndarray | EdgeList, hubs: int,
     return EdgeList.build(n, np.concatenate([graph.senders, senders]),
                           np.concatenate([graph.receivers, receivers]))
 
+
+def spread_multiplicity(w: int, graphs: int, g: int) -> int:
+    """The parallel edges joining graph g's hubs (`generate --hub-multiplicity W`): W spread
+    evenly from 1 (graph 0) to W (graph G − 1), so G graphs of N nodes span hub in-degrees
+    N − 1 … W·(N − 1); W itself for one graph."""
+    return w if graphs == 1 else 1 + round(g * (w - 1) / (graphs - 1))
+
+
+def hubs_tag(hubs: int, w: int) -> str:
+    """A generated file's default name's part for `--hubs H --hub-multiplicity W`."""
+    return (f"-h{hubs}" if hubs else "") + (f"w{w}" if hubs and w > 1 else "")

@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import estimate, generate, resolve_config
-from mpnode_cli.graphs import read_edge_list
+from mpnode_cli.edge_files import read_edge_list
 from mpnode_cli.report import plots
 from mpnode_cli.training import loop
 

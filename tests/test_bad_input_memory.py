@@ -60,7 +60,7 @@ def test_a_stray_huge_id_is_refused_before_anything_is_sized_by_it(tmp_path, x0,
 
 
 def test_gaps_are_found_among_the_ids_present():
-    from mpnode_cli.graphs import missing_ids
+    from mpnode_cli.edge_files import missing_ids
 
     assert missing_ids(np.array([0, 1, 2]), 3) == []
     assert missing_ids(np.array([2, 0, 5, 5]), 6) == [1, 3, 4]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpnode_cli.graphs import edges, read_edge_list
+from mpnode_cli.edge_files import read_edge_list
+from mpnode_cli.graphs import edges
 from mpnode_cli.topologies import TOPOLOGIES, make_graph
 
 # One valid parameter set per topology.
@@ -200,7 +201,7 @@ def test_make_edges_is_make_graph_without_the_matrix(topology):
 
 
 def test_read_edges_matches_read_edge_list(tmp_path):
-    from mpnode_cli.graphs import read_edges
+    from mpnode_cli.edge_files import read_edges
 
     path = tmp_path / "g.txt"
     path.write_text("0 1\n1 2\n2 0\n3 2\n1 0\n")

@@ -17,7 +17,9 @@ from __future__ import annotations
 import math
 import warnings
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -201,3 +203,41 @@ def _check_memory(need: int, path: Path) -> None:
         raise ValueError(f"{path} holds {format_bytes(need)} of arrays, more than the "
                          f"memory this machine has available ({format_bytes(have)}) takes "
                          "as float64")
+
+
+# Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
+BLOCK_VALUES = 1 << 26
+
+
+def nonfinite(array: Any, axes: tuple[str, ...], *, values: int = BLOCK_VALUES,
+              progress: Callable[[int, int], None] | None = None) -> str | None:
+    """Look for NaN and inf a block of rows (first axis) at a time, so that an array larger
+    than memory (an h5py dataset, a memory-mapped `.npy`) can be scanned.
+
+    Args:
+        array: `[K, ...]` numbers.
+        axes: the name of each axis, for the message.
+        values: values per block.
+        progress: called after each block with (rows done, K).
+
+    Returns:
+        None when every value is finite, else "holds C non-finite value(s) (NaN or inf;
+        the first at trajectory k, sample t, ...)".
+    """
+    k = len(array)
+    rows = max(1, values // max(1, int(np.prod(array.shape[1:]))))
+    bad, first = 0, None
+    for start in range(0, k, rows):
+        mask = ~np.isfinite(array[start:start + rows])
+        count = int(mask.sum())
+        if count and first is None:
+            first = tuple(int(i) for i in np.argwhere(mask)[0])
+            first = (first[0] + start, *first[1:])
+        bad += count
+        if progress is not None:
+            progress(min(start + rows, k), k)
+    if not bad:
+        return None
+    where = ", ".join(f"{axis} {i}" for axis, i in zip(axes, first, strict=False))
+    return (f"holds {bad} non-finite value{'s' * (bad > 1)} (NaN or inf; the first at "
+            f"{where})")

@@ -44,7 +44,8 @@ from mpnode_cli.data.shards import (
     shard_range,
 )
 from mpnode_cli.data.size import Estimate, check_job, generate_estimate
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs, read_edges
+from mpnode_cli.edge_files import read_edges
+from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 from mpnode_cli.memory import naming_memory
 from mpnode_cli.progress import Progress
 from mpnode_cli.systems.contract import CheckedSystem, named
@@ -54,7 +55,7 @@ from mpnode_cli.systems.registry import (
     sparse_systems,
     system_class,
 )
-from mpnode_cli.topologies import join_hubs
+from mpnode_cli.topologies import hubs_tag, join_hubs, spread_multiplicity
 
 if TYPE_CHECKING:
     import torch
@@ -161,13 +162,8 @@ def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateC
             fields["nodes"] = system.default_nodes
         fields["topology"] = config.topology or system.default_topology
     if fields["out"] is None:
-        fields["out"] = Path(
-            "datasets",
-            f"{config.system}-n{fields['nodes']}-{fields['topology']}"
-            f"{f'-h{config.hubs}' if config.hubs else ''}"
-            f"{f'w{config.hub_multiplicity}' if config.hub_multiplicity > 1 else ''}"
-            f"-s{config.seed}.h5",
-        )
+        fields["out"] = Path("datasets", f"{config.system}-n{fields['nodes']}-{fields['topology']}"
+                             f"{hubs_tag(config.hubs, config.hub_multiplicity)}-s{config.seed}.h5")
     resolved = GenerateConfig(**fields)  # re-checks dt against the filled-in t_end
     trajectory_range(resolved)  # a shard spec that fits these trajectories
     check_job(estimate(resolved), "this dataset",
@@ -533,14 +529,8 @@ def _graph(system: CheckedSystem, config: GenerateConfig, g: int) -> np.ndarray 
         graph = read_edges(config.edge_list, directed=config.directed)
         return graph.to_dense() if graph.num_nodes <= DENSE_GRAPH_MAX_NODES else graph
     graph = system.graph(config.topology, config.nodes, config.graph_seed + g)
-    return join_hubs(graph, config.hubs, hub_multiplicity(config, g)) if config.hubs else graph
-
-
-def hub_multiplicity(config: GenerateConfig, g: int) -> int:
-    """The parallel edges joining graph g's hubs: `hub_multiplicity` W spread evenly from 1
-    (graph 0) to W (graph G − 1), so the G graphs span hub in-degrees N − 1 … W·(N − 1)."""
-    w, last = config.hub_multiplicity, config.graphs - 1
-    return w if last == 0 else 1 + round(g * (w - 1) / last)
+    w = spread_multiplicity(config.hub_multiplicity, config.graphs, g)
+    return join_hubs(graph, config.hubs, w) if config.hubs else graph
 
 
 def _chunks(pending: np.ndarray, graph_index: np.ndarray, size: int):

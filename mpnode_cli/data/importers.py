@@ -23,11 +23,11 @@ from typing import Any
 import numpy as np
 
 from mpnode_cli.config import ImportConfig
-from mpnode_cli.data.arrays import read_arrays, read_table
+from mpnode_cli.data.arrays import nonfinite, read_arrays, read_table
 from mpnode_cli.data.fingerprint import fingerprint
 from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, write_dataset
-from mpnode_cli.data.validate import nonfinite
-from mpnode_cli.graphs import Graphs, missing_ids
+from mpnode_cli.edge_files import missing_ids
+from mpnode_cli.graphs import Graphs
 from mpnode_cli.paths import file_sha256
 from mpnode_cli.progress import Progress, pass_of
 
@@ -226,7 +226,7 @@ def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: in
         adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory);
             each distinct graph is stored once (`graph_index` says which trajectory ran
             on which).
-        edge_list: or a text file of `i j` lines (`mpnode_cli.graphs.read_edges`), one
+        edge_list: or a text file of `i j` lines (`mpnode_cli.edge_files.read_edges`), one
             graph for all, read without an `[N, N]` matrix.
         k, n: the trajectories' and nodes' count.
         directed: read the edge list's `i j` as the one edge i → j.
@@ -235,7 +235,7 @@ def load_graph(adjacency: str | Path | None, edge_list: str | Path | None, k: in
         ValueError: a graph that cannot be read, has another number of nodes than the
             states, or values other than 0 and 1.
     """
-    from mpnode_cli.graphs import read_edges
+    from mpnode_cli.edge_files import read_edges
 
     if edge_list is not None:
         a = read_edges(edge_list, directed=directed)

@@ -23,6 +23,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from mpnode_cli.data.arrays import BLOCK_VALUES, nonfinite
 from mpnode_cli.data.hdf5 import (
     DENSE_GRAPH_MAX_NODES,
     FORMAT,
@@ -35,11 +36,8 @@ from mpnode_cli.data.hdf5 import (
 )
 from mpnode_cli.data.virtual import virtual_source_problems
 from mpnode_cli.graphs import Graphs
-from mpnode_cli.progress import Progress
 from mpnode_cli.terminal import suggested
 
-# Values read at a time when scanning for non-finite numbers (float64: 512 MiB).
-_BLOCK_VALUES = 1 << 26
 # Relative slack when comparing sample spacing with `dt` (float32 time in hand-made files).
 _DT_RTOL = 1e-4
 
@@ -165,7 +163,7 @@ class _Checker:
         per_row = max(1, int(np.prod(states.shape[1:])))
         controls = self.f["controls"] if "controls" in self.f else None
         arrays = (states, read_graphs(self.f), self.f["graph_index"][()], self.f["time"][()])
-        rows = max(1, _BLOCK_VALUES // per_row)
+        rows = max(1, BLOCK_VALUES // per_row)
         have = fingerprint(*arrays, controls=controls, rows=rows)
         self.summary["fingerprint"] = have
         # Written before controls counted, a file with controls recorded the digest of
@@ -452,43 +450,9 @@ class _Checker:
         if obj.dtype.kind != "f" or obj.shape[0] == 0:
             return
         line = nonfinite(obj, ("trajectory", "sample", "node", "component"),
-                         values=_BLOCK_VALUES)
+                         values=BLOCK_VALUES)
         if line:
             self.problem(f"{name} {line}")
-
-
-def nonfinite(array: Any, axes: tuple[str, ...], *, values: int = _BLOCK_VALUES,
-              progress: Progress | None = None) -> str | None:
-    """Look for NaN and inf a block of rows (first axis) at a time, so that an array larger
-    than memory (an h5py dataset, a memory-mapped `.npy`) can be scanned.
-
-    Args:
-        array: `[K, ...]` numbers.
-        axes: the name of each axis, for the message.
-        values: values per block.
-        progress: called after each block with (rows done, K).
-
-    Returns:
-        None when every value is finite, else "holds C non-finite value(s) (NaN or inf;
-        the first at trajectory k, sample t, ...)".
-    """
-    k = len(array)
-    rows = max(1, values // max(1, int(np.prod(array.shape[1:]))))
-    bad, first = 0, None
-    for start in range(0, k, rows):
-        mask = ~np.isfinite(array[start:start + rows])
-        count = int(mask.sum())
-        if count and first is None:
-            first = tuple(int(i) for i in np.argwhere(mask)[0])
-            first = (first[0] + start, *first[1:])
-        bad += count
-        if progress is not None:
-            progress(min(start + rows, k), k)
-    if not bad:
-        return None
-    where = ", ".join(f"{axis} {i}" for axis, i in zip(axes, first, strict=False))
-    return (f"holds {bad} non-finite value{'s' * (bad > 1)} (NaN or inf; the first at "
-            f"{where})")
 
 
 def _json_list(raw: Any) -> list:

@@ -224,7 +224,7 @@ class System(ABC):
 
         Args:
             topology: one of `self.topologies` (a user's edge list is read by
-                `mpnode_cli.graphs.read_edge_list` instead).
+                `mpnode_cli.edge_files.read_edge_list` instead).
             n: number of nodes.
             seed: graph seed.
 
