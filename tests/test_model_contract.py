@@ -29,12 +29,12 @@ D, U, M = 2, 1, 3
 
 
 def directed_graphs() -> torch.Tensor:
-    """`[2, 4, 4]`, `A[b, i, j] ≠ 0` iff j sends to i. Graph 0: 1→0, 2→0, 0→1, 1→2 and
-    3→2 (weight 2.5, which counts as one edge); node 3 hears no one. Graph 1: 0→1, 0→2,
-    0→3 and 3→1; node 0 hears no one."""
+    """`[2, 4, 4]`, `A[b, i, j]` the edges j → i. Graph 0: 1→0, 2→0, 0→1, 1→2 and 3→2
+    (two parallel edges: a multigraph, where 3 counts as two of 2's senders); node 3 hears
+    no one. Graph 1: 0→1, 0→2, 0→3 and 3→1; node 0 hears no one."""
     a = torch.zeros(2, 4, 4)
     a[0, 0, 1] = a[0, 0, 2] = a[0, 1, 0] = a[0, 2, 1] = 1.0
-    a[0, 2, 3] = 2.5
+    a[0, 2, 3] = 2.0
     a[1, 1, 0] = a[1, 2, 0] = a[1, 3, 0] = a[1, 1, 3] = 1.0
     return a
 
@@ -61,7 +61,9 @@ def mlp_np(net: nn.Sequential, v: np.ndarray) -> np.ndarray:
 
 
 def in_neighbours(a: np.ndarray, i: int) -> np.ndarray:
-    return np.nonzero(a[i])[0]
+    """Node i's senders, each as often as it has edges to i."""
+    senders = np.nonzero(a[i])[0]
+    return np.repeat(senders, a[i, senders].astype(int))
 
 
 def field_at_random_point(net: MPNODE, seed: int) -> tuple[np.ndarray, ...]:
