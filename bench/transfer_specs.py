@@ -36,14 +36,20 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # path beside the drift's MLP.
     "linear-gain": ("--gain", "linear"),
     "linear-gain-path": ("--gain", "linear", "--linear-path"),
-    "l2s": ("--model", "l2s"),
+    "l2s": ("--model", "l2s"),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
+    # Each node's error over its own variance (`--loss node-mse`): hubs whose states are
+    # 100× a typical node's no longer swamp the loss.
+    "node-mse": ("--loss", "node-mse"),
     # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
     # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
     "hub-coverage": (),
     # The same two, with the source trained like an oracle: until its best validation is
     # `LONG_SOURCE_PATIENCE` epochs old (capped), not for the system's fixed epochs.
     "default-long": (),
-    "hub-coverage-long": (),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
+    "hub-coverage-long": (),
+    # Degree coverage with the node-scaled loss: the coverage graphs' hubs are the ones
+    # that swamp a plain MSE (docs/transfer.md).
+    "hub-coverage-node-mse": ("--loss", "node-mse"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -208,7 +214,7 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
     return Bench(system, "s1", f"s1/{system}-g{gamma:g}", source, targets, epochs, gamma)
 
 
-COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long")
+COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse")
 LONG_VARIANTS = ("default-long", "hub-coverage-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000

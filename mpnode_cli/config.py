@@ -368,9 +368,11 @@ class TrainConfig(BaseModel):
     recipe: Literal["mpnode", "paper"] = Field("mpnode", description=(
         "Where the fields left out come from: mpnode (measured choices and the dataset "
         "system's recommendation) or paper (the paper's exact choices)."))
-    loss: Literal["huber", "mse"] = Field("mse", description=(
-        "Training loss: mse, or huber (δ = 1, summed over time and features, mean over "
-        "trajectories × nodes: the authors' Huber along time)."))
+    loss: Literal["huber", "mse", "node-mse"] = Field("mse", description=(
+        "Training loss: mse; huber (δ = 1, summed over time and features, mean over "
+        "trajectories × nodes: the authors' Huber along time); or node-mse, each node's "
+        "squared error over its own variance in the window, for graphs whose hubs' states "
+        "dwarf a typical node's."))
     lr: float = Field(1e-3, gt=0, description="Adam learning rate.")
     min_lr: float = Field(1e-6, ge=0, description=(
         "Lowest lr: schedules stop there, and a rollback below it ends the run as "

@@ -225,6 +225,11 @@ def test_evaluate_matches_a_direct_computation(gene, four):
     assert curve[0] == 0 and float(curve[1:].mean()) == pytest.approx(result.mse, rel=1e-6)
     huber = torch.nn.functional.huber_loss(err, torch.zeros_like(err), reduction="none")
     assert result.huber == pytest.approx(float(huber.sum(dim=(1, 3)).mean()), rel=1e-5)
+    # node-mse: each node's squared error over its own variance along the whole trajectory.
+    true = norm.norm_x(pred.true).double()
+    variance = (true - true.mean(dim=1, keepdim=True)).pow(2).mean(dim=1, keepdim=True)
+    node_mse = err.pow(2) / (variance + 1e-3)
+    assert result.node_mse == pytest.approx(float(node_mse.mean()), rel=1e-5)
 
 
 def test_a_model_that_is_not_transferable_refuses_another_size(gene):

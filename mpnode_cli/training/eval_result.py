@@ -24,6 +24,9 @@ class EvalResult:
         mse: mean squared error in normalized units over all predicted samples.
         huber: the training loss "Huber along time" (δ = 1, summed over time and
             features, mean over trajectories × nodes), normalized units.
+        node_mse: the training loss "node-mse" (each squared error over its node's
+            variance along the trajectory), mean over every predicted value; NaN in
+            results written before it existed.
         rmse: `[D]` root mean squared error per state in physical units.
         mse_vs_time: `[T]` normalized MSE at each sample time (0 at t₀), over trajectories,
             nodes and features.
@@ -49,12 +52,14 @@ class EvalResult:
     members: list[EvalResult] | None = None
     spread: float | None = None
     spread_error_corr: float | None = None
+    node_mse: float = math.nan
 
     def loss(self, name: str) -> float:
-        """The error a training loss name selects ("huber" or "mse"); inf if any failed."""
+        """The error a training loss name selects (`mpnode_cli.training.losses.LOSSES`);
+        inf if any failed."""
         if self.failed:
             return math.inf
-        return {"huber": self.huber, "mse": self.mse}[name]
+        return {"huber": self.huber, "mse": self.mse, "node-mse": self.node_mse}[name]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able, with non-finite numbers as None; an ensemble's with `members_mean`
@@ -79,7 +84,8 @@ def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:
     """Several datasets' results as one: the numbers `evaluate` would give if their
     trajectories were one split (each mean is over every value of every dataset).
 
-    The MSE is element-weighted: each dataset's counts by its predicted values,
+    The MSE and the node-scaled MSE are element-weighted: each dataset's counts by its
+    predicted values,
     ok · (T − 1) · N · D (ok: its trajectories whose rollout succeeded); the RMSE per state
     likewise by ok · (T − 1) · N; the Huber loss (a mean over trajectories × nodes) by
     ok · N; `mse_vs_time[k]` by ok · N over the datasets that have a k-th sample (their
@@ -109,6 +115,7 @@ def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:
         failed=sum(r.failed for r in results),
         mse=_weighted([r.mse for r in results], values),
         huber=_weighted([r.huber for r in results], node_rows),
+        node_mse=_weighted([r.node_mse for r in results], values),
         rmse=rmse, mse_vs_time=per_time, n_f_evals=sum(r.n_f_evals for r in results),
         seconds=sum(r.seconds for r in results),
     )  # fmt: skip

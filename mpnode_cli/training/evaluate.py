@@ -43,7 +43,7 @@ from mpnode_cli.training.eval_result import (
     pooled_baselines,
 )
 from mpnode_cli.training.extrapolation import data_extrapolation
-from mpnode_cli.training.losses import Angles, difference, huber_loss, run_angles
+from mpnode_cli.training.losses import Angles, difference, huber_loss, node_mse_loss, run_angles
 from mpnode_cli.training.predict import roll_out, rollout_solver, write_predictions
 
 
@@ -71,7 +71,7 @@ class _Sums:
     def __init__(self, t: int, d: int):
         self.sq_time = torch.zeros(t, dtype=torch.float64)  # Σ squared error per sample time
         self.sq_phys = torch.zeros(d, dtype=torch.float64)  # Σ squared physical error per state
-        self.huber, self.ok, self.failed = 0.0, 0, 0
+        self.huber, self.node_mse, self.ok, self.failed = 0.0, 0.0, 0, 0
 
     def add(self, pred: torch.Tensor, x: torch.Tensor, good: torch.Tensor,
             normalizer: Normalizer, angles: Angles | None = None) -> None:
@@ -84,6 +84,7 @@ class _Sums:
         self.ok += len(pred)
         self.sq_time += difference(pred, x, angles).pow(2).double().sum(dim=(0, 2, 3)).cpu()
         self.huber += float(huber_loss(pred, x, angles=angles).double()) * len(pred)
+        self.node_mse += float(node_mse_loss(pred, x, angles=angles).double()) * len(pred)
         phys_err = difference(normalizer.denorm_x(pred), normalizer.denorm_x(x),
                               None if angles is None else angles.physical())
         self.sq_phys += phys_err[:, 1:].pow(2).double().sum(dim=(0, 1, 2)).cpu()
@@ -93,11 +94,12 @@ class _Sums:
         if combine is None:
             return
         t = self.sq_time.numel()
-        sums = combine(torch.cat([torch.tensor([self.ok, self.failed, self.huber],
-                                               dtype=torch.float64), self.sq_time,
-                                  self.sq_phys]))
+        sums = combine(torch.cat([torch.tensor([self.ok, self.failed, self.huber,
+                                                self.node_mse], dtype=torch.float64),
+                                  self.sq_time, self.sq_phys]))
         self.ok, self.failed = int(sums[0]), int(sums[1])
-        self.huber, self.sq_time, self.sq_phys = float(sums[2]), sums[3:3 + t], sums[3 + t:]
+        self.huber, self.node_mse = float(sums[2]), float(sums[3])
+        self.sq_time, self.sq_phys = sums[4:4 + t], sums[4 + t:]
 
     def result(self, k: int, n: int, n_f_evals: int, seconds: float) -> EvalResult:
         """The errors over K trajectories of N nodes."""
@@ -108,6 +110,7 @@ class _Sums:
             trajectories=k, failed=self.failed,
             mse=float(self.sq_time[1:].sum() / (predicted * d)) if ok and t > 1 else math.nan,
             huber=self.huber / ok if ok else math.nan,
+            node_mse=self.node_mse / ok if ok else math.nan,
             rmse=(self.sq_phys / predicted).sqrt().tolist() if ok else [math.nan] * d,
             mse_vs_time=per_time.tolist(), n_f_evals=n_f_evals, seconds=seconds)
 

@@ -1,6 +1,8 @@
 """Rollout losses, and the one state difference every loss and error measure takes.
 
-Inputs are `[B, T, N, D]` normalized states; t₀ is excluded (it is given). Where a run
+Inputs are `[B, T, N, D]` normalized states; t₀ is excluded (it is given).
+`node_mse_loss` weighs each node by its own scale, for graphs whose hubs' states are far
+larger than a typical node's (`docs/transfer.md`). Where a run
 wraps angles (`TrainConfig.wrap_angles` on a dataset that declares periodic states), the
 difference of a periodic component is the wrapped one, atan2(sin Δ, cos Δ) ∈ (−π, π] of
 the physical angles (an angle is only defined mod 2π); every other component's is plain.
@@ -89,4 +91,24 @@ def mse_loss(pred: torch.Tensor, target: torch.Tensor,
     return difference(pred[:, 1:], target[:, 1:], angles).pow(2).mean()
 
 
-LOSSES = {"huber": huber_loss, "mse": mse_loss}
+# The least variance `node_mse_loss` divides by, in normalized units (a state std of 1):
+# a node that moves less than 3% of the pooled std over the window counts as one that
+# moves that much, so a node at rest does not weigh without bound.
+NODE_VARIANCE_FLOOR = 1e-3
+
+
+def node_mse_loss(pred: torch.Tensor, target: torch.Tensor,
+                  angles: Angles | None = None) -> torch.Tensor:
+    """Node-scaled MSE: each squared error divided by its node's own variance over the
+    window, `target`'s variance along time per trajectory, node and feature (plus
+    `NODE_VARIANCE_FLOOR`), then the mean over every predicted element.
+
+    On a graph whose hubs' states are 100× a typical node's, the plain MSE is the hubs'
+    error and the typical nodes are not fitted; this one is each node's error relative to
+    how far it moves, so nodes on every scale count alike. `angles`: as `mse_loss`.
+    """
+    scale = target.var(dim=1, keepdim=True, correction=0) + NODE_VARIANCE_FLOOR
+    return (difference(pred[:, 1:], target[:, 1:], angles).pow(2) / scale).mean()
+
+
+LOSSES = {"huber": huber_loss, "mse": mse_loss, "node-mse": node_mse_loss}
