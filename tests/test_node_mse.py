@@ -10,8 +10,8 @@ import torch
 
 from mpnode_cli.config import GenerateConfig, TrainConfig
 from mpnode_cli.data.generate import generate
-from mpnode_cli.training.losses import NODE_VARIANCE_FLOOR, mse_loss, node_mse_loss
 from mpnode_cli.training.loop import train
+from mpnode_cli.training.losses import NODE_VARIANCE_FLOOR, mse_loss, node_mse_loss
 from mpnode_cli.training.run import read_metrics
 
 
