@@ -35,9 +35,12 @@ import` takes (states.npz with `states [K, T, N, 2]` and `time [T]`, controls.np
 graphs) and runs `python -m mpnode_cli import` on them. Graph g (of `graphs`) is the `ba`
 graph `mpnode generate --topology ba --graph-seed S` builds for seed S + g with m edges per
 new node (`mpnode_cli.topologies.make_graph`), and trajectories are spread over the graphs in
-contiguous blocks, as `mpnode generate --graphs` spreads them. The physical parameters are
-not stored in the dataset (an imported file records only its inputs' paths and sha256):
-they are written beside the arrays as `power_grid.json` (`--keep-arrays DIR` keeps them).
+contiguous blocks, as `mpnode generate --graphs` spreads them. θ is declared periodic
+(`--periodic theta`): the field depends on it only through sin(θ_j − θ_i), so
+`mpnode train --periodic embed` may feed the node networks its sine and cosine. The
+physical parameters are not stored in the dataset (an imported file records only its
+inputs' paths and sha256): they are written beside the arrays as `power_grid.json`
+(`--keep-arrays DIR` keeps them).
 """
 
 from __future__ import annotations
@@ -229,7 +232,7 @@ def make_dataset(out: Path, nodes: int, trajectories: int, seed: int, graph_seed
         command = [sys.executable, "-m", "mpnode_cli", "import",
                    "--states", str(files["states"]), "--adjacency", str(files["adjacency"]),
                    "--controls", str(files["controls"]),
-                   "--state-names", ",".join(STATE_NAMES),
+                   "--state-names", ",".join(STATE_NAMES), "--periodic", "theta",
                    "--control-names", ",".join(CONTROL_NAMES),
                    "--dt", repr(params.dt), "--seed", str(seed), "--dtype", dtype,
                    "--out", str(out)]

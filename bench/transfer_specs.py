@@ -40,6 +40,10 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # Each node's error over its own variance (`--loss node-mse`): hubs whose states are
     # 100× a typical node's no longer swamp the loss.
     "node-mse": ("--loss", "node-mse"),
+    # The node networks see (sin θ, cos θ) of each angle the dataset declares periodic
+    # (Kuramoto, the pendulum, the grid), in place of the unwrapped θ (`--periodic embed`);
+    # errors stay plain differences, so the rows compare with the default's.
+    "periodic": ("--periodic", "embed"),
     # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
     # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
     "hub-coverage": (),
@@ -50,6 +54,7 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # Degree coverage with the node-scaled loss: the coverage graphs' hubs are the ones
     # that swamp a plain MSE (docs/transfer.md).
     "hub-coverage-node-mse": ("--loss", "node-mse"),
+    "hub-coverage-periodic": ("--periodic", "embed"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -214,7 +219,8 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
     return Bench(system, "s1", f"s1/{system}-g{gamma:g}", source, targets, epochs, gamma)
 
 
-COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse")
+COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse",
+                     "hub-coverage-periodic")
 LONG_VARIANTS = ("default-long", "hub-coverage-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000

@@ -77,6 +77,7 @@ def test_power_grid_import_keeps_the_arrays(grid):
     np.testing.assert_array_equal(ds.controls, controls)
     np.testing.assert_array_equal(ds.adjacency[ds.graph_index], np.load(arrays / "adjacency.npy"))
     assert (ds.system, ds.state_names, ds.control_names) == ("custom", ("theta", "omega"), ("P",))
+    assert ds.periodic_states == ("theta",)
     assert len(ds.time) == 101 and ds.dt == pytest.approx(params.dt)
     # Two Barabási–Albert graphs, the ones `mpnode generate --topology ba` builds (m = 2).
     from mpnode_cli.topologies import make_graph
