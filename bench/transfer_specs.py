@@ -140,7 +140,7 @@ class Bench:
 
 
 def split_counts(k: int, fractions: tuple[float, float, float]) -> tuple[int, int, int]:
-    """`mpnode_cli.data.generate.split_counts` (train and validation rounded, test the
+    """`mpnode_cli.data.splits.split_counts` (train and validation rounded, test the
     rest), here without importing torch; tests check that the two agree."""
     n_train = round(k * fractions[0])
     n_val = min(round(k * fractions[1]), k - n_train)

@@ -106,7 +106,7 @@ def test_unwritable_outputs_are_refused_first(data, run, tmp_path, monkeypatch):
     def never(*args, **kwargs):
         raise AssertionError("solved although the output cannot be written")
 
-    monkeypatch.setattr("mpnode_cli.data.generate._solve_chunk", never)
+    monkeypatch.setattr("mpnode_cli.data.solve_rounds.solve_chunk", never)
     line = one_line_error(invoke("generate", "lorenz", "--nodes", 3, "--trajectories", 4,
                                  "--out", blocker / "d.h5"))
     assert "cannot write in" in line and "not a folder" in line

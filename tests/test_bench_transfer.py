@@ -23,7 +23,7 @@ import transfer_table as tt
 
 @pytest.mark.parametrize("k", [1, 2, 5, 6, 7, 24, 77, 100, 300, 501])
 def test_split_counts_is_generates(k):
-    from mpnode_cli.data.generate import split_counts
+    from mpnode_cli.data.splits import split_counts
 
     assert spec.split_counts(k, spec.SPLIT) == split_counts(k, spec.SPLIT)
 
@@ -41,7 +41,7 @@ def test_oracle_counts_match_node_trajectories():
 @pytest.mark.parametrize("system", ["gene", "kuramoto", "pendulum", "fhn", "grid", "sis"])
 def test_target_split_is_reproduced_by_fractions(system):
     """The `--split` a target is generated with gives exactly its counts."""
-    from mpnode_cli.data.generate import split_counts
+    from mpnode_cli.data.splits import split_counts
 
     for smoke in (False, True):
         bench = spec.size_bench(system, smoke)

@@ -26,7 +26,6 @@ FUNCTION_LIMIT = 60
 # Over the limit today: path → lines. Lower an entry when its file shrinks; remove it once
 # the file meets the limit.
 FILE_RATCHET: dict[str, int] = {
-    "mpnode_cli/data/generate.py": 640,
     "mpnode_cli/training/loop.py": 582,
 }
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).

@@ -16,8 +16,7 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data import generate as gen
-from mpnode_cli.data import hdf5
+from mpnode_cli.data import hdf5, solve_rounds
 from mpnode_cli.data.generate import GenerateError, generate, resolve_config
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.data.presets import PRESETS, get_preset
@@ -183,21 +182,21 @@ def test_interrupted_generation_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_systematic_failure_is_an_error(tmp_path, monkeypatch):
-    real = gen._solve_chunk
+    real = solve_rounds.solve_chunk
 
     def always_underflow(*args):
         sol = real(*args)
         sol.status.fill_(Status.DT_UNDERFLOW)
         return sol
 
-    monkeypatch.setattr(gen, "_solve_chunk", always_underflow)
+    monkeypatch.setattr(solve_rounds, "solve_chunk", always_underflow)
     with pytest.raises(GenerateError, match=r"every trajectory failed.*DT_UNDERFLOW"):
         generate(_config(tmp_path, trajectories=12))
     assert list(tmp_path.iterdir()) == []
 
 
 def test_endless_rejection_gives_up(tmp_path, monkeypatch):
-    monkeypatch.setattr(gen, "MAX_REDRAW_ROUNDS", 2)
+    monkeypatch.setattr(solve_rounds, "MAX_REDRAW_ROUNDS", 2)
     monkeypatch.setattr(type(get_system("lorenz")), "reject", lambda self, s: np.ones(len(s), bool))
     with pytest.raises(GenerateError, match="still failed after 2 redraws"):
         generate(_config(tmp_path))

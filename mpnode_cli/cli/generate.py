@@ -302,9 +302,8 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool,
         generate_inputs,
         output_path,
         resolve_config,
-        split_counts,
-        split_warning,
     )
+    from mpnode_cli.data.splits import split_counts, split_warning
     from mpnode_cli.paths import check_output_file
 
     try:  # generate itself builds the graphs before solving: no dry run here

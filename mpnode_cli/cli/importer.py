@@ -58,8 +58,8 @@ def import_command(
 
     from mpnode_cli.cli.common import config_from, split_by_name, with_bar
     from mpnode_cli.config import ImportConfig
-    from mpnode_cli.data.generate import split_warning
     from mpnode_cli.data.importers import import_arrays
+    from mpnode_cli.data.splits import split_warning
 
     config = config_from(ImportConfig, options)
     summary = with_bar(f"importing {states.name}",

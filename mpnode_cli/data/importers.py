@@ -101,7 +101,7 @@ def import_arrays(config: ImportConfig, *, overwrite: bool = False,
 
 def _import(config: ImportConfig, out: Path, progress: Progress | None) -> ImportSummary:
     """`import_arrays` once its output is reserved: read, check, write."""
-    from mpnode_cli.data.generate import split_trajectories
+    from mpnode_cli.data.splits import split_trajectories
 
     loaded = load_states(config.states, progress=pass_of(progress, 0, 3))
     states = loaded.states

@@ -120,7 +120,7 @@ def _train_trajectories(step, config: dict[str, Any], by_id: dict[str, Any]) -> 
     its dataset's train split."""
     if config.get("trajectories"):
         return int(config["trajectories"])
-    from mpnode_cli.data.generate import split_counts
+    from mpnode_cli.data.splits import split_counts
 
     data = spec.resolve(by_id[step.data], "paper", "paper")["config"]
     return split_counts(int(data["trajectories"]), tuple(data["split"]))[0]
