@@ -442,6 +442,11 @@ class TrainConfig(BaseModel):
     trajectories: int | None = Field(None, ge=1, description=(
         "Use only the first K train trajectories of each dataset (all of them, with a "
         "warning, where a dataset has fewer)."))
+    normalize: Literal["z", "asinh"] = Field("z", description=(
+        "How the states are scaled for the model: z, the z-score per component; or asinh, "
+        "the z-score of asinh(x / s), s the median |x| (linear near 0, logarithmic far "
+        "out), for states that span decades, as hubs' do on heterogeneous graphs. Not "
+        "with --stream."))
     renormalize: bool = Field(False, description=(
         "Finetune: fit the normalization on the new train split instead of reusing the "
         "checkpoint's; better when the new graphs' states have another scale "
@@ -479,6 +484,9 @@ class TrainConfig(BaseModel):
             # would hold batches of different graph sizes, which one solve cannot stack.
             raise ValueError("seeds: an ensemble trains on one dataset; train one run per "
                              "seed on several datasets, or give one dataset")
+        if self.normalize == "asinh" and self.stream:
+            raise ValueError("normalize asinh needs the states in memory for its median "
+                             "scale; leave out --stream")
         return self
 
     @property

@@ -59,7 +59,8 @@ _SOLVER = ("method", "rtol", "atol", "fixed_dt")
 # `model`). A `TrainConfig` field or a solver option is built from its declaration; the
 # other names are the command's own parameters. A command has the ones it takes.
 _PANELS = {
-    DATA: ("renormalize", "allow_other_system", "allow_predictions", "trajectories", "stream"),
+    DATA: ("normalize", "renormalize", "allow_other_system", "allow_predictions", "trajectories",
+           "stream"),
     RECIPE: ("recipe", "loss", "epochs", "batch_size", "even_batches", "lr", "min_lr",
              "schedule", "patience", "stop_patience", "time_limit", "clip", "noise",
              "max_bad_steps", "val_batch_size", "seed", "seeds", "wrap_angles"),

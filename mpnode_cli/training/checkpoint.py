@@ -321,12 +321,14 @@ def _weights(want: dict[str, torch.Tensor], have: Any) -> list[str]:
 
 
 def _normalizer(normalizer: Any, d: int, u: int) -> list[str]:
-    """Means and stds of the states (`[D]`) and controls (`[U]`): finite, stds positive,
-    both as the float32 `Normalizer.from_dict` makes of them."""
+    """Means and stds of the states (`[D]`) and controls (`[U]`), and any asinh scales of
+    the states (`[D]`): finite, stds positive, scales not negative, as the float32
+    `Normalizer.from_dict` makes of them."""
     if not isinstance(normalizer, dict):
         return ["normalizer must be a dictionary of x_mean, x_std, u_mean, u_std"]
     problems = []
-    for name, size in (("x_mean", d), ("x_std", d), ("u_mean", u), ("u_std", u)):
+    named = [("x_mean", d), ("x_std", d), ("u_mean", u), ("u_std", u)]
+    for name, size in named + ([("x_scale", d)] if "x_scale" in normalizer else []):
         values = normalizer.get(name)
         if not isinstance(values, list | tuple) or len(values) != size:
             shown = len(values) if isinstance(values, list | tuple) else values
@@ -340,6 +342,8 @@ def _normalizer(normalizer: Any, d: int, u: int) -> list[str]:
             problems.append(f"normalizer {name} holds non-finite values (as float32)")
         elif name.endswith("std") and not bool((as_used > 0).all()):
             problems.append(f"normalizer {name} must be positive (as float32)")
+        elif name == "x_scale" and not bool((as_used >= 0).all()):
+            problems.append("normalizer x_scale must not be negative (as float32)")
     return problems
 
 

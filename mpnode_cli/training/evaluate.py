@@ -199,7 +199,7 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
         out = model.rollout_from_data(x, data.time.to(device), batch.graph(device), u,
                                       solver=solver, return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
-    spread = (normalizer.denorm_spread(out.spread).cpu()
+    spread = (normalizer.denorm_spread(out.spread, out.states).cpu()
               if isinstance(out, EnsembleRollout) else None)
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
                       messages=messages, status=out.status.cpu(), spread=spread)

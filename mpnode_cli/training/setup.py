@@ -348,12 +348,13 @@ def _normalizer(config: TrainConfig, source: Checkpoint | None, renormalize: boo
         return source.build_normalizer()
     if config.stream:
         return train_sets[0].fit_normalizer()  # one pass over the file, in blocks
+    asinh = config.normalize == "asinh"
     if len(train_sets) == 1:
-        return Normalizer.fit(train_sets[0].states, train_sets[0].controls)
+        return Normalizer.fit(train_sets[0].states, train_sets[0].controls, asinh=asinh)
     # Several datasets: on their train splits pooled.
     controls = [t.controls for t in train_sets]
     return Normalizer.fit([t.states for t in train_sets],
-                          None if controls[0] is None else controls)
+                          None if controls[0] is None else controls, asinh=asinh)
 
 
 def _restore(last: Checkpoint, optimizer: Adam, shuffles: list[torch.Generator]
