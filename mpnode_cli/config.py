@@ -42,7 +42,7 @@ def generate_solver() -> SolverOptions:
 def train_solver() -> SolverOptions:
     """The solver of training rollouts: the paper's rtol = atol = 1e-4, with the integral
     step-size controller (fewer steps than PI at these tolerances: docs/solver.md), compiled
-    for long runs (`mpnode_cli.training.loop.resolve_compile`)."""
+    for long runs (`mpnode_cli.training.recipe.resolve_compile`)."""
     return SolverOptions(rtol=1e-4, atol=1e-4, controller="i", compile="auto")
 
 

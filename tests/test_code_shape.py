@@ -25,9 +25,7 @@ FUNCTION_LIMIT = 60
 
 # Over the limit today: path → lines. Lower an entry when its file shrinks; remove it once
 # the file meets the limit.
-FILE_RATCHET: dict[str, int] = {
-    "mpnode_cli/training/loop.py": 582,
-}
+FILE_RATCHET: dict[str, int] = {}
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).
 FUNCTION_RATCHET: dict[str, int] = {
     "mpnode_cli/data/shards.py::_check_shards": 66,

@@ -152,23 +152,23 @@ def test_cli_flags_fill_the_solver_table(tmp_path):
 
 
 def test_training_compiles_long_adaptive_runs_only(monkeypatch):
-    from mpnode_cli.training import loop
+    from mpnode_cli.training import recipe
 
-    monkeypatch.setattr(loop, "_have_cxx", lambda: True)
+    monkeypatch.setattr(recipe, "have_cxx", lambda: True)
     # 2 batches of 32 per epoch: 1500 epochs = 3000 optimizer steps.
     long = TrainConfig(dataset="d.h5", epochs=1500, batch_size=32)
-    assert loop.resolve_compile(long, 64).solver.compile is True
-    assert loop.resolve_compile(long, 64).solver.controller == "i"  # the rest is kept
-    assert loop.resolve_compile(long.model_copy(update={"epochs": 1499}), 64).solver.compile \
+    assert recipe.resolve_compile(long, 64).solver.compile is True
+    assert recipe.resolve_compile(long, 64).solver.controller == "i"  # the rest is kept
+    assert recipe.resolve_compile(long.model_copy(update={"epochs": 1499}), 64).solver.compile \
         is False
     curriculum = long.model_copy(update={"horizon_curriculum": True})
-    assert loop.resolve_compile(curriculum, 64).solver.compile is True  # dynamic shapes
+    assert recipe.resolve_compile(curriculum, 64).solver.compile is True  # dynamic shapes
     fixed = long.model_copy(update={"solver": long.solver.model_copy(update={"fixed_dt": 0.1})})
-    assert loop.resolve_compile(fixed, 64).solver.compile is False  # compile is adaptive-only
+    assert recipe.resolve_compile(fixed, 64).solver.compile is False  # compile is adaptive-only
     explicit = TrainConfig(dataset="d.h5", epochs=10, solver={"compile": True})
-    assert loop.resolve_compile(explicit, 64).solver.compile is True
-    monkeypatch.setattr(loop, "_have_cxx", lambda: False)
-    assert loop.resolve_compile(long, 64).solver.compile is False
+    assert recipe.resolve_compile(explicit, 64).solver.compile is True
+    monkeypatch.setattr(recipe, "have_cxx", lambda: False)
+    assert recipe.resolve_compile(long, 64).solver.compile is False
     # "auto" that nothing settles means no compile.
     assert SolverOptions(compile="auto").solve_kwargs()["compile"] is False
 

@@ -36,7 +36,7 @@ class SolverOptions(BaseModel):
         fixed_dt: take fixed steps of at most this size instead (no error control).
         max_steps: attempted steps per sample before it is marked `MAX_STEPS`.
         compile: run the adaptive step through `torch.compile`; "auto" lets the verb decide
-            (training compiles long runs: `mpnode_cli.training.loop.resolve_compile`), and
+            (training compiles long runs: `mpnode_cli.training.recipe.resolve_compile`), and
             stands for False where nothing decides.
         controller: adaptive step-size control, "pi" or "i" (a name of
             `controller.CONTROLLERS`; `solve_kwargs` builds the typed controller, with

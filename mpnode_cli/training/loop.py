@@ -16,7 +16,8 @@ A run is five stages, each a named piece:
 3. the checkpointer (`mpnode_cli.training.checkpointer.Checkpointer`): each epoch's files,
    all or none, and the snapshot a rollback and an interrupt go back to;
 4. the epochs: `_train_epoch` (one pass of optimizer steps, `_step`), validation, `_record`;
-5. the best checkpoint on the test split, and `summary.json` (`_finish`).
+5. the best checkpoint on the test split, and `summary.json`
+   (`mpnode_cli.training.finish`).
 
 Finetuning is this same function started from another point: `config.init_checkpoint`
 supplies the weights and the architecture (and, unless `renormalize`, the normalization);
@@ -51,38 +52,34 @@ from __future__ import annotations
 
 import functools
 import math
-import os
-import shutil
 import time
 from collections.abc import Sequence
 from contextlib import ExitStack
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import torch
 
 from mpnode_cli.config import TrainConfig
-from mpnode_cli.data.dataset import SPLITS
 from mpnode_cli.data.pooled import epoch_batches, taken
 from mpnode_cli.signals import raise_if_interrupted
 from mpnode_cli.solver import Status
 from mpnode_cli.training import distributed
 from mpnode_cli.training import run as runs
-from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint
+from mpnode_cli.training.checkpoint import Checkpoint
 from mpnode_cli.training.checkpointer import Checkpointer
 from mpnode_cli.training.eval_result import EvalResult, by_dataset, pooled
-from mpnode_cli.training.evaluate import evaluate, evaluate_datasets
+from mpnode_cli.training.evaluate import evaluate
+from mpnode_cli.training.finish import count_parameters, finish
 from mpnode_cli.training.losses import LOSSES, run_angles
-from mpnode_cli.training.recipe import resolve_config
+from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_config
 from mpnode_cli.training.run_folder import RunFolder
 from mpnode_cli.training.schedule import LRSchedule
 from mpnode_cli.training.setup import Progress, Run, load_data, member_state, set_up
 
 # What other modules use; `resolve_config` lives in the recipe module and is named here
-# too, beside `resolve_compile`, as the two steps that settle a config for its data.
-__all__ = ["TrainingDiverged", "TrainingInterrupted", "resolve_compile", "resolve_config",
-           "train"]
+# too (the recipe also holds `resolve_compile`: the two steps that settle a config).
+__all__ = ["TrainingDiverged", "TrainingInterrupted", "resolve_config", "train"]
 
 
 class TrainingInterrupted(Exception):
@@ -161,7 +158,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
     emit({"event": "start", "run_dir": str(run.run_dir), "first_epoch": state.epoch + 1,
           "epochs": config.epochs,
           "batches": sum(math.ceil(len(t) / config.batch_size) for t in run.train_sets),
-          "parameters": _count(run.model), "solver": _describe_solver(config),
+          "parameters": count_parameters(run.model), "solver": describe_solver(config),
           "processes": world.size, "backend": world.backend, "stream": config.stream,
           "members": len(run.shuffles)})
 
@@ -191,7 +188,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
         return None
 
     # 5. The best weights on the test split, plots, summary.json.
-    return _finish(run)
+    return finish(run)
 
 
 def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
@@ -466,109 +463,6 @@ def _member_rows(run: Run, val: EvalResult, lrs: list[float], improved: list[int
             "improved_members": improved}
 
 
-def _finish(run: Run) -> runs.TrainSummary:
-    """The best checkpoint on the test split (of each dataset that has one; pooled), its
-    plots, and `summary.json`."""
-    config, state, data = run.config, run.state, run.datas[0]
-    best = load_checkpoint(runs.checkpoint_path(run.run_dir, "best"))
-    run.emit({"event": "test"})
-    test = None
-    if any(bool((d.split == SPLITS["test"]).any()) for d in run.datas):
-        test = evaluate_datasets(best, run.datas, run.names, split="test", verb="test",
-                                 batch_size=config.val_batch_size, device=run.device,
-                                 plot_dir=run.run_dir / "plots" if config.plots else None)
-    members = state.members
-    best_epoch = max(m.best_epoch for m in members)
-    min_val = sum(m.best_val for m in members) / len(members)
-    summary = runs.TrainSummary(
-        run_dir=str(run.run_dir), model=run.kind, model_config=run.model_config,
-        parameters=_count(run.model), dataset=str(config.datasets[0]),
-        dataset_fingerprint=data.fingerprint, system=data.system,
-        num_nodes=data.num_nodes, loss=config.loss, epochs=state.epoch,
-        best_epoch=best_epoch, min_val_loss=min_val,
-        min_val_mse=best.metrics.get("val_mse"), table2=best_epoch * min_val,
-        test=test and test["result"], wall_seconds=state.seconds,
-        baselines=test and test["baselines"],
-        seconds_per_epoch=runs.seconds_per_epoch(run.run_dir), skipped_batches=state.skipped,
-        restores=state.restores,
-        init_checkpoint=None if config.init_checkpoint is None else str(config.init_checkpoint),
-        parent_sha256=run.parent_sha, world_size=run.world.size,
-        by_dataset=_summary_by_dataset(run.names, run.facts, best, test),
-        stopped_early=state.epoch if state.epoch < config.epochs else None,
-        members=_summary_members(run, test) if len(members) > 1 else None,
-    )  # fmt: skip
-    runs.write_json(run.run_dir / runs.SUMMARY, asdict(summary))
-    return summary
-
-
-def _summary_members(run: Run, test: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """summary.json's `members`: each member's seed, best epoch, best validation loss, the
-    epoch it stopped early (0: it did not) and test metrics (None without a test split)."""
-    tested = ((test or {}).get("result") or {}).get("members") or []
-    return [{"member": k, "seed": run.config.seed + k, "best_epoch": m.best_epoch,
-             "min_val_loss": m.best_val, "stopped": m.stopped,
-             "test": tested[k] if k < len(tested) else None}
-            for k, m in enumerate(run.state.members)]
-
-
-def _summary_by_dataset(names: list[str], facts: dict[str, Any], best: Checkpoint,
-                        test: dict[str, Any] | None) -> dict[str, Any] | None:
-    """summary.json's `by_dataset` (None for one dataset): each dataset's path, fingerprint,
-    N, validation MSE at the best epoch, and test metrics and baselines (None without a
-    test split)."""
-    records = facts.get("datasets")
-    if not records:
-        return None
-    val = best.metrics.get("val_mse_by_dataset") or {}
-    tested = (test or {}).get("by_dataset") or {}
-    return {name: {"path": r["path"], "fingerprint": r["fingerprint"],
-                   "num_nodes": r["num_nodes"], "val_mse": val.get(name),
-                   "test": (tested.get(name) or {}).get("result"),
-                   "baselines": (tested.get(name) or {}).get("baselines")}
-            for name, r in zip(names, records, strict=True)}
-
-
-# Compile the solver's step when a run takes at least this many optimizer steps. Compiling
-# costs 10–60 s on 2 CPU cores (less from inductor's on-disk cache) and saves about 30% of
-# each training step (bench/results/train.md), so it pays from a few thousand steps on.
-COMPILE_MIN_STEPS = 3000
-
-
-def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
-    """Settle `solver.compile = "auto"` for a run over `n_train` trajectories.
-
-    Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps), its steps are
-    adaptive (compiling does not apply to `fixed_dt`), it trains one model (not an
-    ensemble) and a C++ compiler is there for inductor on CPU. Shapes that change (a
-    smaller last batch, the horizon curriculum's growing horizon) cost one more compile,
-    after which torch.compile treats that size as dynamic (`solve`'s automatic dynamic
-    shapes).
-    """
-    if config.solver.compile != "auto":
-        return config
-    steps = config.epochs * -(-n_train // config.batch_size)
-    # An ensemble runs eager: its members' stacked weights are swapped in for each rollout
-    # (`mpnode_cli.models.ensemble`), which the compiled step is not traced for.
-    decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
-              and config.seeds == 1
-              and (config.device != "cpu" or _have_cxx()))
-    return config.model_copy(update={"solver": config.solver.model_copy(
-        update={"compile": decide})})
-
-
-def _describe_solver(config: TrainConfig) -> str:
-    """One line for the run's header: the method, tolerances, controller and compile."""
-    o = config.solver
-    steps = f"fixed dt {o.fixed_dt:g}" if o.fixed_dt is not None else (
-        f"rtol {o.rtol:g}, atol {o.atol:g}, {o.controller.upper()} controller")
-    compiled = "compiled (the first epochs compile)" if o.compile is True else "not compiled"
-    return f"{o.method}, {steps}, {compiled}"
-
-
-def _have_cxx() -> bool:
-    return shutil.which(os.environ.get("CXX", "g++")) is not None
-
-
 def _horizon(config: TrainConfig, epoch: int, t: int) -> int:
     """Samples per training trajectory this epoch: all, or the curriculum's growing prefix."""
     if not config.horizon_curriculum:
@@ -577,6 +471,3 @@ def _horizon(config: TrainConfig, epoch: int, t: int) -> int:
     start = min(config.curriculum_start, t)
     return max(2, min(t, round(start + frac * (t - start))))
 
-
-def _count(model) -> int:
-    return sum(p.numel() for p in model.parameters() if p.requires_grad)

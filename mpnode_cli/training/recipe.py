@@ -19,6 +19,8 @@ re-applies a recipe. `resolve_config` applies the recipe and checks the model's 
 
 from __future__ import annotations
 
+import os
+import shutil
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -135,3 +137,44 @@ def resolve_config(config: TrainConfig, data: TrajectoryData) -> TrainConfig:
         return config
     options = resolve_options(config.model, config.model_options)
     return config.model_copy(update={"model_options": options.model_dump()})
+
+
+# Compile the solver's step when a run takes at least this many optimizer steps. Compiling
+# costs 10–60 s on 2 CPU cores (less from inductor's on-disk cache) and saves about 30% of
+# each training step (bench/results/train.md), so it pays from a few thousand steps on.
+COMPILE_MIN_STEPS = 3000
+
+
+def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
+    """Settle `solver.compile = "auto"` for a run over `n_train` trajectories.
+
+    Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps), its steps are
+    adaptive (compiling does not apply to `fixed_dt`), it trains one model (not an
+    ensemble) and a C++ compiler is there for inductor on CPU. Shapes that change (a
+    smaller last batch, the horizon curriculum's growing horizon) cost one more compile,
+    after which torch.compile treats that size as dynamic (`solve`'s automatic dynamic
+    shapes).
+    """
+    if config.solver.compile != "auto":
+        return config
+    steps = config.epochs * -(-n_train // config.batch_size)
+    # An ensemble runs eager: its members' stacked weights are swapped in for each rollout
+    # (`mpnode_cli.models.ensemble`), which the compiled step is not traced for.
+    decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
+              and config.seeds == 1
+              and (config.device != "cpu" or have_cxx()))
+    return config.model_copy(update={"solver": config.solver.model_copy(
+        update={"compile": decide})})
+
+
+def describe_solver(config: TrainConfig) -> str:
+    """One line for the run's header: the method, tolerances, controller and compile."""
+    o = config.solver
+    steps = f"fixed dt {o.fixed_dt:g}" if o.fixed_dt is not None else (
+        f"rtol {o.rtol:g}, atol {o.atol:g}, {o.controller.upper()} controller")
+    compiled = "compiled (the first epochs compile)" if o.compile is True else "not compiled"
+    return f"{o.method}, {steps}, {compiled}"
+
+
+def have_cxx() -> bool:
+    return shutil.which(os.environ.get("CXX", "g++")) is not None

@@ -1,6 +1,6 @@
 """A training run's setup: what the epochs work with, a `Run`.
 
-Two calls, `load_data` and `set_up`, with the loop's `resolve_compile` between them (it
+Two calls, `load_data` and `set_up`, with the recipe's `resolve_compile` between them (it
 settles compiling by the number of train trajectories). In this order, which is the order
 of the draws from torch's generator, so that one seed makes one run:
 1. the data: each dataset's train split (optionally its first K trajectories) and
@@ -174,7 +174,7 @@ class Run:
 @dataclass
 class RunData:
     """The setup's first stage (`load_data`): the data, and the config resolved for them
-    but for `solver.compile`, which `mpnode_cli.training.loop.resolve_compile` settles by
+    but for `solver.compile`, which `mpnode_cli.training.recipe.resolve_compile` settles by
     the number of train trajectories."""
 
     config: TrainConfig
