@@ -27,9 +27,7 @@ FUNCTION_LIMIT = 60
 # the file meets the limit.
 FILE_RATCHET: dict[str, int] = {}
 # Over the limit today: "path::Class.function" → body lines (docstring excluded).
-FUNCTION_RATCHET: dict[str, int] = {
-    "mpnode_cli/data/shards.py::_check_shards": 66,
-}
+FUNCTION_RATCHET: dict[str, int] = {}
 
 
 def body_lines(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:

@@ -190,37 +190,9 @@ class _Shard:
 
 def _check_shards(paths: list[Path]) -> list[_Shard]:
     """The shards in order, after checking that they are all the shards of one dataset."""
-    import h5py
-
-    from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
-
     if not paths:
         raise ValueError("give the shard files to merge")
-    shards = []
-    for path in paths:
-        if not path.is_file():
-            raise ValueError(f"no such shard file: {path}")
-        try:
-            read_header(path)  # an mpnode dataset of a version this mpnode reads
-            with h5py.File(path, "r") as f:
-                attrs = dict(f.attrs)  # as stored, to be written again as they are
-                k = f["states"].shape[0]
-        except DatasetFormatError as exc:
-            raise ValueError(str(exc)) from None
-        if SHARD_ATTR not in attrs:
-            raise ValueError(f"{path} is not a shard (no '{SHARD_ATTR}' attribute): merge "
-                             "takes the files that mpnode generate --shard i/n writes")
-        info = json.loads(attrs[SHARD_ATTR])
-        config = json.loads(attrs["config"])
-        # Which shard, and where each was written (per machine, perhaps), may differ.
-        config.pop(SHARD_ATTR, None)
-        config.pop("out", None)
-        if k != info["stop"] - info["start"]:
-            raise ValueError(f"{path} holds {k} trajectories but its shard attribute says "
-                             f"{info['stop'] - info['start']}")
-        redrawn = int(attrs.get("n_failed", 0)) + int(attrs.get("n_rejected", 0))
-        shards.append(_Shard(path, info, attrs, config, redrawn))
-
+    shards = [_read_shard(path) for path in paths]
     first = shards[0]
     for s in shards[1:]:
         for key, what in (("format_version", "format version"),
@@ -235,6 +207,44 @@ def _check_shards(paths: list[Path]) -> list[_Shard]:
             raise ValueError(f"{s.path.name} and {first.path.name} are shards of different "
                              f"datasets: their configs differ in '{key}' "
                              f"({s.config.get(key)!r} and {first.config.get(key)!r})")
+    return _in_order(shards)
+
+
+def _read_shard(path: Path) -> _Shard:
+    """One shard file's attributes, shard record and config (less what may differ between
+    shards), checked against its trajectory count."""
+    import h5py
+
+    from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
+
+    if not path.is_file():
+        raise ValueError(f"no such shard file: {path}")
+    try:
+        read_header(path)  # an mpnode dataset of a version this mpnode reads
+        with h5py.File(path, "r") as f:
+            attrs = dict(f.attrs)  # as stored, to be written again as they are
+            k = f["states"].shape[0]
+    except DatasetFormatError as exc:
+        raise ValueError(str(exc)) from None
+    if SHARD_ATTR not in attrs:
+        raise ValueError(f"{path} is not a shard (no '{SHARD_ATTR}' attribute): merge "
+                         "takes the files that mpnode generate --shard i/n writes")
+    info = json.loads(attrs[SHARD_ATTR])
+    config = json.loads(attrs["config"])
+    # Which shard, and where each was written (per machine, perhaps), may differ.
+    config.pop(SHARD_ATTR, None)
+    config.pop("out", None)
+    if k != info["stop"] - info["start"]:
+        raise ValueError(f"{path} holds {k} trajectories but its shard attribute says "
+                         f"{info['stop'] - info['start']}")
+    redrawn = int(attrs.get("n_failed", 0)) + int(attrs.get("n_rejected", 0))
+    return _Shard(path, info, attrs, config, redrawn)
+
+
+def _in_order(shards: list[_Shard]) -> list[_Shard]:
+    """The shards of one dataset by index: each once, none missing, their trajectory
+    ranges tiling the dataset."""
+    first = shards[0]
     count = first.info["count"]
     by_index: dict[int, _Shard] = {}
     for s in shards:
