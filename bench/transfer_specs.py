@@ -47,6 +47,9 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # The states z-scored as asinh(x / s), s their median |x| (`--normalize asinh`): a
     # hub's state 10× any in training lies a few units outside the range, not hundreds.
     "asinh": ("--normalize", "asinh"),
+    # Robust input scaling: the node networks see asinh((z − c)/r) of the states (median
+    # c, median absolute deviation r), and a linear path beside each sees z itself.
+    "asinh-inputs": ("--input-scale", "asinh", "--linear-path"),
     # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
     # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
     "hub-coverage": (),
@@ -59,6 +62,7 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "hub-coverage-node-mse": ("--loss", "node-mse"),
     "hub-coverage-periodic": ("--periodic", "embed"),
     "hub-coverage-asinh": ("--normalize", "asinh"),
+    "hub-coverage-asinh-inputs": ("--input-scale", "asinh", "--linear-path"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -224,7 +228,7 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
 
 
 COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse",
-                     "hub-coverage-periodic", "hub-coverage-asinh")
+                     "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs")
 LONG_VARIANTS = ("default-long", "hub-coverage-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000

@@ -274,8 +274,10 @@ class LinearPathMLP(nn.Sequential):
         self.linear_weight = nn.Parameter(first.weight.new_zeros(last.out_features,
                                                                  first.in_features))
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return super().forward(x) + linear(x, self.linear_weight, None)
+    def forward(self, x: torch.Tensor, raw: torch.Tensor | None = None) -> torch.Tensor:
+        """`A·raw + MLP(x)`; `raw` (default x): what the linear path sees, where the MLP
+        sees features of it (MP-NODE's `input_scale="asinh"`)."""
+        return super().forward(x) + linear(x if raw is None else raw, self.linear_weight, None)
 
 
 def model_dtype(model: nn.Module | None) -> torch.dtype:

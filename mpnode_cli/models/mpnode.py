@@ -34,6 +34,11 @@ output is unconstrained (`docs/transfer.md`).
 `linear_path=True` (off by default) adds a linear map of its input beside each of these
 MLPs (`mpnode_cli.models.base.LinearPathMLP`), zero at first: where states leave the
 training range the tanh MLPs saturate, the linear path goes on linearly.
+`input_scale="asinh"` (off by default) feeds the networks asinh((z − c)/r) of each plain
+state z, with c and r the training states' median and median absolute deviation (buffers
+fitted once, `fit_statistics`): robust input scaling, linear near the typical states and
+logarithmic far out, so that a hub whose state is 100× a typical node's lies a few units
+outside the training range; a linear path still sees z (`docs/transfer.md`).
 `periodic="embed"` (off by default) feeds the networks (sin θ, cos θ) in place of each
 state θ the dataset declares periodic (`periodic_dims`, the indices in the model's config):
 an unwrapped angle drifts without bound, and the field, 2π-periodic in it, is then learned
@@ -60,7 +65,7 @@ from torch import nn
 
 from mpnode_cli.models.aggregate import DegreeAwareAggregation, aggregator, channels
 from mpnode_cli.models.backend import Graph
-from mpnode_cli.models.base import mlp
+from mpnode_cli.models.base import LinearPathMLP, mlp
 from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.models.stacked import Linear
@@ -134,6 +139,33 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         if o.message_init == "learned":
             self.init_net = mlp(e + control_dim, o.hidden, 1, m, o.activation, o.linear_path)
         self._register_degree_statistic()
+        if o.input_scale == "asinh":
+            # The plain states' median and median absolute deviation (normalized units),
+            # fitted once by `fit_statistics` (a spread of 0: not yet fitted).
+            self.register_buffer("input_center", torch.zeros(len(self._plain)))
+            self.register_buffer("input_spread", torch.zeros(len(self._plain)))
+
+    @property
+    def statistics_need_states(self) -> bool:
+        """asinh inputs fit their center and spread on the train states."""
+        return self.options.input_scale == "asinh"
+
+    def fit_statistics(self, states, dt: float, adjacency) -> None:
+        """PNA's δ (`DegreeAwareAggregation.fit_statistics`), and with asinh inputs the
+        plain states' median and median absolute deviation over every train value
+        (pooled over datasets; fitted once: a finetune keeps the parent's)."""
+        super().fit_statistics(states, dt, adjacency)
+        if self.options.input_scale != "asinh" or bool((self.input_spread > 0).any()):
+            return
+        parts = [states] if isinstance(states, torch.Tensor) else list(states)
+        flat = torch.cat([p[..., self._plain].reshape(-1, len(self._plain)).double()
+                          for p in parts])
+        center = flat.median(dim=0).values
+        spread = (flat - center).abs().median(dim=0).values
+        # A component that barely moves still gets a positive spread (its std's 1e-3).
+        floor = torch.clamp(flat.std(dim=0, correction=0) * 1e-3, min=1e-8)
+        self.input_center.copy_(center)
+        self.input_spread.copy_(torch.maximum(spread, floor))
 
     @property
     def config(self) -> dict[str, Any]:
@@ -143,12 +175,33 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             else config
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        """The networks' view of the states `x [..., D]`: `[x_plain, sin θ, cos θ]`
+        """The states `x [..., D]` as a linear path sees them: `[x_plain, sin θ, cos θ]`
         `[..., D + P]` with the P periodic components θ; x itself when there are none."""
         if not self.periodic_dims:
             return x
         angles = x[..., self._angles]
         return torch.cat([x[..., self._plain], torch.sin(angles), torch.cos(angles)], dim=-1)
+
+    def features(self, view: torch.Tensor) -> torch.Tensor:
+        """What the MLPs see of `embed`'s view (and any controls after it): the same, or
+        with asinh inputs the plain states z (its first columns) as asinh((z − c)/r)."""
+        if self.options.input_scale != "asinh":
+            return view
+        p = len(self._plain)
+        center, spread = self.input_center.to(view), self.input_spread.to(view)
+        scaled = torch.asinh((view[..., :p] - center) / spread)
+        return torch.cat([scaled, view[..., p:]], dim=-1) if view.shape[-1] > p else scaled
+
+    @staticmethod
+    def _call_net(net: nn.Module, view: torch.Tensor, feats: torch.Tensor,
+               *rest: torch.Tensor) -> torch.Tensor:
+        """`net` of `[feats, *rest]`, its linear path (if any) of `[view, *rest]` (one
+        tensor when the features are the view)."""
+        inputs = torch.cat([feats, *rest], dim=-1) if rest else feats
+        if not isinstance(net, LinearPathMLP):
+            return net(inputs)
+        raw = inputs if view is feats else (torch.cat([view, *rest], dim=-1) if rest else view)
+        return net(inputs, raw)
 
     def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
         """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]`, z = [x; m] per node: eqs. (3)–(5)
@@ -165,9 +218,9 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
                 x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
                 if not self.messages:
                     m = torch.zeros_like(m)
-                x = self.embed(x)
-                parts = [x, u(t).to(z.dtype)] if u is not None else [x]
-                return self.net(torch.cat([*parts, aggregate(m)], dim=-1))
+                view = self.embed(x)
+                rest = [u(t).to(z.dtype)] if u is not None else []
+                return self._call_net(self.net, view, self.features(view), *rest, aggregate(m))
 
             return f
         # The affine update drives the messages by their neighbours' *mean*: a sum there
@@ -178,13 +231,14 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
-            x = self.embed(x)
-            own = torch.cat([x, u(t).to(z.dtype)], dim=-1) if u is not None else x
+            view = self.embed(x)
+            own = torch.cat([view, u(t).to(z.dtype)], dim=-1) if u is not None else view
+            feats = self.features(own)
             if self.messages:
-                sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
+                sent = self._call_net(self.emit, own, feats, m)  # (B, N, M)
             else:
                 sent = own.new_zeros(*own.shape[:-1], m_dim)
-            out = self.net(own)
+            out = self._call_net(self.net, own, feats)
             if self.options.gain == "linear":
                 out = torch.cat([out, self.gain(own)], dim=-1)
             return self._affine(out, aggregate(sent), average(sent))
@@ -206,7 +260,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             return x0.new_zeros(*x0.shape[:-1], self.message_dim)
         e0 = self.embed(x0)
         inputs = torch.cat([e0, u0.to(x0.dtype)], dim=-1) if u0 is not None else e0
-        return self.init_net(inputs)
+        return self._call_net(self.init_net, inputs, self.features(inputs))
 
     def initial_state(self, x0: torch.Tensor, u0: torch.Tensor | None) -> torch.Tensor:
         """z(t₀) = `[x0, m(t₀)]` `[B, N, D+M]`: the states and `initial_messages`."""
