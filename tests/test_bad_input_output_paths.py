@@ -18,7 +18,7 @@ import shutil
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.experiments import schedule as experiment_schedule
+from mpnode_cli.experiments import scheduler as experiment_schedule
 
 LONG = "n" * 300  # over the 255 bytes of one name on Linux and macOS filesystems
 

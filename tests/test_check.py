@@ -1,5 +1,5 @@
 """`mpnode check FILE` and the checks every reader runs first (`data/validate.py`,
-`training/validate.py`): each way a file can be wrong is one line, exit 2, no traceback."""
+`training/checkpoint_check.py`): each way a file can be wrong is one line, exit 2, no traceback."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.validate import check_dataset
 from mpnode_cli.training.checkpoint import load_checkpoint, save_checkpoint
-from mpnode_cli.training.validate import check_checkpoint
+from mpnode_cli.training.checkpoint_check import check_checkpoint
 
 runner = CliRunner()
 K, T, N = 12, 6, 3  # the tiny lorenz dataset below: 12 trajectories, 6 samples, 3 nodes

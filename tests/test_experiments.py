@@ -652,7 +652,7 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
 def test_an_option_added_later_leaves_fingerprints_alone_at_its_default():
     """Finished steps stay finished when the solver table gains `compact` (on by default):
     the fingerprint leaves it out at its default, and counts it when it is turned off."""
-    from mpnode_cli.experiments.schedule import _fingerprint
+    from mpnode_cli.experiments.scheduler import _fingerprint
 
     before = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8}}}
     now = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8,

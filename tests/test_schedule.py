@@ -7,8 +7,8 @@ import math
 import torch
 
 from mpnode_cli.config import TrainConfig
+from mpnode_cli.training.lr_schedule import LRSchedule
 from mpnode_cli.training.optim import Adam
-from mpnode_cli.training.schedule import LRSchedule
 from mpnode_cli.training.setup import MemberState
 
 

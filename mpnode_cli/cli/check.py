@@ -93,7 +93,7 @@ def _check(path: Path):
             return check_dataset(path)
         return Report(path, "file", [f"{path} is not an HDF5 file (it lacks HDF5's "
                                      "signature), so not an mpnode dataset"])
-    from mpnode_cli.training.validate import check_checkpoint
+    from mpnode_cli.training.checkpoint_check import check_checkpoint
 
     return check_checkpoint(path)
 

@@ -1,6 +1,6 @@
 """Run an experiment's steps through the library, each in its own folder, resuming.
 
-`run_experiment` plans every step (`schedule.plan`: its options, fingerprint and folder),
+`run_experiment` plans every step (`scheduler.plan`: its options, fingerprint and folder),
 takes them in order with any workers (`schedule`: a finished step is reused, an
 interrupted training resumed, a step another process holds left to it), runs each through
 its verb (`steps`) and returns the run's record for `report.write_report`.
@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from mpnode_cli import __version__
-from mpnode_cli.experiments.schedule import (
+from mpnode_cli.experiments.scheduler import (
     PENDING_JSON,
     STEP_JSON,
     plan,

@@ -6,7 +6,7 @@ records of the steps it reads by id, "ran" or "resumed", and the run's progress 
 It returns `(result, outputs, commands, figures)`: the numbers the report needs, the files
 (relative to the folder) whose presence says the step is done, the equivalent `mpnode`
 command lines, and the figures' paths. A verb raises ValueError or FileNotFoundError for
-what a user can fix; `schedule.run_step` turns them into `StepFailed`.
+what a user can fix; `scheduler.run_step` turns them into `StepFailed`.
 
 A training step's options may ask for an ensemble (`seeds` S > 1, from `--seeds`); the
 result of every step that reads a trained model then holds, under `members`, each member's

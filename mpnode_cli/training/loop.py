@@ -12,7 +12,7 @@ test split is reported at the end.
 A run is five stages, each a named piece:
 1. the run setup (`mpnode_cli.training.setup`): data, model, normalizer, optimizer and a
    resumed run's state, in a `Run`;
-2. the learning rate, one policy (`mpnode_cli.training.schedule.LRSchedule`);
+2. the learning rate, one policy (`mpnode_cli.training.lr_schedule.LRSchedule`);
 3. the checkpointer (`mpnode_cli.training.checkpointer.Checkpointer`): each epoch's files,
    all or none, and the snapshot a rollback and an interrupt go back to;
 4. the epochs: `_train_epoch` (one pass of optimizer steps, `_step`), validation, `_record`;
@@ -72,9 +72,9 @@ from mpnode_cli.training.eval_result import EvalResult, by_dataset, pooled
 from mpnode_cli.training.evaluate import evaluate
 from mpnode_cli.training.finish import count_parameters, finish
 from mpnode_cli.training.losses import LOSSES, run_angles
+from mpnode_cli.training.lr_schedule import LRSchedule
 from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_config
 from mpnode_cli.training.run_folder import RunFolder
-from mpnode_cli.training.schedule import LRSchedule
 from mpnode_cli.training.setup import Progress, Run, load_data, member_state, set_up
 
 # What other modules use; `resolve_config` lives in the recipe module and is named here
