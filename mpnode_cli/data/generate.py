@@ -49,7 +49,8 @@ from mpnode_cli.edge_files import read_edges
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 from mpnode_cli.memory import naming_memory
 from mpnode_cli.progress import Progress
-from mpnode_cli.systems.contract import CheckedSystem, named
+from mpnode_cli.systems.contract import CheckedSystem
+from mpnode_cli.systems.plugin_calls import named
 from mpnode_cli.systems.registry import (
     grid_systems,
     load_system_file,

@@ -330,7 +330,7 @@ class System(ABC):
             A `Simulation`.
         """
         from mpnode_cli.solver import solve
-        from mpnode_cli.systems.contract import checked_rhs
+        from mpnode_cli.systems.plugin_calls import checked_rhs
 
         # Checked: a vector field of the wrong shape is one line naming it, not an error
         # from deep inside the solver's stage sums.

@@ -6,7 +6,8 @@ far from their cause, as a traceback or as someone else's error ("not enough val
 unpack"). `CheckedSystem` is a system as `generate` calls it: each method's result is
 checked against the contract `System` documents (shapes, dtypes, finite values), and any
 error inside it becomes a `PluginError`, one line that names the file, the class and the
-method. `checked_rhs` does the same for the vector field, which the solver calls.
+method (`mpnode_cli.systems.plugin_calls`, which also checks the vector field the solver
+calls, `checked_rhs`).
 
 A `ValueError` is how a system refuses its inputs on purpose ("fhn on 'ba' needs more than
 2 nodes"), so one raised by mpnode's own code passes unchanged; one that went through a
@@ -19,120 +20,22 @@ division by a zero degree, a wrong sign under a root), and redrawing would only 
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mpnode_cli.graphs import EdgeList
-from mpnode_cli.memory import is_out_of_memory
+from mpnode_cli.systems.plugin_calls import (
+    PluginError,
+    call,
+    described,
+    named,
+    where,
+)
 
 if TYPE_CHECKING:
-    from mpnode_cli.systems.base import RHS, Simulation, System
-
-
-class PluginError(ValueError):
-    """A system's method broke its contract or raised: one line naming where."""
-
-
-def where(system: Any, method: str) -> str:
-    """`FitzHughNagumo.rhs (examples/fitzhugh_nagumo.py)`: a method of a system's class,
-    and the file that defines it."""
-    cls = system if inspect.isclass(system) else type(system)
-    try:
-        source = inspect.getfile(cls)
-    except (TypeError, OSError):
-        source = cls.__module__
-    return f"{cls.__name__}.{method} ({source})"
-
-
-def named(system: Any, method: str, exc: BaseException) -> BaseException:
-    """The exception to raise for `exc`, raised inside `system.method`: a `PluginError`
-    naming where, or `exc` itself (a `KeyboardInterrupt`, a `PluginError` already, a
-    `ValueError` that mpnode's own code raised, or memory running out, which is the job's
-    size and not the method's fault: the caller names the step, `mpnode_cli.memory`)."""
-    if isinstance(exc, KeyboardInterrupt | PluginError) or is_out_of_memory(exc):
-        return exc
-    if isinstance(exc, ValueError):
-        if not _through_plugin(system, exc):
-            return exc
-        return PluginError(f"{where(system, method)}: {exc}")
-    if isinstance(exc, SystemExit):
-        return PluginError(f"{where(system, method)} called sys.exit({exc.code!r})")
-    return PluginError(f"{where(system, method)} raised {type(exc).__name__}: {exc}")
-
-
-def _through_plugin(system: Any, exc: BaseException) -> bool:
-    """Whether `exc` was raised in, or passed through, a plug-in's own code."""
-    cls = system if inspect.isclass(system) else type(system)
-    if cls.__module__.startswith("mpnode_cli."):
-        return False
-    try:
-        source = inspect.getfile(cls)
-    except (TypeError, OSError):
-        return True
-    tb = exc.__traceback__
-    while tb is not None:
-        if tb.tb_frame.f_code.co_filename == source:
-            return True
-        tb = tb.tb_next
-    return False
-
-
-def call(system: Any, method: str, *args: Any, **kwargs: Any) -> Any:
-    """`system.method(*args, **kwargs)`, whose errors are `named` after it."""
-    try:
-        return getattr(system, method)(*args, **kwargs)
-    except BaseException as exc:  # a plug-in's sys.exit is an error too
-        raise named(system, method, exc) from None
-
-
-def checked_rhs(system: System, f: Any) -> RHS:
-    """`f`, a system's vector field, with each result checked: a torch tensor of the shape,
-    dtype and device of `y`, finite at the first call (the initial states).
-
-    Raises:
-        PluginError: `f` is not callable (at once), or a result breaks the contract, or `f`
-            raises (when called).
-    """
-    import torch
-
-    here = where(system, "rhs")
-    if not callable(f):
-        raise PluginError(f"{here} returned {_described(f)}, not a function f(t, y)")
-    first = True
-
-    def checked(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        nonlocal first
-        try:
-            dy = f(t, y)
-        except BaseException as exc:
-            raise named(system, "rhs", exc) from None
-        if not (isinstance(dy, torch.Tensor) and dy.shape == y.shape and dy.dtype == y.dtype
-                and dy.device == y.device):
-            raise PluginError(f"{here}: f(t, y) returned {_described(dy)} for y "
-                              f"{_described(y)}; it must return dy/dt, a tensor like y")
-        if first:  # one check, at the initial states: a sync per call would cost every step
-            first = False
-            bad = ~torch.isfinite(dy).flatten(1).all(1)
-            if bad.any():
-                raise PluginError(f"{here}: f(t, y) is NaN or inf at the initial states of "
-                                  f"{int(bad.sum())} of {len(bad)} trajectories (the first: "
-                                  f"{int(bad.nonzero()[0, 0])})")
-        return dy
-
-    return checked
-
-
-def _described(value: Any) -> str:
-    """A value as an error message shows it: an array's shape and dtype, else its type."""
-    shape, dtype = getattr(value, "shape", None), getattr(value, "dtype", None)
-    if shape is not None and dtype is not None:
-        device = getattr(value, "device", None)
-        on = f" on {device}" if device is not None and str(device) != "cpu" else ""
-        return f"shape {list(shape)} {dtype}{on}"
-    return f"a value of type {type(value).__name__}"
+    from mpnode_cli.systems.base import Simulation, System
 
 
 def numbers(value: Any, shape: tuple[int, ...], here: str, what: str) -> np.ndarray:
@@ -150,7 +53,7 @@ def numbers(value: Any, shape: tuple[int, ...], here: str, what: str) -> np.ndar
     except Exception:  # ragged lists, objects numpy refuses
         array = np.asarray(None)
     if array.dtype.kind not in "biuf":
-        raise PluginError(f"{here} returned {_described(value)} as {what}, not an array of "
+        raise PluginError(f"{here} returned {described(value)} as {what}, not an array of "
                           "real numbers")
     if array.shape != shape:
         raise PluginError(f"{here} returned {what} of shape {list(array.shape)}, expected "
@@ -178,7 +81,7 @@ def named_arrays(value: Any, here: str, what: str, lead: int | None,
             names or shapes than the first call's, or NaN or inf.
     """
     if not isinstance(value, Mapping):
-        raise PluginError(f"{here} returned {_described(value)} as {what}, not a dict of "
+        raise PluginError(f"{here} returned {described(value)} as {what}, not a dict of "
                           "arrays by name")
     arrays = {}
     for name, item in value.items():
@@ -211,7 +114,7 @@ def check_simulation(sim: Any, here: str, batch: int, samples: int, nodes: int,
     from mpnode_cli.systems.base import Simulation
 
     if not isinstance(sim, Simulation):
-        raise PluginError(f"{here} returned {_described(sim)}, not a Simulation")
+        raise PluginError(f"{here} returned {described(sim)}, not a Simulation")
     expected = {"states": (batch, samples, nodes, node_dim), "status": (batch,),
                 "n_f_evals": (batch,)}
     if sim.controls is not None or control_dim:
@@ -226,7 +129,7 @@ def check_simulation(sim: Any, here: str, batch: int, samples: int, nodes: int,
                 want is not None and tuple(value.shape) != want) or (
                 want is None and tuple(value.shape[:2]) != (batch, samples)):
             shown = list(want) if want is not None else f"[{batch}, {samples}, ...]"
-            raise PluginError(f"{here} returned {name} of {_described(value)}, expected a "
+            raise PluginError(f"{here} returned {name} of {described(value)}, expected a "
                               f"tensor of shape {shown}")
     return sim
 
@@ -296,7 +199,7 @@ class CheckedSystem:
             here = where(self.system, "sample_initial")
             drawn = (call(self.system, "sample_initial", graph, k, rng), {})
         if not (isinstance(drawn, tuple) and len(drawn) == 2):
-            raise PluginError(f"{here} returned {_described(drawn)}, not (initial states, "
+            raise PluginError(f"{here} returned {described(drawn)}, not (initial states, "
                               "inputs)")
         y0 = numbers(drawn[0], (k, graph.shape[0], len(self.system.state_names)), here,
                      "initial states [k, N, D]")
@@ -325,7 +228,7 @@ class CheckedSystem:
         out = call(self.system, "reject", states)
         array = np.asarray(out) if isinstance(out, np.ndarray | list | tuple) else None
         if array is None or array.shape != (len(states),) or array.dtype.kind not in "biu":
-            raise PluginError(f"{here} returned {_described(out)}, expected bool "
+            raise PluginError(f"{here} returned {described(out)}, expected bool "
                               f"[{len(states)}], one per trajectory")
         return array.astype(bool)
 
