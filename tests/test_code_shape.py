@@ -8,6 +8,9 @@ counts on its own and inside its parent. Where two definitions share a qualified
 (a property's getter and setter), the larger counts. A file's size is its line count
 (`wc -l`), of `.py` files only. The source is read with `ast`, so this imports nothing.
 
+No two modules import each other, directly or round a longer loop: imports inside
+functions count (they run), those under `if TYPE_CHECKING:` do not.
+
 The ratchet: `FILE_RATCHET` and `FUNCTION_RATCHET` list what is over its limit today,
 with its size. A listed one may shrink (lower its entry when it does) but not grow; one
 that meets its limit must leave the list; anything not listed must meet the limit.
@@ -18,6 +21,8 @@ from __future__ import annotations
 import ast
 from functools import cache
 from pathlib import Path
+
+import networkx as nx
 
 PACKAGE = Path(__file__).resolve().parents[1] / "mpnode_cli"
 FILE_LIMIT = 500
@@ -133,3 +138,55 @@ def test_the_ratchet_refuses_new_grown_and_fixed_entries():
     problems = ratchet_problems(sizes, ratchet, 60)
     assert [p.split(":")[0] for p in problems] == ["d", "b", "c"]
     assert ratchet_problems({"a": 65}, {"a": 70}, 60) == []  # shrinking is fine
+
+
+def imports_of(tree: ast.AST, modules: set[str]) -> set[str]:
+    """The package modules a module's source imports at run time (in functions too, not
+    under `if TYPE_CHECKING:`); `from package import module` names the module."""
+    typing_only = {id(n) for node in ast.walk(tree)
+                   if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING"
+                   for part in node.body for n in ast.walk(part)}
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module:
+            for alias in node.names:
+                full = f"{node.module}.{alias.name}"
+                found.add(full if full in modules else node.module)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+    return found & modules
+
+
+def import_cycles(sources: dict[str, str]) -> list[list[str]]:
+    """Every loop of imports among `sources` (module name → its source), each starting
+    at its first module by name."""
+    graph = nx.DiGraph()
+    modules = set(sources)
+    for name, text in sources.items():
+        graph.add_node(name)
+        graph.add_edges_from((name, other) for other in imports_of(ast.parse(text), modules)
+                             if other != name)
+    loops = [c[c.index(min(c)):] + c[:c.index(min(c))] for c in nx.simple_cycles(graph)]
+    return sorted(loops)
+
+
+def test_no_modules_import_each_other():
+    sources = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        sources[name] = path.read_text(encoding="utf-8")
+    cycles = import_cycles(sources)
+    assert not cycles, "\n".join(" -> ".join(c + c[:1]) for c in cycles)
+
+
+def test_a_loop_through_a_function_import_is_found_and_a_typing_one_is_not():
+    sources = {"p.a": "def f():\n    from p.b import g\n",
+               "p.b": "from p import c\n",
+               "p.c": "import p.a\n",
+               "p.d": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import p.a\n",
+               "p": ""}
+    assert import_cycles(sources) == [["p.a", "p.b", "p.c"]]
+
