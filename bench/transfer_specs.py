@@ -63,6 +63,7 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "hub-coverage-periodic": ("--periodic", "embed"),
     "hub-coverage-asinh": ("--normalize", "asinh"),
     "hub-coverage-asinh-inputs": ("--input-scale", "asinh", "--linear-path"),
+    "hub-coverage-asinh-inputs-long": ("--input-scale", "asinh", "--linear-path"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -228,8 +229,9 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
 
 
 COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse",
-                     "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs")
-LONG_VARIANTS = ("default-long", "hub-coverage-long")
+                     "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs",
+                     "hub-coverage-asinh-inputs-long")
+LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000
 LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
