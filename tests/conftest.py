@@ -264,3 +264,15 @@ def gene_2x2(tmp_path_factory) -> Path:
     generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
                             dt=0.1, out=out))
     return out
+
+
+@pytest.fixture(scope="session")
+def gene_ba4(tmp_path_factory) -> Path:
+    """Gene dynamics on a 4-node BA graph: 8 trajectories × 21 samples (seed 1)."""
+    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.data.generate import generate
+
+    out = tmp_path_factory.mktemp("data") / "gene-ba4.h5"
+    generate(GenerateConfig(system="gene", nodes=4, topology="ba", trajectories=8,
+                            t_end=2.0, dt=0.1, seed=1, out=out))
+    return out

@@ -9,9 +9,8 @@ import pytest
 import torch
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
-from mpnode_cli.data.generate import generate
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.evaluate import evaluate, predict
 from mpnode_cli.training.loop import train
@@ -73,21 +72,14 @@ def test_the_dict_round_trips_and_an_older_one_is_a_plain_z_score():
                                                        / x.std((0, 1, 2), correction=0)).float())
 
 
-@pytest.fixture(scope="module")
-def gene(tmp_path_factory):
-    path = tmp_path_factory.mktemp("asinh") / "gene.h5"
-    generate(GenerateConfig(system="gene", nodes=4, topology="ba", trajectories=8,
-                            t_end=2.0, dt=0.1, seed=1, out=path))
-    return path
 
-
-def test_a_run_with_asinh_saves_it_and_errors_are_physical(gene, tmp_path):
-    train(TrainConfig(dataset=gene, run_dir=tmp_path / "run", epochs=2, seed=0,
+def test_a_run_with_asinh_saves_it_and_errors_are_physical(gene_ba4, tmp_path):
+    train(TrainConfig(dataset=gene_ba4, run_dir=tmp_path / "run", epochs=2, seed=0,
                       normalize="asinh", model_options={"hidden": 8}))
     ckpt = load_checkpoint(checkpoint_path(tmp_path / "run", "best"))
-    data = TrajectoryData.load(gene).subset("all")
+    data = TrajectoryData.load(gene_ba4).subset("all")
     norm = ckpt.build_normalizer()
-    train_states = TrajectoryData.load(gene).subset("train").states.double()
+    train_states = TrajectoryData.load(gene_ba4).subset("train").states.double()
     np.testing.assert_allclose(norm.x_scale.numpy(),
                                np.quantile(np.abs(train_states.numpy()).reshape(-1, 1), 0.5,
                                            axis=0, method="lower"),
@@ -100,7 +92,7 @@ def test_a_run_with_asinh_saves_it_and_errors_are_physical(gene, tmp_path):
                                         rel=1e-5)
 
 
-def test_asinh_with_stream_is_one_line(gene, tmp_path):
-    line = one_line_error(invoke("train", gene, "--normalize", "asinh", "--stream",
+def test_asinh_with_stream_is_one_line(gene_ba4, tmp_path):
+    line = one_line_error(invoke("train", gene_ba4, "--normalize", "asinh", "--stream",
                                  "--run-dir", tmp_path / "r"))
     assert "normalize asinh" in line and "--stream" in line

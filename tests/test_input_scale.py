@@ -5,12 +5,10 @@ trained checkpoint that keeps its statistics."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
-from mpnode_cli.data.generate import generate
 from mpnode_cli.models.mpnode import MPNODE
 from mpnode_cli.models.options import MPNODEOptions
 from mpnode_cli.training.checkpoint import load_checkpoint
@@ -71,21 +69,14 @@ def test_the_mlp_sees_the_features_and_the_linear_path_the_states():
     torch.testing.assert_close(field, out[..., :d + m], rtol=1e-12, atol=1e-12)  # G · 0 = 0
 
 
-@pytest.fixture(scope="module")
-def gene(tmp_path_factory):
-    path = tmp_path_factory.mktemp("inputs") / "gene.h5"
-    generate(GenerateConfig(system="gene", nodes=4, topology="ba", trajectories=8,
-                            t_end=2.0, dt=0.1, seed=1, out=path))
-    return path
 
-
-def test_a_trained_checkpoint_keeps_its_statistics(gene, tmp_path):
-    train(TrainConfig(dataset=gene, run_dir=tmp_path / "run", epochs=2, seed=0,
+def test_a_trained_checkpoint_keeps_its_statistics(gene_ba4, tmp_path):
+    train(TrainConfig(dataset=gene_ba4, run_dir=tmp_path / "run", epochs=2, seed=0,
                       model_options={"hidden": 8, "input_scale": "asinh",
                                      "linear_path": True}))
     ckpt = load_checkpoint(checkpoint_path(tmp_path / "run", "best"))
     model, norm = ckpt.build_model(), ckpt.build_normalizer()
-    z = norm.norm_x(TrajectoryData.load(gene).subset("train").states).double().reshape(-1, 1)
+    z = norm.norm_x(TrajectoryData.load(gene_ba4).subset("train").states).double().reshape(-1, 1)
     center = _lower_median(z.numpy())
     np.testing.assert_allclose(model.input_center.double().numpy(), center, rtol=1e-6)
     np.testing.assert_allclose(model.input_spread.double().numpy(),

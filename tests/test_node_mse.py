@@ -8,8 +8,7 @@ import math
 import pytest
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
-from mpnode_cli.data.generate import generate
+from mpnode_cli.config import TrainConfig
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.losses import NODE_VARIANCE_FLOOR, mse_loss, node_mse_loss
 from mpnode_cli.training.run import read_metrics
@@ -42,16 +41,9 @@ def test_a_node_scaled_up_counts_as_before_where_mse_counts_it_squared():
     assert float(mse_loss(pred * hub, target * hub)) > 1e4 * float(mse_loss(pred, target))
 
 
-@pytest.fixture(scope="module")
-def gene(tmp_path_factory):
-    path = tmp_path_factory.mktemp("nmse") / "gene.h5"
-    generate(GenerateConfig(system="gene", nodes=4, topology="ba", trajectories=8,
-                            t_end=2.0, dt=0.1, seed=1, out=path))
-    return path
 
-
-def test_a_run_trains_and_selects_on_node_mse(gene, tmp_path):
-    summary = train(TrainConfig(dataset=gene, run_dir=tmp_path / "run", epochs=3, seed=0,
+def test_a_run_trains_and_selects_on_node_mse(gene_ba4, tmp_path):
+    summary = train(TrainConfig(dataset=gene_ba4, run_dir=tmp_path / "run", epochs=3, seed=0,
                                 loss="node-mse", model_options={"hidden": 8}))
     rows = [r for r in read_metrics(tmp_path / "run") if r["epoch"] > 0]
     assert all(math.isfinite(r["train_loss"]) for r in rows)
