@@ -19,6 +19,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from mpnode_cli.limits import DENSE_GRAPH_MAX_NODES, MULTIPLICITY_MAX
 from mpnode_cli.solver.options import SolverOptions
 
 # Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
@@ -165,7 +166,7 @@ class GenerateConfig(BaseModel):
     graph_seed: int = Field(0, ge=0, le=SEED_MAX)
     edge_list: Path | None = None
     hubs: int = Field(0, ge=0)
-    hub_multiplicity: int = Field(1, ge=1, le=255)
+    hub_multiplicity: int = Field(1, ge=1, le=MULTIPLICITY_MAX)
     directed: bool = False
     trajectories: int | None = Field(None, ge=1)
     t_end: float | None = Field(None, gt=0)
@@ -223,9 +224,11 @@ class GenerateConfig(BaseModel):
         if self.hub_multiplicity > 1 and not self.hubs:
             raise ValueError("hub multiplicity sets the edges that join the hubs; give "
                              "hubs too (--hubs H)")
-        if self.hub_multiplicity > 1 and self.nodes is not None and self.nodes > 256:
-            raise ValueError(f"hub multiplicity needs graphs of at most 256 nodes (held as "
-                             f"matrices), not {self.nodes}")
+        if (self.hub_multiplicity > 1 and self.nodes is not None
+                and self.nodes > DENSE_GRAPH_MAX_NODES):
+            raise ValueError(f"hub multiplicity needs graphs of at most "
+                             f"{DENSE_GRAPH_MAX_NODES} nodes (held as matrices), not "
+                             f"{self.nodes}")
         if self.trajectories is not None and self.trajectories < self.graphs:
             raise ValueError(
                 f"trajectories ({self.trajectories}) must be at least graphs ({self.graphs}) "

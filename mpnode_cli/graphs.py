@@ -30,14 +30,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mpnode_cli.limits import DENSE_GRAPH_MAX_NODES
+
 if TYPE_CHECKING:
     import torch
 
-# The largest graph held as an N×N matrix: stored as `graph/adjacency` in a dataset file
-# (docs/dataset-format.md), given to systems as an ndarray and to models as a dense
-# `[B, N, N]` batch. 256² = 65 536 entries, 64 KiB per uint8 graph: as small as the edge
-# list of a graph of mean degree ≈ 4, and far below any memory concern.
-DENSE_GRAPH_MAX_NODES = 256
 # Trajectory × edge rows one rollout may hold on graphs kept as edge lists: each row carries
 # a message per feature and its two node ids through every solver stage, so 2**22 rows are
 # some hundreds of MiB. Rollouts are independent, so batching changes no number.

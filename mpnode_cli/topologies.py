@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList
+from mpnode_cli.limits import MULTIPLICITY_MAX
 from mpnode_cli.s1_graph import s1_edges
 
 TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws", "s1")
@@ -171,9 +172,6 @@ def _require(kw: dict[str, float], name: str, topology: str) -> float:
     if name not in kw:
         raise ValueError(f"topology '{topology}' needs parameter {name}")
     return kw[name]
-
-
-MULTIPLICITY_MAX = 255  # a dataset's matrices are uint8
 
 
 def join_hubs(graph: np.ndarray | EdgeList, hubs: int,

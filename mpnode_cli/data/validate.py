@@ -36,6 +36,7 @@ from mpnode_cli.data.hdf5 import (
 )
 from mpnode_cli.data.virtual import virtual_source_problems
 from mpnode_cli.graphs import Graphs
+from mpnode_cli.limits import MULTIPLICITY_MAX
 from mpnode_cli.terminal import suggested
 
 # Relative slack when comparing sample spacing with `dt` (float32 time in hand-made files).
@@ -472,4 +473,5 @@ def _counts(matrix: np.ndarray, multi: bool) -> bool:
     if not multi:
         return bool(np.isin(matrix, (0, 1)).all())
     values = np.asarray(matrix)
-    return bool(((values >= 0) & (values <= 255) & (values == np.round(values))).all())
+    return bool(((values >= 0) & (values <= MULTIPLICITY_MAX)
+                 & (values == np.round(values))).all())
