@@ -62,12 +62,8 @@ class Normalizer:
         one per dataset (N and T may differ): pooled, every value counts once. `asinh`:
         z-score asinh(x / s), s the median |x| per component (`x_scale`)."""
         scale = _median_abs(states) if asinh else None
-        if scale is not None:
-            lifted = [_asinh(part, scale) for part in
-                      ([states] if isinstance(states, torch.Tensor) else states)]
-            x_mean, x_std = _moments(lifted)
-        else:
-            x_mean, x_std = _moments(states)
+        x_mean, x_std = _moments(states if scale is None else
+                                 [_asinh(part, scale) for part in _parts(states)])
         if controls is None or _features(controls) == 0:
             u_mean = u_std = torch.zeros(0)
         else:
@@ -136,8 +132,7 @@ def _median_abs(states: torch.Tensor | Sequence[torch.Tensor]) -> torch.Tensor:
     """`[D]` float32: the median |x| per component over every value (pooled; the lower of
     the two middle values for an even count, as `torch.median` takes it), floored at
     `_STD_FLOOR` relative to the largest |x| so that a scale is never 0."""
-    parts = [states] if isinstance(states, torch.Tensor) else list(states)
-    flat = torch.cat([p.reshape(-1, p.shape[-1]).abs().double() for p in parts])
+    flat = _flat(states).abs()
     median = flat.median(dim=0).values
     floor = torch.clamp(flat.amax(dim=0) * _STD_FLOOR, min=_STD_FLOOR)
     return torch.maximum(median, floor).float()
@@ -165,11 +160,21 @@ def _features(v: torch.Tensor | Sequence[torch.Tensor]) -> int:
     return (v if isinstance(v, torch.Tensor) else v[0]).shape[-1]
 
 
+def _parts(v: torch.Tensor | Sequence[torch.Tensor]) -> list[torch.Tensor]:
+    """One dataset's tensor, or several datasets' (N and T may differ), as a list."""
+    return [v] if isinstance(v, torch.Tensor) else list(v)
+
+
+def _flat(v: torch.Tensor | Sequence[torch.Tensor]) -> torch.Tensor:
+    """Every value of `v` per feature, float64: `(K·T·N, F)`, or `(Σ K·T·N, F)` pooled."""
+    parts = _parts(v)
+    if len(parts) == 1:
+        return parts[0].reshape(-1, parts[0].shape[-1]).double()
+    return torch.cat([part.reshape(-1, part.shape[-1]).double() for part in parts])
+
+
 def _moments(v: torch.Tensor | Sequence[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    if isinstance(v, torch.Tensor):
-        flat = v.reshape(-1, v.shape[-1]).double()  # (K·T·N, F)
-    else:  # several datasets: (Σ K·T·N, F)
-        flat = torch.cat([part.reshape(-1, part.shape[-1]).double() for part in v])
+    flat = _flat(v)
     mean, std = flat.mean(dim=0), flat.std(dim=0, correction=0)
     std = torch.where(std > _STD_FLOOR, std, torch.ones_like(std))
     return mean.float(), std.float()
