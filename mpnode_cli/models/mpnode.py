@@ -39,7 +39,8 @@ state z, with c and r the training states' median and median absolute deviation 
 fitted once, `fit_statistics`): robust input scaling, linear near the typical states and
 logarithmic far out, so that a hub whose state is 100× a typical node's lies a few units
 outside the training range; a linear path still sees z (`docs/transfer.md`).
-`periodic="embed"` (off by default) feeds the networks (sin θ, cos θ) in place of each
+`periodic="embed"` (off in the paper's model; "auto", mpnode's recipe, embeds where the data
+declare angles) feeds the networks (sin θ, cos θ) in place of each
 state θ the dataset declares periodic (`periodic_dims`, the indices in the model's config):
 an unwrapped angle drifts without bound, and the field, 2π-periodic in it, is then learned
 on a bounded input. The ODE state keeps θ; training leaves those components unnormalized
@@ -84,7 +85,8 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
             the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
             update ("mlp", the paper's, or "affine"); message_init ("zero", the paper's,
             or "learned"); gain ("mlp" or "linear", with the affine update); linear_path
-            (a linear map beside each MLP, off by default); periodic ("off" or "embed");
+            (a linear map beside each MLP, off by default); periodic ("off", "embed", or
+            "auto": embed the `periodic_dims` given, none if none);
             backend ("auto", "dense" or "scatter").
         periodic_dims: the state indices that are angles (the dataset's periodic states);
             used only with `periodic="embed"`, which needs at least one.
@@ -101,7 +103,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         super().__init__(node_dim, control_dim, num_nodes, options)
         o = self.options
         self.periodic_dims = tuple(sorted({int(i) for i in periodic_dims})
-                                   ) if o.periodic == "embed" else ()
+                                   ) if o.periodic != "off" else ()
         if o.periodic == "embed" and not self.periodic_dims:
             raise ValueError("periodic embed needs the periodic states' indices (the dataset "
                              "declares none)")

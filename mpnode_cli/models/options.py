@@ -25,7 +25,7 @@ Backend = Literal["auto", "dense", "scatter"]
 GraphMode = Literal["sys", "full"]
 Update = Literal["mlp", "affine"]
 MessageInit = Literal["zero", "learned"]
-Periodic = Literal["off", "embed"]
+Periodic = Literal["off", "embed", "auto"]
 Gain = Literal["mlp", "linear"]
 InputScale = Literal["z", "asinh"]
 
@@ -106,7 +106,8 @@ class MPNODEOptions(ModelOptions):
         "States the dataset declares periodic (angles, its periodic_states): embed feeds "
         "the node networks (sin θ, cos θ) in place of θ (the ODE state stays θ, in radians: "
         "the normalizer leaves those components unscaled); off feeds θ as every other "
-        "state. Off by default until the bench decides."))
+        "state; auto embeds where the training data declare periodic states and is off "
+        "elsewhere (mpnode's recipe; the paper's model is off)."))
     backend: Backend = Field(
         "auto", description="How aggregation is computed (auto picks by graph size).")
 

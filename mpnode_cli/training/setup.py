@@ -42,7 +42,7 @@ from mpnode_cli.data.stream import StreamedTrajectories
 from mpnode_cli.devices import torch_device
 from mpnode_cli.models.registry import OPTIONS, build_model, model_class
 from mpnode_cli.paths import check_output_folder
-from mpnode_cli.training import distributed
+from mpnode_cli.training import distributed, step_memory
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint
 from mpnode_cli.training.compat import check_compatible
@@ -257,6 +257,7 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
         _fit_statistics(model, train_sets, normalizer)
     model.to(device=data.device, dtype=getattr(torch, config.dtype))
     world.broadcast_module(model)
+    _check_step_memory(model, config, train_sets, normalizer, data.device, world)
     optimizer = Adam([{"params": list(m.parameters())} for m in model.members], lr=config.lr)
     # Batch order and noise, each member's from its own seed.
     shuffles = [torch.Generator().manual_seed(config.seed + k) for k in range(seeds)]
@@ -276,6 +277,17 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
                optimizer=optimizer, shuffle=shuffles[0], shuffles=shuffles,
                device=data.device,
                state=state, resumed=last is not None, parent_sha=parent_sha)
+
+
+def _check_step_memory(model, config: TrainConfig, train_sets: list, normalizer: Normalizer,
+                       device: torch.device, world: distributed.World) -> None:
+    """Refuse, before the run folder is touched, a run whose training step cannot fit in
+    memory (`mpnode_cli.training.step_memory`); every rank takes the largest need."""
+    batch = step_memory.per_rank_batch(config.batch_size, world.size)
+    need = step_memory.step_need(model, train_sets, normalizer, getattr(torch, config.dtype),
+                                 device, config.solver, batch)
+    need = int(world.max(torch.tensor([need], dtype=torch.float64))[0])
+    step_memory.check_step_memory(need, batch, len(model.members))
 
 
 def _starting_point(config: TrainConfig, resume: bool, datas: list, finished_ok: bool,
@@ -306,31 +318,36 @@ def _architecture(config: TrainConfig, source: Checkpoint | None, finetune: bool
         return source.model_kind, source.model_config
     data = datas[0]
     _check_one_size(config.model, datas)
-    periodic = {}
-    if config.model_options.get("periodic") == "embed":
-        periodic = {"periodic_dims": list(_periodic_dims(datas, config.datasets))}
+    options = dict(config.model_options)
+    if options.get("periodic") in ("embed", "auto"):
+        options |= _periodic(options["periodic"], datas, config.datasets)
     return config.model, {"node_dim": data.node_dim, "control_dim": data.control_dim,
-                          "num_nodes": data.num_nodes, **config.model_options, **periodic}
+                          "num_nodes": data.num_nodes, **options}
 
 
-def _periodic_dims(datas: list, paths: list[Path]) -> tuple[int, ...]:
-    """The state indices the datasets declare periodic, for `--periodic embed`.
+def _periodic(choice: str, datas: list, paths: list[Path]) -> dict[str, Any]:
+    """MP-NODE's `periodic` and `periodic_dims` for `--periodic embed` or `auto`: the state
+    indices the datasets declare periodic; `auto` resolves to `embed` where they declare
+    some and to `off` where none does, so the checkpoint says which ran.
 
     Raises:
-        ValueError: a dataset that declares none, or datasets that declare different ones.
+        ValueError: `embed` on a dataset that declares none, or datasets that declare
+            different ones.
     """
     from mpnode_cli.data.hdf5 import periodic_dims
 
     found = [periodic_dims(d.state_names, d.attrs.get("periodic_states") or ())
              for d in datas]
+    if choice == "auto" and not any(found):
+        return {"periodic": "off"}
     for dims, path in zip(found, paths, strict=True):
-        if not dims:
+        if not dims and choice == "embed":
             raise ValueError(f"--periodic embed: {path} declares no periodic states (a "
                              "system's periodic_states, or mpnode import --periodic NAME)")
         if dims != found[0]:
-            raise ValueError(f"--periodic embed: {path} declares other periodic states "
-                             f"than {paths[0]}")
-    return found[0]
+            raise ValueError(f"--periodic {choice}: {path} declares other periodic states "
+                             f"than {paths[0]} (make them agree, or --periodic off)")
+    return {"periodic": "embed", "periodic_dims": list(found[0])}
 
 
 def _build(kind: str, model_config: dict[str, Any]) -> torch.nn.Module:
