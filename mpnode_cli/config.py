@@ -397,6 +397,11 @@ class TrainConfig(BaseModel):
         "baselines) of the states the dataset declares periodic mod 2π, as the wrapped "
         "difference atan2(sin Δ, cos Δ); off: plain differences, as before. Off by default "
         "so that every existing number stays as it was."))
+    balance_datasets: bool = Field(False, description=(
+        "With several training datasets, weigh each one's training loss and its share of "
+        "the validation loss that picks the best epoch by 1 / the variance of its own "
+        "normalized train states, so that a dataset whose states are 100× another's (hubs "
+        "of a degree-coverage graph) does not drown it; off: every value counts alike."))
     noise: float = Field(1e-4, ge=0, description=(
         "Std of Gaussian noise on the normalized training states (inputs and targets "
         "alike), fresh every batch."))

@@ -395,6 +395,30 @@ def test_two_datasets_resume_exactly(gene, gene9, tmp_path):
         train(config([gene9, gene], tmp_path / "resumed", epochs=3), resume=True)
 
 
+def test_balanced_datasets_weigh_each_by_1_over_its_variance(gene, gene9, tmp_path):
+    """`--balance-datasets`: the validation loss that picks the best epoch pools the
+    datasets' MSEs with each one's weight times 1 / the variance of its normalized train
+    states, computed here with numpy from the files and the checkpoint's normalizer."""
+    import numpy as np
+
+    from mpnode_cli.data.hdf5 import read_dataset
+
+    train(config([gene, gene9], tmp_path / "run", epochs=1, balance_datasets=True))
+    norm = load_checkpoint(checkpoint_path(tmp_path / "run", "last")).normalizer
+    mean, std = np.array(norm["x_mean"]), np.array(norm["x_std"])
+    row = read_metrics(tmp_path / "run")[1]
+    num = den = 0.0
+    for path in (gene, gene9):
+        ds = read_dataset(path)
+        z = (ds.states[ds.split == 0].astype(np.float64) - mean) / std
+        k, t, n, d = ds.states[ds.split == 1].shape
+        weight = k * (t - 1) * n * d / z.var()
+        num, den = num + weight * row["val_mse_by_dataset"][path.stem], den + weight
+    assert row["val_mse"] == pytest.approx(num / den, rel=1e-9)
+    plain = train(config([gene, gene9], tmp_path / "plain", epochs=1))
+    assert plain.min_val_loss != pytest.approx(row["val_mse"], rel=1e-3)  # it did weigh
+
+
 def test_a_model_of_one_size_refuses_datasets_of_several(gene, gene9, tmp_path):
     with pytest.raises(ValueError, match="N = 4, 9: train it on datasets of one N"):
         train(config([gene, gene9], tmp_path / "node", epochs=1, model="node"))

@@ -80,7 +80,8 @@ def member_stats(members: Sequence[EvalResult]) -> dict[str, Any]:
                             "rmse": rmse.std(0, correction=0).tolist()}}
 
 
-def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:
+def pooled(results: Sequence[EvalResult], nodes: Sequence[int],
+           scale: Sequence[float] | None = None) -> EvalResult:
     """Several datasets' results as one: the numbers `evaluate` would give if their
     trajectories were one split (each mean is over every value of every dataset).
 
@@ -94,6 +95,8 @@ def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:
 
     Args:
         results: one per dataset. nodes: N of each dataset.
+        scale: a factor on each dataset's weights (`--balance-datasets`: 1 / its states'
+            variance); None: 1 for each.
 
     Returns:
         The pooled result; the result itself when there is one.
@@ -101,6 +104,8 @@ def pooled(results: Sequence[EvalResult], nodes: Sequence[int]) -> EvalResult:
     if len(results) == 1:
         return results[0]
     ok = [r.trajectories - r.failed for r in results]
+    if scale is not None:
+        ok = [o * w for o, w in zip(ok, scale, strict=True)]
     samples = [len(r.mse_vs_time) for r in results]
     values = [o * (t - 1) * n for o, t, n in zip(ok, samples, nodes, strict=True)]
     node_rows = [o * n for o, n in zip(ok, nodes, strict=True)]

@@ -220,8 +220,8 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
             inputs = [_inputs(run, batch, size, horizons[i], run.shuffles[k])
                       for k, batch in zip(active, batches, strict=True)]
             graphs, share = [x.graph(run.device) for x in batches], len(batches[0]) / size
-            results = _step(run.model, run.optimizer, inputs, times[i], graphs, loss_fn,
-                            config, world, active, share)
+            results = _step(run.model, run.optimizer, inputs, times[i], graphs,
+                            _scaled(loss_fn, run.loss_scale, i), config, world, active, share)
             raise_if_interrupted()  # a signal a library swallowed inside the step
             evals_per_batch.append(max(r.n_f_evals for r in results))
             for k, r in zip(active, results, strict=True):
@@ -411,7 +411,14 @@ def _validate(run: Run) -> tuple[EvalResult, list[EvalResult]]:
     each = [evaluate(run.model, part, run.normalizer, batch_size=run.config.val_batch_size,
                      solver=run.config.solver, device=run.device, angles=angles,
                      combine=world.sum if world.size > 1 else None) for part in run.val_parts]
-    return pooled(each, [d.num_nodes for d in run.datas]), each
+    return pooled(each, [d.num_nodes for d in run.datas], run.loss_scale), each
+
+
+def _scaled(loss_fn, scale: list[float] | None, i: int):
+    """`loss_fn` times dataset i's factor (`--balance-datasets`); itself without one."""
+    if scale is None:
+        return loss_fn
+    return lambda pred, target: loss_fn(pred, target) * scale[i]
 
 
 def _record(run: Run, schedules: list[LRSchedule], epoch: int, val: EvalResult,

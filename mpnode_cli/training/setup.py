@@ -155,6 +155,8 @@ class Run:
     resumed: bool
     parent_sha: str | None
     shuffles: list[torch.Generator]
+    # Each training dataset's factor on its loss (`--balance-datasets`); None: 1 for each.
+    loss_scale: list[float] | None = None
 
     @property
     def ensemble(self) -> bool:
@@ -276,7 +278,8 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
                kind=kind, model_config=model.config, model=model, normalizer=normalizer,
                optimizer=optimizer, shuffle=shuffles[0], shuffles=shuffles,
                device=data.device,
-               state=state, resumed=last is not None, parent_sha=parent_sha)
+               state=state, resumed=last is not None, parent_sha=parent_sha,
+               loss_scale=_loss_scale(config, train_sets, normalizer))
 
 
 def _check_step_memory(model, config: TrainConfig, train_sets: list, normalizer: Normalizer,
@@ -288,6 +291,18 @@ def _check_step_memory(model, config: TrainConfig, train_sets: list, normalizer:
                                  device, config.solver, batch)
     need = int(world.max(torch.tensor([need], dtype=torch.float64))[0])
     step_memory.check_step_memory(need, batch, len(model.members))
+
+
+def _loss_scale(config: TrainConfig, train_sets: list, normalizer: Normalizer
+                ) -> list[float] | None:
+    """`--balance-datasets` with several datasets: each one's 1 / the variance of its
+    normalized train states (over trajectories, samples, nodes and components); else None.
+    Several datasets are always in memory (streaming takes one)."""
+    if not config.balance_datasets or len(train_sets) < 2:
+        return None
+    variances = [float(normalizer.norm_x(t.states).to(torch.float64).var(correction=0))
+                 for t in train_sets]
+    return [1.0 / max(v, 1e-12) for v in variances]
 
 
 def _starting_point(config: TrainConfig, resume: bool, datas: list, finished_ok: bool,
