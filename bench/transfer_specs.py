@@ -44,6 +44,10 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # (Kuramoto, the pendulum, the grid), in place of the unwrapped θ (`--periodic embed`);
     # errors stay plain differences, so the rows compare with the default's.
     "periodic": ("--periodic", "embed"),
+    # The angles fed as they are: the recipe before its `--periodic auto` (rows of angle
+    # systems labelled `default` before that change are kept under these two names).
+    "periodic-off": ("--periodic", "off"),
+    "hub-coverage-periodic-off": ("--periodic", "off"),
     # The states z-scored as asinh(x / s), s their median |x| (`--normalize asinh`): a
     # hub's state 10× any in training lies a few units outside the range, not hundreds.
     "asinh": ("--normalize", "asinh"),
@@ -64,6 +68,10 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "hub-coverage-asinh": ("--normalize", "asinh"),
     "hub-coverage-asinh-inputs": ("--input-scale", "asinh", "--linear-path"),
     "hub-coverage-asinh-inputs-long": ("--input-scale", "asinh", "--linear-path"),
+    # Degree coverage with each dataset's loss over its own variance (`--balance-datasets`):
+    # the coverage graphs' hubs no longer swamp the source's typical nodes, and within
+    # the coverage data the hubs still count in full.
+    "hub-coverage-balanced": ("--balance-datasets",),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -230,7 +238,8 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
 
 COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse",
                      "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs",
-                     "hub-coverage-asinh-inputs-long")
+                     "hub-coverage-asinh-inputs-long", "hub-coverage-periodic-off",
+                     "hub-coverage-balanced")
 LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000

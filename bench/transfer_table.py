@@ -90,9 +90,10 @@ def grouped(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[int
             src = sources.get((*key[:4], seed))
             if src:
                 kinds.setdefault("source", {})[seed] = src
-    for key, kinds in groups.items():  # a variant run with --no-oracles: the default's
-        default = groups.get((*key[:3], "default", key[4]), {}).get("oracle")
-        if key[3] != "default" and "oracle" not in kinds and default:
+    for key, kinds in groups.items():  # a variant run with --no-oracles: its base's
+        base = "periodic-off" if key[3].endswith("periodic-off") else "default"
+        default = groups.get((*key[:3], base, key[4]), {}).get("oracle")
+        if key[3] != base and "oracle" not in kinds and default:
             kinds["oracle"], kinds["borrowed"] = default, {}
     return dict(sorted(groups.items(), key=lambda kv: _order(kv[0])))
 
@@ -256,7 +257,8 @@ def page(records: dict[str, dict[str, Any]], note: str = "") -> str:
     lines += [headline_row(key, kinds) for key, kinds in groups.items()]
     if any("borrowed" in kinds for kinds in groups.values()):
         lines += ["", "† A variant trained without oracles (`--no-oracles`): its oracle columns "
-                  "are the default variant's oracles of the same target."]
+                  "are the default variant's oracles of the same target (`periodic-off`'s for "
+                  "`hub-coverage-periodic-off`)."]
     scales = sorted({r.get("scale", "?") for r in records.values()})
     if scales != ["full"]:
         lines += ["", f"Scales present: {', '.join(scales)} (smoke rows are not results)."]
