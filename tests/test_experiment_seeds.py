@@ -113,10 +113,18 @@ def test_a_two_seed_run_trains_ensembles_and_reports_mean_and_std(tmp_path):
                                                      * member["min_val_loss"])
             assert member["test"]["mse"] == summary["members"][k]["test"]["mse"]
             assert member["val"]["mse"] is not None and member["min_train_loss"] is not None
-    # The finetune's member k starts from its parent's: its epoch 0 validates the parent's
-    # member k at its best (the same data, the parent's normalization).
+    from mpnode_cli.experiments.curves import unpack
     from mpnode_cli.training.run import read_metrics
 
+    # Each member keeps its per-epoch curve, the run's metrics.jsonl column (float32).
+    rows = read_metrics(Path(steps["run"].folder) / "run")
+    for k, member in enumerate(steps["run"].result["members"]):
+        assert unpack(member["curve"]["val_mse"]) == pytest.approx(
+            [r["members"][k]["val_mse"] for r in rows], rel=1e-6)
+        assert unpack(member["curve"]["seconds"]) == pytest.approx(
+            [r["seconds"] for r in rows], rel=1e-6)
+    # The finetune's member k starts from its parent's: its epoch 0 validates the parent's
+    # member k at its best (the same data, the parent's normalization).
     start = read_metrics(Path(steps["tuned"].folder) / "run")[0]["members"]
     assert [m["val_loss"] for m in start] == pytest.approx(
         [m["min_val_loss"] for m in steps["run"].result["members"]], rel=1e-5)
@@ -139,6 +147,7 @@ def test_a_two_seed_run_trains_ensembles_and_reports_mean_and_std(tmp_path):
     assert any(word in row for word in ("| yes (holds for", "| **no** (holds for",
                                         "| undecided (holds for 1 of 2"))
     assert "run seeds 0–1" in report
+    assert "| epochs to 3× | seconds to it | area ÷ time mean |" in report
     saved = json.loads((out / "two" / "small-mpnode" / "results.json").read_text())
     assert saved["seeds"] == 2 and saved["claims"][0]["seeds"] == 2
     assert saved["claims"][0]["outcome"] in ("holds", "fails", "undecided")

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mpnode_cli.experiments import commands, members
+from mpnode_cli.experiments import commands, curves, members
 from mpnode_cli.experiments.spec import TRAINING
 from mpnode_cli.jsonable import jsonable
 
@@ -133,7 +133,7 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
         "seconds_per_epoch": summary["seconds_per_epoch"],
         "parameters": summary["parameters"], "seed": config.seed,
         "trajectories": len(reference), "recipe": config.recipe,
-        "model_options": config.model_options,
+        "model_options": config.model_options, "curve": curves.curve(metrics),
     }  # fmt: skip
     if summary.get("members"):
         result[members.MEMBERS] = [_member_training(result, member, metrics)
@@ -159,7 +159,10 @@ def _member_training(result: dict[str, Any], member: dict[str, Any],
             "min_train_loss": min(train_losses, default=None),
             "val": {**result["val"], "mse": best.get("val_mse")},
             "test": {**result["test"], "mse": test.get("mse"), "failed": test.get("failed")},
-            "seed": member["seed"], "stopped_early": member.get("stopped") or None}
+            "seed": member["seed"], "stopped_early": member.get("stopped") or None,
+            "curve": curves.curve([{**row["members"][k], "epoch": row["epoch"],
+                                    "seconds": row["seconds"]}
+                                   for row in metrics if row.get("members")])}
 
 
 def _zeroshot(step, options, folder: Path, inputs, status, emit):
