@@ -339,6 +339,33 @@ def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
             "BA is below L2S's: l2s (barely learned, 1.01× below the time mean).") in weak
 
 
+def test_the_index_flags_table2_figures_of_best_epoch_0_or_the_budgets_end(tmp_path):
+    """A Table-2 claim whose scratch member had its best epoch at 0, and whose finetune ran
+    to the last epoch of its budget, is listed with both; a claim on test errors is not."""
+    def run(best, mse):
+        return {"best_epoch": best, "epochs": 50, "table2": best * mse, "model": "mpnode",
+                "val": {"mse": mse, "time_mean": 1.0}, "test": {"mse": mse, "time_mean": 1.0}}
+
+    scratch = {**run(10, 0.1), "members": [run(10, 0.1), run(0, 0.2)]}
+    results = {"finetune-50": {**run(50, 0.05), "members": [run(50, 0.05), run(40, 0.06)]},
+               "scratch-50": scratch}
+    folder = tmp_path / "finetune-lorenz" / "small-mpnode"
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "scale": "small", "recipe": "mpnode",
+        "steps": [{"id": step, "result": result} for step, result in results.items()]}))
+    from mpnode_cli.experiments.index import rebuild_index
+
+    weak = rebuild_index(tmp_path).read_text().split("## Verdicts that rest on runs")[1]
+    flagged = [line for line in weak.splitlines() if line.startswith("- finetune-lorenz")]
+    assert flagged and all("scratch-50 (member 1's best epoch is 0 (figure 0))" in line
+                           for line in flagged)
+    assert any("finetune-50 (member 0's best epoch is the budget's last (50))" in line
+               for line in flagged)
+    assert all("table2" in next(c.holds for c in spec.load("finetune-lorenz").claims
+                                if c.claim in line) for line in flagged)
+
+
 def test_the_absolute_path_check_tells_paths_from_urls():
     for text in ("--work /work/x/y", "`/tmp/qruns`", '"/home/me/a"', "(/Users/me/b)"):
         assert ABSOLUTE_PATH.search(text), text

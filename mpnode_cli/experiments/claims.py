@@ -126,6 +126,29 @@ def learning_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, s
             for step, ratios in member_learning(text, results).items()}
 
 
+def table2_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """For a claim on Table-2 figures (`table2`, `table2_per_mean`), the runs it names
+    whose figure is degenerate or capped, a phrase each: a best epoch of 0 makes the
+    figure 0 whatever the loss, and a best epoch at the budget's last says the run was
+    still improving, so its figure measures the budget."""
+    if "table2" not in text:
+        return {}
+    out = {}
+    for step, result in _named(text, results).items():
+        phrases = []
+        for k in range(members.count({step: result})):
+            r = members.of(result, k)
+            best, last = r.get("best_epoch"), r.get("epochs")
+            who = f"member {k}'s" if result.get(members.MEMBERS) else "its"
+            if best == 0:
+                phrases.append(f"{who} best epoch is 0 (figure 0)")
+            elif best is not None and best == last:
+                phrases.append(f"{who} best epoch is the budget's last ({last})")
+        if phrases:
+            out[step] = ", ".join(phrases)
+    return out
+
+
 def trained_runs(text: str, experiment: Experiment) -> list[str]:
     """The training steps a claim reads: those it names, and the checkpoints of the
     evaluate and zero-shot steps it names."""

@@ -79,9 +79,12 @@ def rebuild_index(out: Path) -> Path:
                          f"{claim.where} | {cells[0]} | {cells[1]} | {' / '.join(verdicts)} |")
     lines += ["", *_coverage(out)]
     if weak:
-        lines += ["", "## Verdicts that rest on runs that did not learn, or barely", "",
+        lines += ["", "## Verdicts that rest on runs that did not learn, barely learned, or "
+                  "ran out of budget", "",
                   f"Runs not below the time-mean predictor, or less than "
-                  f"{claims.BARELY_LEARNED:g}× below it, that a claim compares:", "", *weak]
+                  f"{claims.BARELY_LEARNED:g}× below it, that a claim compares; and Table-2 "
+                  "figures whose best epoch is 0 (the figure is 0 whatever the loss) or the "
+                  "budget's last (the run was still improving):", "", *weak]
     path = out / INDEX
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_text(path, "\n".join(lines) + "\n")
@@ -147,6 +150,8 @@ def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any],
     """A line for the index if `claim`'s verdict under `recipe` at `scale` rests on runs
     that did not learn or barely learned."""
     notes = claims.learning_notes(claim.holds, results)
+    for step, note in claims.table2_notes(claim.holds, results).items():
+        notes[step] = f"{notes[step]}; {note}" if step in notes else note
     if not notes:
         return []
     runs = ", ".join(f"{step} ({note})" for step, note in notes.items())
