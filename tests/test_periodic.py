@@ -226,8 +226,9 @@ def kuramoto_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("periodic")
     data = generate(GenerateConfig(system="kuramoto", nodes=6, trajectories=6, t_end=0.2,
                                    dt=0.05, out=root / "k.h5")).path
+    # No --periodic: mpnode's recipe embeds the angles a dataset declares ("auto").
     result = invoke("train", data, "--epochs", 1, "--batch-size", 6, "--no-plots",
-                    "--periodic", "embed", "--hidden", 8, "--run-dir", root / "run")
+                    "--hidden", 8, "--run-dir", root / "run")
     assert result.exit_code == 0, result.output
     return {"data": data, "run": root / "run",
             "checkpoint": root / "run" / "checkpoints" / "best.pt"}
@@ -245,6 +246,20 @@ def test_a_periodic_run_records_its_angles_and_leaves_them_unscaled(kuramoto_run
     assert ckpt.build_model().periodic_dims == (0, 1, 2)
     result = invoke("evaluate", kuramoto_run["checkpoint"], kuramoto_run["data"], "--json")
     assert result.exit_code == 0, result.output
+
+
+def test_the_recipes_periodic_choice_is_off_where_the_data_declare_no_angles(user_files):
+    from mpnode_cli.models.options import MPNODEOptions
+    from mpnode_cli.training.checkpoint import load_checkpoint
+    from mpnode_cli.training.recipe import recipe_values
+
+    ckpt = load_checkpoint(user_files["checkpoint"])  # mpnode's recipe, data without angles
+    assert ckpt.model_config["periodic"] == "off"
+    assert "periodic_dims" not in ckpt.model_config
+    assert recipe_values("mpnode", {}, 101)["model_options"]["periodic"] == "auto"
+    # The paper's recipe keeps the paper's model: the option's own default.
+    assert "periodic" not in recipe_values("paper", {}, 101)["model_options"]
+    assert MPNODEOptions().periodic == "off"
 
 
 def test_periodic_embed_on_a_dataset_without_angles_is_one_line(user_files, tmp_path):

@@ -43,7 +43,7 @@ _TINY = 1e-300
 MODELS: dict[str, list[str]] = {
     "mpnode-default": ["--model", "mpnode", "--hidden", "8"],
     "mpnode-paper": ["--model", "mpnode", "--hidden", "8", "--update", "mlp",
-                     "--aggregate", "mean"],
+                     "--aggregate", "mean", "--periodic", "off"],
     "mpnode-options": ["--model", "mpnode", "--hidden", "8", "--aggregate", "pna",
                        "--linear-path", "--periodic", "embed", "--backend", "scatter",
                        "--message-init", "zero"],

@@ -51,7 +51,10 @@ _MPNODE: dict[str, Any] = {
     # start from the node's state: the choice that carries a node model to larger graphs
     # with higher degrees (bench/results/transfer.md). A system whose coupling is not a
     # neighbour sum says so in its own recommendation (Lorenz, the quadrotor swarm).
-    "model_options": {"aggregate": "sum", "update": "affine", "message_init": "learned"},
+    # The node networks see (sin θ, cos θ) of the states a dataset declares angles, where
+    # it declares any: unwrapped phases drift out of any training range (docs/transfer.md).
+    "model_options": {"aggregate": "sum", "update": "affine", "message_init": "learned",
+                      "periodic": "auto"},
 }
 
 _PAPER: dict[str, Any] = {
