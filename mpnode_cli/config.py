@@ -395,13 +395,10 @@ class TrainConfig(BaseModel):
     wrap_angles: bool = Field(False, description=(
         "Take the training loss and every error (validation, evaluate, zeroshot, the "
         "baselines) of the states the dataset declares periodic mod 2π, as the wrapped "
-        "difference atan2(sin Δ, cos Δ); off: plain differences, as before. Off by default "
-        "so that every existing number stays as it was."))
+        "difference atan2(sin Δ, cos Δ); off: plain differences, comparable with before."))
     balance_datasets: bool = Field(False, description=(
-        "With several training datasets, weigh each one's training loss and its share of "
-        "the validation loss that picks the best epoch by 1 / the variance of its own "
-        "normalized train states, so that a dataset whose states are 100× another's (hubs "
-        "of a degree-coverage graph) does not drown it; off: every value counts alike."))
+        "Several datasets: weigh each one's loss (training, and the validation that picks "
+        "the best epoch) by 1 / its normalized states' variance; off: all values alike."))
     noise: float = Field(1e-4, ge=0, description=(
         "Std of Gaussian noise on the normalized training states (inputs and targets "
         "alike), fresh every batch."))

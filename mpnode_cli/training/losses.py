@@ -112,3 +112,16 @@ def node_mse_loss(pred: torch.Tensor, target: torch.Tensor,
 
 
 LOSSES = {"huber": huber_loss, "mse": mse_loss, "node-mse": node_mse_loss}
+
+
+def dataset_loss_scale(balance: bool, train_sets: Sequence, normalizer: Any
+                       ) -> list[float] | None:
+    """Each training dataset's factor on its loss under `--balance-datasets` (`balance`)
+    with several datasets: 1 / the population variance of its train states as the run's
+    `normalizer` maps them (over trajectories, samples, nodes and components); None
+    otherwise (every value counts alike). Several datasets are always in memory."""
+    if not balance or len(train_sets) < 2:
+        return None
+    variances = [float(normalizer.norm_x(t.states).to(torch.float64).var(correction=0))
+                 for t in train_sets]
+    return [1.0 / max(v, 1e-12) for v in variances]

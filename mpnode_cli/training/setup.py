@@ -47,6 +47,7 @@ from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint
 from mpnode_cli.training.compat import check_compatible
 from mpnode_cli.training.extrapolation import training_range
+from mpnode_cli.training.losses import dataset_loss_scale
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.recipe import resolve_config
 from mpnode_cli.training.resume import check_resumable
@@ -259,7 +260,7 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
         _fit_statistics(model, train_sets, normalizer)
     model.to(device=data.device, dtype=getattr(torch, config.dtype))
     world.broadcast_module(model)
-    _check_step_memory(model, config, train_sets, normalizer, data.device, world)
+    step_memory.check_run(model, config, train_sets, normalizer, data.device, world)
     optimizer = Adam([{"params": list(m.parameters())} for m in model.members], lr=config.lr)
     # Batch order and noise, each member's from its own seed.
     shuffles = [torch.Generator().manual_seed(config.seed + k) for k in range(seeds)]
@@ -279,30 +280,8 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
                optimizer=optimizer, shuffle=shuffles[0], shuffles=shuffles,
                device=data.device,
                state=state, resumed=last is not None, parent_sha=parent_sha,
-               loss_scale=_loss_scale(config, train_sets, normalizer))
-
-
-def _check_step_memory(model, config: TrainConfig, train_sets: list, normalizer: Normalizer,
-                       device: torch.device, world: distributed.World) -> None:
-    """Refuse, before the run folder is touched, a run whose training step cannot fit in
-    memory (`mpnode_cli.training.step_memory`); every rank takes the largest need."""
-    batch = step_memory.per_rank_batch(config.batch_size, world.size)
-    need = step_memory.step_need(model, train_sets, normalizer, getattr(torch, config.dtype),
-                                 device, config.solver, batch)
-    need = int(world.max(torch.tensor([need], dtype=torch.float64))[0])
-    step_memory.check_step_memory(need, batch, len(model.members))
-
-
-def _loss_scale(config: TrainConfig, train_sets: list, normalizer: Normalizer
-                ) -> list[float] | None:
-    """`--balance-datasets` with several datasets: each one's 1 / the variance of its
-    normalized train states (over trajectories, samples, nodes and components); else None.
-    Several datasets are always in memory (streaming takes one)."""
-    if not config.balance_datasets or len(train_sets) < 2:
-        return None
-    variances = [float(normalizer.norm_x(t.states).to(torch.float64).var(correction=0))
-                 for t in train_sets]
-    return [1.0 / max(v, 1e-12) for v in variances]
+               loss_scale=dataset_loss_scale(config.balance_datasets, train_sets,
+                                             normalizer))
 
 
 def _starting_point(config: TrainConfig, resume: bool, datas: list, finished_ok: bool,

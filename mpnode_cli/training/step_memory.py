@@ -96,3 +96,19 @@ def check_step_memory(need: int, batch: int, members: int) -> None:
 def per_rank_batch(batch_size: int, ranks: int) -> int:
     """The most trajectories a rank takes from a global batch (`World.shard`'s split)."""
     return math.ceil(batch_size / ranks)
+
+
+def check_run(model: torch.nn.Module, config: Any, train_sets: Sequence, normalize: Any,
+              device: torch.device, world: Any) -> None:
+    """Refuse, before its run folder is touched, a run (`config`: its `TrainConfig`) whose
+    training step cannot fit in memory; every rank (`world`) takes the largest need, so
+    all refuse together.
+
+    Raises:
+        ValueError: one line (`check_step_memory`).
+    """
+    batch = per_rank_batch(config.batch_size, world.size)
+    need = step_need(model, train_sets, normalize, getattr(torch, config.dtype), device,
+                     config.solver, batch)
+    need = int(world.max(torch.tensor([need], dtype=torch.float64))[0])
+    check_step_memory(need, batch, len(model.members))
