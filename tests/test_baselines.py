@@ -49,7 +49,7 @@ def test_l2s_rollout_applies_the_predicted_differences():
     adj = random_graph(1, 4, seed=2)
     x0 = torch.randn(1, 4, 2)
     out = net.rollout(x0, TS, adj).states
-    edges = net._edges(adj)
+    edges = net.edge_index(adj)
     step1 = x0 + net.delta(x0.unsqueeze(1), edges, None) * net.delta_std + net.delta_mean
     torch.testing.assert_close(out[:, 1], step1)
     assert out.shape == (1, 6, 4, 2)

@@ -174,14 +174,14 @@ def test_datasets_that_do_not_go_together_are_refused(data, tmp_path):
 
 
 def test_ctrl_c_exits_130_after_saving_last(data, tmp_path, monkeypatch):
-    epoch = loop._train_epoch
+    epoch = loop.train_epoch
 
     def interrupted(*args):
         if args[3] == 2:  # the epoch number
             raise KeyboardInterrupt
         return epoch(*args)
 
-    monkeypatch.setattr(loop, "_train_epoch", interrupted)
+    monkeypatch.setattr(loop, "train_epoch", interrupted)
     run = tmp_path / "run"
     result = invoke("train", data["l3"], "--epochs", "5", "--run-dir", run, *FAST)
     assert result.exit_code == 130, result.output

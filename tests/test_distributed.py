@@ -124,7 +124,7 @@ def one_step(gene, rank: int | None, out: Path, batch: int, fail: str | None = N
         MPNODE.rollout = failing
     x = normalizer.norm_x(mine.states).double()  # (B_r, T, N, D)
     before = [p.detach().clone() for p in model.parameters()]
-    (result,) = loop._step(model, optimizer, [(x, None)], train_set.time,
+    (result,) = loop.train_step(model, optimizer, [(x, None)], train_set.time,
                            [mine.adjacency.double()], loss_fn, config, world,
                            share=len(mine) / batch)
     loss, norm, reason = result.loss, result.grad_norm, result.skip

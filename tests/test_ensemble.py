@@ -242,12 +242,12 @@ def test_a_members_bad_batch_leaves_it_alone_and_the_others_step():
     before = [p.detach().clone() for p in models[1].parameters()]
     cfg = TrainConfig(dataset="x.h5")
     world = loop.distributed.world()
-    out = loop._step(ensemble, optimizer, [(x[0], None), (x[1], None)], ts,
+    out = loop.train_step(ensemble, optimizer, [(x[0], None), (x[1], None)], ts,
                      [adjacency, adjacency], loss, cfg, world, [0, 1])
     assert out[0].skip is None and out[1].skip == "non-finite loss"
     assert all(torch.equal(p, q) for p, q in zip(models[1].parameters(), before, strict=True))
     assert not any(p in optimizer.state for p in models[1].parameters())
-    (solo,) = loop._step(alone, optimizer_alone, [(x[0], None)], ts, [adjacency],
+    (solo,) = loop.train_step(alone, optimizer_alone, [(x[0], None)], ts, [adjacency],
                          lambda p, t: (p - t).square().mean(), cfg, world)
     assert solo.loss == pytest.approx(out[0].loss, rel=1e-12)
     for p, q in zip(models[0].parameters(), alone.parameters(), strict=True):

@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.data.presets import PRESETS
-from mpnode_cli.experiments import claims, spec
+from mpnode_cli.experiments import claims, scheduler, spec
 from mpnode_cli.experiments import runner as experiment_runner
 from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
@@ -558,18 +558,18 @@ def test_a_worker_process_runs_steps_as_the_run_does(tmp_path, pendulum_alone):
     that started it (the same token) counts its steps as run, any other run as done earlier."""
     experiment, alone = spec.load("messages-pendulum"), pendulum_alone
     steps = experiment_runner.plan(experiment, "tiny", "mpnode", tmp_path / "two")
-    workers = experiment_runner._start_workers(steps, "this-run", 1)
+    workers = scheduler.start_workers(steps, "this-run", 1)
     for worker in workers:
         worker.join(timeout=300)
     assert [worker.exitcode for worker in workers] == [0]
 
     events = []
-    collected = experiment_runner._take_steps(steps, "this-run", events.append)
+    collected = scheduler.take_steps(steps, "this-run", events.append)
     assert {record.status for record in collected.values()} == {"ran"}
     assert all(event.get("worker") for event in events if event["event"] == "step")
     assert ([_timeless(collected[step.id].result) for step in alone.steps]
             == [_timeless(step.result) for step in alone.steps])
-    later = experiment_runner._take_steps(steps, "another-run", lambda event: None)
+    later = scheduler.take_steps(steps, "another-run", lambda event: None)
     assert {record.status for record in later.values()} == {"skipped"}
 
 
@@ -671,7 +671,7 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
     left = {pid: _cmdline(pid) for pid in workers if _cmdline(pid)}
     assert not left, left
     for entry in trainings:
-        assert experiment_runner._resumable(entry.folder, entry.fingerprint), entry.step.id
+        assert scheduler.resumable(entry.folder, entry.fingerprint), entry.step.id
         assert not (entry.folder / STEP_JSON).exists()
     assert list(tmp_path.glob("out/*")) == []  # no report from a run that did not finish
 
@@ -679,13 +679,13 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
 def test_an_option_added_later_leaves_fingerprints_alone_at_its_default():
     """Finished steps stay finished when the solver table gains `compact` (on by default):
     the fingerprint leaves it out at its default, and counts it when it is turned off."""
-    from mpnode_cli.experiments.scheduler import _fingerprint
+    from mpnode_cli.experiments.scheduler import step_fingerprint
 
     before = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8}}}
     now = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8,
                                                    "compact": True}}}
     off = {"config": {"system": "gene", "solver": {"method": "tsit5", "rtol": 1e-8,
                                                    "compact": False}}}
-    assert _fingerprint("generate", now, ["a"]) == _fingerprint("generate", before, ["a"])
-    assert _fingerprint("generate", off, ["a"]) != _fingerprint("generate", before, ["a"])
+    assert step_fingerprint("generate", now, ["a"]) == step_fingerprint("generate", before, ["a"])
+    assert step_fingerprint("generate", off, ["a"]) != step_fingerprint("generate", before, ["a"])
 

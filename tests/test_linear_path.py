@@ -217,13 +217,13 @@ def test_an_ensemble_with_the_path_steps_as_its_members_alone(options):
     before = {k: p.detach().clone() for k, p in models[1].named_parameters()}
     optimizer = Adam([{"params": list(m.parameters())} for m in models], lr=1e-2)
     for _ in range(2):  # the second step sees the moments of the first
-        out = loop._step(Ensemble(models), optimizer, [(x[0], us[0]), (x[1], us[1])], ts,
+        out = loop.train_step(Ensemble(models), optimizer, [(x[0], us[0]), (x[1], us[1])], ts,
                          [adjacency] * 2, loss, cfg, world, [0, 1])
         assert all(r.skip is None for r in out)
     for k, solo in enumerate(alone):
         optimizer_alone = Adam(solo.parameters(), lr=1e-2)
         for step in range(2):
-            (result,) = loop._step(solo, optimizer_alone, [(x[k], us[k])], ts, [adjacency],
+            (result,) = loop.train_step(solo, optimizer_alone, [(x[k], us[k])], ts, [adjacency],
                                    loss, cfg, world)
             if step == 1:
                 assert result.loss == pytest.approx(out[k].loss, rel=1e-12)

@@ -101,13 +101,13 @@ def test_even_batches_leave_no_tiny_tail(gene, tmp_path, monkeypatch):
     from mpnode_cli.training import loop
 
     sizes = []
-    real = loop._step
+    real = loop.train_step
 
     def spy(model, optimizer, inputs, *args):
         sizes.append(inputs[0][0].shape[0])  # (x: [B, H, N, D], u) of the one model
         return real(model, optimizer, inputs, *args)
 
-    monkeypatch.setattr(loop, "_step", spy)
+    monkeypatch.setattr(loop, "train_step", spy)
     k = int((TrajectoryData.load(gene).split == 0).sum())
     assert k % 16 not in (0, 15)  # so that the authors' batching leaves a small tail
     for even in (True, False):

@@ -117,7 +117,7 @@ def test_simulate_and_train_name_the_step_that_ran_out(tmp_path, monkeypatch, us
         "simulate", user_files["checkpoint"], "--x0", user_files["x0"], "--adjacency",
         user_files["adjacency"], "--t-end", 0.2, "--dt", 0.1, "--out", tmp_path / "p.h5"))
     assert "out of memory while rolling out 2 trajectories in batches of" in line, line
-    monkeypatch.setattr("mpnode_cli.training.loop._train_epoch", out_of_memory)
+    monkeypatch.setattr("mpnode_cli.training.loop.train_epoch", out_of_memory)
     line = one_line_error(invoke("train", user_files["data"], "--epochs", 1, "--no-plots",
                                  "--run-dir", tmp_path / "r"))
     assert "out of memory while training epoch 1" in line, line

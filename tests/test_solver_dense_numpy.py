@@ -295,13 +295,13 @@ def test_the_two_forms_pieces_agree():
     gen = torch.Generator().manual_seed(0)
     theta = torch.rand(16, 3, generator=gen, dtype=torch.float64)
     interp_t = torch.randn(7, 4, generator=gen, dtype=torch.float64)
-    coef = dense._interpolant_numpy(theta, interp_t)
+    coef = dense.interpolant_numpy(theta, interp_t)
     assert coef.shape == (16, 3, 7) and coef.is_contiguous()
     # b_i(θ) = Σ_k P_ik θ^k: K products and their sum in each form (see
     # `dense_rounding_bound`), to γ_{2K}·Σ_k |P_ik|·θ^k each.
     size = interp_t.abs() @ (theta[..., None] ** torch.arange(1, 5)).reshape(-1, 4).T  # (s, B·W)
     apart = two_sums_apart(2 * 4, size.T.reshape(16, 3, 7))
-    assert bool(((coef - dense._interpolant(theta, interp_t)).abs() <= apart).all())
+    assert bool(((coef - dense.interpolant_weights(theta, interp_t)).abs() <= apart).all())
 
     hk = torch.randn(7, 16, 5, generator=gen, dtype=torch.float64)
     y = torch.randn(16, 5, generator=gen, dtype=torch.float64)

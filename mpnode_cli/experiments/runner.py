@@ -28,8 +28,6 @@ from mpnode_cli.experiments.scheduler import (
     PENDING_JSON,
     STEP_JSON,
     plan,
-    resumable,
-    run_step,
     start_workers,
     stop_workers,
     take_steps,
@@ -39,11 +37,6 @@ from mpnode_cli.experiments.steps import Progress, StepFailed, StepRecord
 
 __all__ = ["PENDING_JSON", "STEP_JSON", "RunRecord", "StepFailed", "StepRecord", "plan",
            "run_experiment"]
-
-# The names this module had before `schedule` and `steps` were split from it; the tests
-# still reach them here.
-_start_workers, _take_steps, _resumable, _run_step = (start_workers, take_steps, resumable,
-                                                      run_step)
 
 
 @dataclass

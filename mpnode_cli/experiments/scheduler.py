@@ -80,7 +80,7 @@ def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path,
             options = resolve(step, scale, recipe, seeds)
         except ValueError as exc:
             raise ValueError(f"{experiment.name}: step '{step.id}': {exc}") from None
-        fingerprint = _fingerprint(step.verb, options, [planned[i].fingerprint
+        fingerprint = step_fingerprint(step.verb, options, [planned[i].fingerprint
                                                         for i in step.inputs()])
         planned[step.id] = Planned(index, step, options, fingerprint,
                                    Path(work) / f"{step.id}-{fingerprint[:12]}")
@@ -276,7 +276,7 @@ def _without_later_defaults(value: Any) -> Any:
     return out
 
 
-def _fingerprint(verb: str, options: dict[str, Any], inputs: list[str]) -> str:
+def step_fingerprint(verb: str, options: dict[str, Any], inputs: list[str]) -> str:
     blob = json.dumps({"format": FINGERPRINT_FORMAT, "verb": verb,
                        "options": _without_later_defaults(options), "inputs": inputs},
                       sort_keys=True, default=str)

@@ -75,7 +75,7 @@ class L2S(NeuralModel):
         return self.history
 
     # -------------------------------------------------------------- one step
-    def _edges(self, adjacency: Graph) -> EdgeIndex:
+    def edge_index(self, adjacency: Graph) -> EdgeIndex:
         """`[B, N, N]` or an `EdgeBatch` → the edges messages pass over."""
         if self.graph == "full":
             adjacency = full_graph(adjacency)
@@ -147,7 +147,7 @@ class L2S(NeuralModel):
         u = None
         if self.control_dim:
             u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
-        pred = self.delta(windows, self._edges(adj), u)
+        pred = self.delta(windows, self.edge_index(adj), u)
         return ((pred - (target - self.delta_mean) / self.delta_std) ** 2).mean()
 
     def training_loss(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
@@ -183,7 +183,7 @@ class L2S(NeuralModel):
         if c > 1 and history is None:
             raise ValueError(f"this L2S model needs the first {c} states (history={c})")
         window = history if c > 1 else x0.unsqueeze(1)
-        edges = self._edges(as_graph(adjacency, x0))
+        edges = self.edge_index(as_graph(adjacency, x0))
         states = list(window.unbind(1))
         for k in range(c - 1, ts.numel() - 1):
             u = controls[:, k] if self.control_dim else None

@@ -6,7 +6,7 @@ as W lanes per sample, with a bounded, static-shape scatter (no `nonzero`); mask
 lanes write to a spare row.
 
 On the CPU, without `compile`, two pieces run in numpy on the tensors' memory (no copy):
-- the weights b_i(θ) (`_interpolant_numpy`), because the solver's numbers are numpy's
+- the weights b_i(θ) (`interpolant_numpy`), because the solver's numbers are numpy's
   there: its matmul and torch's round the K-term sums differently in the last bit;
 - where autograd does not record the step, the lanes' sums themselves (`host_lanes`), one
   small product per sample on a strided view of the stages: 5× faster than torch's copy
@@ -70,12 +70,12 @@ def dense_weights(out: OutputTimes, t: torch.Tensor, h: torch.Tensor, out_idx: t
         h_safe = torch.where(h > 0, h, 1.0)
         theta = (torch.take(ts, cols.clamp(None, ts.shape[0] - 1)) - t[:, None]) / h_safe[:, None]
         theta = theta.clamp(0.0, 1.0)  # (B, W)
-        interpolant = _interpolant_numpy if out.numpy else _interpolant
+        interpolant = interpolant_numpy if out.numpy else interpolant_weights
         coef = interpolant(theta, out.interp_t)  # (B, W, s): b_i(θ)
     return cols, valid, coef
 
 
-def _interpolant(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Tensor:
+def interpolant_weights(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Tensor:
     """`[B, W, s]` b_i(θ) at `theta [B, W]`, b(θ) = [θ, θ², ..., θ^K] @ interp_t.T."""
     k_max = interp_t.shape[1]
     powers = theta[..., None].expand(-1, -1, k_max).cumprod(-1)  # (B, W, K): θ, ..., θ^K
@@ -84,8 +84,8 @@ def _interpolant(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Tensor:
     return coef.permute(1, 2, 0)
 
 
-def _interpolant_numpy(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Tensor:
-    """`_interpolant` in numpy (CPU tensors), as the solver has always computed it there."""
+def interpolant_numpy(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Tensor:
+    """`interpolant_weights` in numpy (CPU tensors), as the solver always computed it there."""
     x = theta.numpy().reshape(-1)
     # (K, B·W): θ, ..., θ^K, a power a row, each the row above times θ (cumprod's
     # products; numpy's cumprod along a short last axis took ~30 µs for 256 rows).

@@ -15,7 +15,7 @@ A run is five stages, each a named piece:
 2. the learning rate, one policy (`mpnode_cli.training.lr_schedule.LRSchedule`);
 3. the checkpointer (`mpnode_cli.training.checkpointer.Checkpointer`): each epoch's files,
    all or none, and the snapshot a rollback and an interrupt go back to;
-4. the epochs: `_train_epoch` (one pass of optimizer steps, `_step`), validation, `_record`;
+4. the epochs: `train_epoch` (one pass of optimizer steps, `train_step`), validation, `_record`;
 5. the best checkpoint on the test split, and `summary.json`
    (`mpnode_cli.training.finish`).
 
@@ -175,7 +175,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
                                     and state.seconds >= config.time_limit):
                 break  # every member stopped early (`stop_patience`), or time is up
             start = time.perf_counter()
-            steps = _train_epoch(run, schedules, saver, epoch)
+            steps = train_epoch(run, schedules, saver, epoch)
             val, each = _validate(run)
             state.epoch = epoch
             row = _record(run, schedules, epoch, val, each, steps, time.perf_counter() - start)
@@ -191,7 +191,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
     return finish(run)
 
 
-def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
+def train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
                  epoch: int) -> dict[str, Any]:
     """One pass over the shuffled train split (of each dataset: every batch is one
     dataset's, `mpnode_cli.data.pooled.epoch_batches`); an ensemble's members each take
@@ -204,7 +204,7 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
     # Bound only when angles wrap: a loss is otherwise called loss(pred, target).
     loss_fn = (LOSSES[config.loss] if angles is None
                else functools.partial(LOSSES[config.loss], angles=angles))
-    horizons = [_horizon(config, epoch, t.time.numel()) for t in run.train_sets]
+    horizons = [epoch_horizon(config, epoch, t.time.numel()) for t in run.train_sets]
     times = [t.time[:h].to(run.device) for t, h in zip(run.train_sets, horizons, strict=True)]
     active = run.active()
     plans = [epoch_batches([len(t) for t in run.train_sets], config.batch_size,
@@ -220,7 +220,7 @@ def _train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
             inputs = [_inputs(run, batch, size, horizons[i], run.shuffles[k])
                       for k, batch in zip(active, batches, strict=True)]
             graphs, share = [x.graph(run.device) for x in batches], len(batches[0]) / size
-            results = _step(run.model, run.optimizer, inputs, times[i], graphs,
+            results = train_step(run.model, run.optimizer, inputs, times[i], graphs,
                             _scaled(loss_fn, run.loss_scale, i), config, world, active, share)
             raise_if_interrupted()  # a signal a library swallowed inside the step
             evals_per_batch.append(max(r.n_f_evals for r in results))
@@ -333,7 +333,7 @@ def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
     run.emit({"event": "restore", "epoch": epoch, "lr": lr} | ({"member": k} if several else {}))
 
 
-def _step(model, optimizer, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
+def train_step(model, optimizer, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
           config: TrainConfig, world: distributed.World, active: Sequence[int] = (0,),
           share: float = 1.0) -> list[StepResult]:
     """One update of each active member of `model` (one model: its one member, itself)
@@ -470,7 +470,7 @@ def _member_rows(run: Run, val: EvalResult, lrs: list[float], improved: list[int
             "improved_members": improved}
 
 
-def _horizon(config: TrainConfig, epoch: int, t: int) -> int:
+def epoch_horizon(config: TrainConfig, epoch: int, t: int) -> int:
     """Samples per training trajectory this epoch: all, or the curriculum's growing prefix."""
     if not config.horizon_curriculum:
         return t

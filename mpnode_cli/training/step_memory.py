@@ -28,7 +28,6 @@ from typing import Any
 import torch
 
 from mpnode_cli.memory import available_memory, format_bytes
-from mpnode_cli.training.losses import LOSSES
 
 ADVICE = ("lower --batch-size or --seeds, or train on shorter trajectories, smaller graphs or "
           "a machine with more memory")
@@ -53,10 +52,15 @@ def saved_bytes(model: torch.nn.Module, x: torch.Tensor, ts: torch.Tensor, graph
     devices = [x.device] if x.device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices), \
             torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        losses = model.training_losses(xs, ts, [graph] * members, us, LOSSES["mse"],
+        losses = model.training_losses(xs, ts, [graph] * members, us, _squared_error,
                                        range(members), solver=solver)
     del losses  # frees the graph the hooks counted
     return sum(storages.values())
+
+
+def _squared_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """What any training loss keeps of the rollout: its difference from the target."""
+    return (pred - target).square().mean()
 
 
 def step_need(model: torch.nn.Module, train_sets: Sequence, normalize: Any, dtype: torch.dtype,
