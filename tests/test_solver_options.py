@@ -12,7 +12,7 @@ import torch
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.cli.train import config_from
+from mpnode_cli.cli.train import train_config_from
 from mpnode_cli.config import GenerateConfig, TrainConfig, generate_solver, train_solver
 from mpnode_cli.config_upgrade import (
     pin_stored_solver,
@@ -134,13 +134,14 @@ def test_an_old_dataset_config_is_upgraded_on_reading(tmp_path):
 
 
 def test_cli_flags_fill_the_solver_table(tmp_path):
-    config = config_from(None, {"dataset": "d.h5", "method": "dopri5", "rtol": 1e-5})
+    config = train_config_from(None, {"dataset": "d.h5", "method": "dopri5", "rtol": 1e-5})
     assert config.solver == SolverOptions(method="dopri5", rtol=1e-5, atol=1e-4, controller="i",
                                           compile="auto")
     assert "solver" in config.model_fields_set
     # A config file's table (or its old flat fields) lies beneath the options given.
     (tmp_path / "c.toml").write_text('rtol = 1e-3\n[solver]\natol = 1e-6\n')
-    config = config_from(tmp_path / "c.toml", {"dataset": "d.h5", "fixed_dt": 0.1, "method": "rk4"})
+    config = train_config_from(tmp_path / "c.toml",
+                               {"dataset": "d.h5", "fixed_dt": 0.1, "method": "rk4"})
     assert config.solver == SolverOptions(method="rk4", rtol=1e-3, atol=1e-6, fixed_dt=0.1,
                                           controller="i", compile="auto")
     for verb in (["train", "d.h5"], ["generate", "lorenz"]):

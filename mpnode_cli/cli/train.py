@@ -109,7 +109,7 @@ def train_command(
         else:
             if not datasets:
                 raise ValueError("give a DATASET to train on (or --resume RUN_DIR)")
-            config = config_from(config_file, {**fields, "dataset": datasets}, chosen)
+            config = train_config_from(config_file, {**fields, "dataset": datasets}, chosen)
     except ValueError as exc:
         fail(error_message(exc))
     _run(config, resume=resume is not None, json_out=json_out)
@@ -133,7 +133,7 @@ def finetune_command(
     from mpnode_cli.training.checkpoint import resolve_path
 
     try:
-        config = config_from(config_file, {**fields, "dataset": datasets,
+        config = train_config_from(config_file, {**fields, "dataset": datasets,
                                        "init_checkpoint": resolve_path(checkpoint)})
     except (ValueError, FileNotFoundError) as exc:
         fail(error_message(exc))
@@ -147,7 +147,7 @@ def _given(options: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     return {k: v for k, v in given.items() if k not in model}, model
 
 
-def config_from(config_file: Path | None, options: dict[str, Any],
+def train_config_from(config_file: Path | None, options: dict[str, Any],
             model_options: dict[str, Any] | None = None):
     """The train config: the file's fields (upgraded if written by an earlier version),
     beneath the options given; model options and solver options are merged into the file's
