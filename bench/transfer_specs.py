@@ -72,6 +72,7 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # the coverage graphs' hubs no longer swamp the source's typical nodes, and within
     # the coverage data the hubs still count in full.
     "hub-coverage-balanced": ("--balance-datasets",),
+    "hub-coverage-balanced-long": ("--balance-datasets",),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -239,8 +240,9 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
 COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse",
                      "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs",
                      "hub-coverage-asinh-inputs-long", "hub-coverage-periodic-off",
-                     "hub-coverage-balanced")
-LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long")
+                     "hub-coverage-balanced", "hub-coverage-balanced-long")
+LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long",
+                 "hub-coverage-balanced-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000
 LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
