@@ -148,7 +148,7 @@ def _given(options: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def train_config_from(config_file: Path | None, options: dict[str, Any],
-            model_options: dict[str, Any] | None = None):
+                      model_options: dict[str, Any] | None = None):
     """The train config: the file's fields (upgraded if written by an earlier version),
     beneath the options given; model options and solver options are merged into the file's
     `[model_options]` and `[solver]` tables one by one."""

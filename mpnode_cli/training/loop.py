@@ -15,7 +15,8 @@ A run is five stages, each a named piece:
 2. the learning rate, one policy (`mpnode_cli.training.lr_schedule.LRSchedule`);
 3. the checkpointer (`mpnode_cli.training.checkpointer.Checkpointer`): each epoch's files,
    all or none, and the snapshot a rollback and an interrupt go back to;
-4. the epochs: `train_epoch` (one pass of optimizer steps, `train_step`), validation, `_record`;
+4. the epochs: `train_epoch` (one pass of optimizer steps, `train_step`), validation,
+   `_record`;
 5. the best checkpoint on the test split, and `summary.json`
    (`mpnode_cli.training.finish`).
 
@@ -192,7 +193,7 @@ def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder:
 
 
 def train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
-                 epoch: int) -> dict[str, Any]:
+                epoch: int) -> dict[str, Any]:
     """One pass over the shuffled train split (of each dataset: every batch is one
     dataset's, `mpnode_cli.data.pooled.epoch_batches`); an ensemble's members each take
     their own order, batch b of every member in one step. Returns the epoch's step
@@ -221,7 +222,8 @@ def train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
                       for k, batch in zip(active, batches, strict=True)]
             graphs, share = [x.graph(run.device) for x in batches], len(batches[0]) / size
             results = train_step(run.model, run.optimizer, inputs, times[i], graphs,
-                            _scaled(loss_fn, run.loss_scale, i), config, world, active, share)
+                                 _scaled(loss_fn, run.loss_scale, i), config, world, active,
+                                 share)
             raise_if_interrupted()  # a signal a library swallowed inside the step
             evals_per_batch.append(max(r.n_f_evals for r in results))
             for k, r in zip(active, results, strict=True):
@@ -334,8 +336,8 @@ def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
 
 
 def train_step(model, optimizer, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
-          config: TrainConfig, world: distributed.World, active: Sequence[int] = (0,),
-          share: float = 1.0) -> list[StepResult]:
+               config: TrainConfig, world: distributed.World, active: Sequence[int] = (0,),
+               share: float = 1.0) -> list[StepResult]:
     """One update of each active member of `model` (one model: its one member, itself)
     from its own `(x: [B_r, H, N, D], u)` in `inputs` and its graphs, the fraction
     `share` = B_r / B of the global batch. A member's bad batch (failed solves, non-finite
