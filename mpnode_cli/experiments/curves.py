@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from mpnode_cli.experiments import members
+
 # metrics.jsonl key → the curve's name for it.
 # `seconds` is the epoch's whole time: its training steps and its validation.
 CURVE_COLUMNS = {"val_mse": "val_mse", "train_loss": "train_loss", "seconds": "seconds"}
@@ -80,8 +82,6 @@ def cost(result: dict[str, Any]) -> dict[str, list[Any]]:
     below the time-mean predictor on the validation split, and its `area`; None where it
     never got there or the result keeps no curve (`kept` False: reports written before
     curves were kept)."""
-    from mpnode_cli.experiments import members
-
     out: dict[str, list[Any]] = {"epochs": [], "seconds": [], "area": [], "kept": []}
     for k in range(members.count({"run": result})):
         member = members.of(result, k)

@@ -148,7 +148,10 @@ def _member_training(result: dict[str, Any], member: dict[str, Any],
     loss and MSE there, Table-2 figure, lowest training loss, test MSE and seed. The naive
     predictors, the model and the timings are the ensemble's."""
     k = member["member"]
-    rows = {row["epoch"]: row["members"][k] for row in metrics if row.get("members")}
+    # Member k's rows, with the epoch and its seconds (the ensemble's) for its curve.
+    rows = {row["epoch"]: {**row["members"][k], "epoch": row["epoch"],
+                           "seconds": row["seconds"]}
+            for row in metrics if row.get("members")}
     best = rows.get(member["best_epoch"]) or {}
     train_losses = [row["train_loss"] for row in rows.values()
                     if row.get("train_loss") is not None]
@@ -160,9 +163,7 @@ def _member_training(result: dict[str, Any], member: dict[str, Any],
             "val": {**result["val"], "mse": best.get("val_mse")},
             "test": {**result["test"], "mse": test.get("mse"), "failed": test.get("failed")},
             "seed": member["seed"], "stopped_early": member.get("stopped") or None,
-            "curve": curves.curve([{**row["members"][k], "epoch": row["epoch"],
-                                    "seconds": row["seconds"]}
-                                   for row in metrics if row.get("members")])}
+            "curve": curves.curve(list(rows.values()))}
 
 
 def _zeroshot(step, options, folder: Path, inputs, status, emit):
