@@ -100,7 +100,7 @@ def check_output_file(path: str | Path, *, overwrite: bool,
                          "--force; choose another output path")
     check_not_input(path, inputs)
     if path.exists():
-        if not (overwrite or (mine is not None and _begins(path, mine))):
+        if not (overwrite or (mine is not None and begins(path, mine))):
             raise FileExistsError(_exists(path, mine is not None))
         check_replaceable(path)
     check_writable_dir(path.parent)
@@ -380,7 +380,7 @@ def _exists(path: Path, foreign: bool = False) -> str:
     return f"{path} already exists (use --force to overwrite)"
 
 
-def _begins(path: Path, start: bytes) -> bool:
+def begins(path: Path, start: bytes) -> bool:
     """Whether the file at `path` begins with `start` (False if it cannot be read)."""
     try:
         with open(path, "rb") as f:

@@ -104,6 +104,17 @@ elif os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
 
+def lorenz_experiment(title: str, t_end: float, steps: str, run_epochs: int = 0) -> str:
+    """An experiment spec (TOML) whose first step, "data", generates Lorenz on 3 nodes: 16
+    trajectories sampled every 0.05 up to `t_end`; with `run_epochs`, a step "run" trains
+    on it that long; `steps` follow."""
+    run = (f'[[steps]]\nid = "run"\nverb = "train"\ndata = "data"\nepochs = {run_epochs}\n'
+           if run_epochs else "")
+    return (f'title = "{title}"\npaper = "p"\n[[steps]]\nid = "data"\nverb = "generate"\n'
+            f'system = "lorenz"\nnodes = 3\ntrajectories = 16\nt_end = {t_end}\ndt = 0.05\n'
+            + run + steps)
+
+
 @pytest.fixture
 def float64_default():
     """Run a test with float64 as torch's default dtype (rollouts compared to ~1e-9)."""
@@ -132,13 +143,14 @@ def synthetic(k: int, t: int, seed: int, dt: float = 0.1, nodes: int = 3) -> Tra
         control_names=(), path=Path(f"toy{seed}.h5"), fingerprint=str(seed))
 
 
-def invoke(*args):
-    """`mpnode ARGS` through typer's CliRunner (arguments as strings)."""
+def invoke(*args, **kw):
+    """`mpnode ARGS` through typer's CliRunner (arguments as strings; `kw` as
+    `CliRunner.invoke` takes them, e.g. `input`)."""
     from typer.testing import CliRunner
 
     from mpnode_cli.cli.app import app
 
-    return CliRunner().invoke(app, [str(a) for a in args])
+    return CliRunner().invoke(app, [str(a) for a in args], **kw)
 
 
 def one_line_error(result, code: int = 2) -> str:
@@ -269,16 +281,22 @@ def entry_point(monkeypatch):
         sys.modules.pop(module, None)
 
 
-@pytest.fixture(scope="session")
-def gene_2x2(tmp_path_factory) -> Path:
-    """Gene dynamics on a 2×2 grid (ER graph): 48 trajectories × 21 samples."""
+def gene_data(folder: Path, grid: int = 2, trajectories: int = 48, t_end: float = 2.0) -> Path:
+    """`folder/gene.h5`: gene dynamics on a grid × grid ER graph, sampled every 0.1 up to
+    `t_end` (48 trajectories split 34 / 7 / 7 by default)."""
     from mpnode_cli.config import GenerateConfig
     from mpnode_cli.data.generate import generate
 
-    out = tmp_path_factory.mktemp("data") / "gene.h5"
-    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
-                            dt=0.1, out=out))
+    out = folder / "gene.h5"
+    generate(GenerateConfig(system="gene", grid=grid, topology="er", trajectories=trajectories,
+                            t_end=t_end, dt=0.1, out=out))
     return out
+
+
+@pytest.fixture(scope="session")
+def gene_2x2(tmp_path_factory) -> Path:
+    """Gene dynamics on a 2×2 grid (ER graph): 48 trajectories × 21 samples."""
+    return gene_data(tmp_path_factory.mktemp("data"))
 
 
 @pytest.fixture(scope="session")

@@ -17,17 +17,14 @@ import shutil
 import h5py
 import numpy as np
 import pytest
-from conftest import one_line_error
-from typer.testing import CliRunner
+from conftest import invoke, one_line_error
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import estimate, generate, resolve_config
 from mpnode_cli.edge_files import read_edge_list
 from mpnode_cli.report import plots
 from mpnode_cli.training import loop
 
-runner = CliRunner()
 FAST = ["--batch-size", "8", "--lr", "1e-2", "--no-plots"]
 
 
@@ -50,10 +47,6 @@ def run(data, tmp_path_factory):
     result = invoke("train", data["lorenz"], "--epochs", 2, "--run-dir", run, *FAST)
     assert result.exit_code == 0, result.output
     return run
-
-
-def invoke(*args, **kw):
-    return runner.invoke(app, [str(a) for a in args], **kw)
 
 
 def _copy_with(src, dst, edit):

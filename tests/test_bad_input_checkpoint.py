@@ -14,15 +14,12 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from conftest import one_line_error
-from typer.testing import CliRunner
+from conftest import invoke, one_line_error
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.training.checkpoint import load_checkpoint, save_checkpoint
 
-runner = CliRunner()
 FAST = ["--batch-size", "8", "--no-plots"]
 
 
@@ -36,10 +33,6 @@ def trained(tmp_path_factory):
     result = invoke("train", data, "--epochs", 1, "--run-dir", run, *FAST)
     assert result.exit_code == 0, result.output
     return {"data": data, "run": run}
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def first_weight(ckpt) -> str:

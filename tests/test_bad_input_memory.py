@@ -11,17 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import guarded_cli, one_line_error
-from typer.testing import CliRunner
+from conftest import guarded_cli, invoke, one_line_error
 
-from mpnode_cli.cli.app import app
-
-runner = CliRunner()
 HUGE = 99999999999999999999
-
-
-def invoke(*args, **kw):
-    return runner.invoke(app, [str(a) for a in args], **kw)
 
 
 @pytest.fixture

@@ -14,13 +14,9 @@ import os
 from pathlib import Path
 
 import pytest
-from conftest import one_line_error
-from typer.testing import CliRunner
-
-from mpnode_cli.cli.app import app
+from conftest import invoke, one_line_error
 
 EXAMPLE = (Path(__file__).resolve().parents[1] / "examples" / "fitzhugh_nagumo.py").read_text()
-runner = CliRunner()
 
 RETURN_F = "        return f\n"
 RETURN_DY = "            return torch.stack((dv, dw), dim=-1)  # [K, N, 2]\n"
@@ -68,10 +64,6 @@ MISTAKES = {
         (RHS, method("    def simulate(self, *args, **kwargs):\n        return {}\n")),
         "simulate", "not a Simulation"),
 }
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 @pytest.mark.parametrize("mistake", list(MISTAKES))

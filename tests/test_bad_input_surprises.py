@@ -16,22 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import one_line_error
-from typer.testing import CliRunner
+from conftest import invoke, one_line_error
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.systems.registry import SYSTEMS
 
-runner = CliRunner()
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fitzhugh_nagumo.py"
 SMALL = ["--t-end", "0.2", "--dt", "0.1"]
 FAST = ["--epochs", "1", "--batch-size", "8", "--no-plots"]
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def warnings(result) -> list[str]:

@@ -12,22 +12,15 @@ import os
 import shutil
 
 import pytest
-from conftest import one_line_error
-from typer.testing import CliRunner
+from conftest import invoke, one_line_error
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import DatasetFormatError, read_dataset
 
-runner = CliRunner()
 FIELDS = {"system": "gene", "grid": 2, "topology": "er", "trajectories": 16, "t_end": 0.3,
           "dt": 0.1, "chunk_size": 4}
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

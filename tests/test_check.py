@@ -10,6 +10,7 @@ import h5py
 import numpy as np
 import pytest
 import torch
+from conftest import invoke
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -38,10 +39,6 @@ def ckpt(good, tmp_path_factory):
                                  "--no-plots", "--run-dir", str(run)])
     assert result.exit_code == 0, result.output
     return run / "checkpoints" / "best.pt"
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def errors(result) -> list[str]:

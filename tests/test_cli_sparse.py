@@ -11,19 +11,13 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
+from conftest import invoke
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES
 from mpnode_cli.topologies import make_graph
 
-runner = CliRunner()
 N = 300
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ import json
 
 import pytest
 import typer
+from conftest import invoke
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -45,10 +46,6 @@ def trained(data, tmp_path_factory):
     assert result.exit_code == 0, result.output
     assert "best epoch" in result.output and "threads: " in result.stderr
     return run
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def one_line_error(result, code=2) -> str:

@@ -15,9 +15,8 @@ import os
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
+from conftest import invoke
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import read_dataset
@@ -26,12 +25,7 @@ from mpnode_cli.solver import solve
 DEVICE = os.environ.get("MPNODE_TEST_DEVICE", "cuda")
 pytestmark = pytest.mark.skipif(DEVICE == "cuda" and not torch.cuda.is_available(),
                                 reason="torch sees no CUDA device")
-runner = CliRunner()
 NO_COMPILE = "[solver]\ncompile = false\n"
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def lorenz_pair(y: torch.Tensor) -> torch.Tensor:

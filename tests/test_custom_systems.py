@@ -9,23 +9,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import doc_commands, fhn_reference
-from typer.testing import CliRunner
+from conftest import doc_commands, fhn_reference, invoke
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.data.hdf5 import read_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "fitzhugh_nagumo.py"
 DOC = ROOT / "docs" / "custom-systems.md"
-runner = CliRunner()
 # Later options win: the walk-through at a test's size.
 SMALL = {"generate": ["--trajectories", "24", "--t-end", "6"],
          "train": ["--epochs", "2", "--batch-size", "8", "--no-plots"]}
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def walkthrough() -> list[list[str]]:

@@ -41,12 +41,9 @@ RUN_FILES = {"config.json", "metrics.jsonl", "summary.json", "checkpoints",
 
 
 @pytest.fixture(scope="module")
-def gene(tmp_path_factory):
+def gene(gene_2x2):
     """Gene dynamics on a 2×2 grid: 48 trajectories (34 train, 7 validation, 7 test)."""
-    out = tmp_path_factory.mktemp("data") / "gene.h5"
-    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
-                            dt=0.1, out=out))
-    return out
+    return gene_2x2
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 7, 8, 33])

@@ -18,9 +18,8 @@ import h5py
 import numpy as np
 import pytest
 import torch
-from typer.testing import CliRunner
+from conftest import invoke
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig, SimulateConfig, TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
@@ -33,12 +32,7 @@ from mpnode_cli.training.loop import train
 from mpnode_cli.training.predict import rollout_solver, simulate
 from mpnode_cli.training.run import checkpoint_path
 
-runner = CliRunner()
 S = 3
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 import pytest
+from conftest import lorenz_experiment
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -22,22 +23,7 @@ from mpnode_cli.experiments.runner import plan, run_experiment
 
 runner = CliRunner()
 
-TWO = """
-title = "two seeds"
-paper = "p"
-[[steps]]
-id = "data"
-verb = "generate"
-system = "lorenz"
-nodes = 3
-trajectories = 16
-t_end = 0.3
-dt = 0.05
-[[steps]]
-id = "run"
-verb = "train"
-data = "data"
-epochs = 2
+TWO = lorenz_experiment("two seeds", 0.3, """\
 [[steps]]
 id = "tuned"
 verb = "finetune"
@@ -65,7 +51,7 @@ claim = "finetuning helps"
 paper = "p"
 where = "w"
 holds = "tuned.test.mse < run.test.mse"
-"""
+""", run_epochs=2)
 
 
 def _load(tmp_path: Path, text: str = TWO) -> spec.Experiment:

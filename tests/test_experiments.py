@@ -18,7 +18,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
-from conftest import child_env
+from conftest import child_env, lorenz_experiment
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
@@ -40,13 +40,15 @@ PAPER_EXPERIMENTS = {
     "finetune-lorenz-long", "finetune-gene", "finetune-kuramoto", "zeroshot-gene",
     "zeroshot-lorenz", "message-size", "finetune-quad", "message-pca",
 }
+# And mpnode's own: the paper's model against its recipe.
+EXPERIMENTS = PAPER_EXPERIMENTS | {"ablation-model-recipe"}
 
 
 def test_every_paper_experiment_is_shipped():
-    assert set(spec.names()) == PAPER_EXPERIMENTS
+    assert set(spec.names()) == EXPERIMENTS
 
 
-@pytest.mark.parametrize("name", sorted(PAPER_EXPERIMENTS))
+@pytest.mark.parametrize("name", sorted(EXPERIMENTS))
 def test_shipped_experiment_validates(name):
     """Parses, names existing presets, options and steps at every scale (`spec.check`),
     and says where the paper's numbers come from."""
@@ -95,6 +97,7 @@ holds = "run.test.mse < 1"
     (("epochs = 3", "model_options.message_size = 3"), "has no option 'message_size'"),
     (('data = "data"', 'data = "nothing"'), "reads 'nothing', which is no earlier step"),
     (("epochs = 3", "run_dir = 'x'"), "'run_dir' is set by the runner"),
+    (("epochs = 3", "recipe = 'theirs'"), "recipe"),
     (("run.test.mse < 1", "other.test.mse < 1"), "unknown step 'other'"),
     (("run.test.mse < 1", "run.test.mse about 1"), "is not LEFT OP RIGHT"),
     (('verb = "train"', 'verb = "fly"'), "steps.1"),
@@ -104,6 +107,21 @@ def test_bad_spec_is_one_line(tmp_path, change, message):
     with pytest.raises(ValueError, match=message) as err:
         spec.load(_experiment(tmp_path, GOOD.replace(*change)))
     assert "\n" not in str(err.value)
+
+
+def test_a_step_that_names_its_recipe_keeps_it_whatever_recipe_runs(tmp_path):
+    """An ablation of recipes pins each step's; other steps take `--recipe`'s."""
+    text = GOOD.replace("epochs = 3", "epochs = 3\nrecipe = 'paper'")
+    pinned = spec.load(_experiment(tmp_path, text))
+    plain = spec.load(_experiment(tmp_path, GOOD))
+    for recipe in ("paper", "mpnode"):
+        assert spec.resolve(pinned.steps[1], "small", recipe)["recipe"] == "paper"
+        assert spec.resolve(plain.steps[1], "small", recipe)["recipe"] == recipe
+    ablation = spec.load("ablation-model-recipe")
+    trained = [s for s in ablation.steps if s.verb == "train"]
+    assert sorted(spec.resolve(s, "paper", "mpnode")["recipe"] for s in trained) == \
+        ["mpnode"] * 4 + ["paper"] * 4
+    assert {spec.resolve(s, "small", "paper")["config"]["time_limit"] for s in trained} == {480}
 
 
 def test_claims_are_judged_on_results():
@@ -437,22 +455,7 @@ def test_a_one_group_bar_chart_is_wide_enough_for_its_title(tmp_path):
     assert imread(path).shape[1] >= (1.0 + 0.085 * len(title)) * 50 - 1
 
 
-PCA = """
-title = "t"
-paper = "p"
-[[steps]]
-id = "data"
-verb = "generate"
-system = "lorenz"
-nodes = 3
-trajectories = 16
-t_end = 0.5
-dt = 0.05
-[[steps]]
-id = "run"
-verb = "train"
-data = "data"
-epochs = 2
+PCA = lorenz_experiment("t", 0.5, """\
 [[steps]]
 id = "pca"
 verb = "evaluate"
@@ -467,7 +470,7 @@ claim = "c"
 paper = "p"
 where = "w"
 holds = "pca.pca.growth > pca.pca.untrained.growth"
-"""
+""", run_epochs=2)
 
 
 def test_the_message_pca_is_judged_against_an_untrained_model(tmp_path):
@@ -587,19 +590,7 @@ def test_jobs_run_every_step_once_with_the_same_results(tmp_path, pendulum_alone
     assert both.machine["jobs"] == 2
 
 
-SLOW_PAIR = """
-title = "two long trainings side by side"
-paper = "none"
-
-[[steps]]
-id = "data"
-verb = "generate"
-system = "lorenz"
-nodes = 3
-trajectories = 16
-t_end = 0.2
-dt = 0.05
-
+SLOW_PAIR = lorenz_experiment("two long trainings side by side", 0.2, """\
 [[steps]]
 id = "first"
 verb = "train"
@@ -614,7 +605,7 @@ data = "data"
 epochs = 100000
 solver.compile = false
 seed = 1
-"""
+""")
 
 
 def _children(pid: int) -> list[int]:

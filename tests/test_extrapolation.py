@@ -7,9 +7,8 @@ import json
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from conftest import invoke
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig, TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
@@ -25,12 +24,6 @@ from mpnode_cli.training.extrapolation import (
 )
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.run import checkpoint_path
-
-runner = CliRunner()
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 @pytest.fixture(scope="module")

@@ -10,19 +10,13 @@ import json
 import h5py
 import numpy as np
 import pytest
-from typer.testing import CliRunner
+from conftest import invoke
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.data.validate import check_dataset
 
-runner = CliRunner()
 K, T, N, D = 6, 5, 4, 2
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def one_line_error(result) -> str:

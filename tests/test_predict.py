@@ -18,21 +18,15 @@ import json
 import h5py
 import numpy as np
 import pytest
+from conftest import invoke
 from scipy.integrate import solve_ivp
-from typer.testing import CliRunner
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.data.validate import check_dataset
 from mpnode_cli.paths import file_sha256
 
-runner = CliRunner()
 MU, COUPLING, DT, T_END = 1.0, 0.5, 0.1, 2.0
 TS = np.arange(round(T_END / DT) + 1) * DT
-
-
-def invoke(*args):
-    return runner.invoke(app, [str(a) for a in args])
 
 
 def vdp_rhs(t, y, a):

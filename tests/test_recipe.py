@@ -7,10 +7,10 @@ import math
 
 import pytest
 import torch
+from conftest import gene_data
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
-from mpnode_cli.data.generate import generate
 from mpnode_cli.systems.registry import SYSTEMS
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.recipe import CURRICULUM_MIN_SAMPLES, resolve_recipe
@@ -80,10 +80,7 @@ def test_a_stored_recipe_wins_over_the_system_declaration():
 @pytest.fixture(scope="module")
 def gene(tmp_path_factory):
     """Gene dynamics on a 2×2 grid: 48 trajectories × 11 samples."""
-    out = tmp_path_factory.mktemp("data") / "gene.h5"
-    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=1.0,
-                            dt=0.1, out=out))
-    return out
+    return gene_data(tmp_path_factory.mktemp("data"), t_end=1.0)
 
 
 def test_generate_stores_the_system_recipe_and_train_applies_it(gene, tmp_path):

@@ -9,18 +9,10 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import one_line_error
-from typer.testing import CliRunner
+from conftest import invoke, one_line_error
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.validate import check_dataset
-
-runner = CliRunner()
-
-
-def invoke(*args, **kw):
-    return runner.invoke(app, [str(a) for a in args], **kw)
 
 
 def test_a_models_predictions_are_no_training_data_unless_asked_for(user_files, tmp_path):

@@ -6,20 +6,13 @@ from __future__ import annotations
 
 import networkx as nx
 import pytest
-from conftest import one_line_error
-from typer.testing import CliRunner
+from conftest import invoke, one_line_error
 
-from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import estimate, generate, resolve_config
 from mpnode_cli.systems.lorenz import Lorenz
 
-runner = CliRunner()
 TINY = ["lorenz", "--nodes", 3, "--trajectories", 2, "--t-end", 0.2, "--dt", 0.05]
-
-
-def invoke(*args, **kw):
-    return runner.invoke(app, [str(a) for a in args], **kw)
 
 
 def test_fixed_steps_are_counted_and_too_many_refused_before_any_solve(tmp_path):

@@ -7,11 +7,11 @@ import math
 
 import pytest
 import torch
+from conftest import gene_data
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config import TrainConfig
 from mpnode_cli.config_upgrade import upgrade_train_fields
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
-from mpnode_cli.data.generate import generate
 from mpnode_cli.models.mpnode import MPNODE
 from mpnode_cli.models.options import L2SOptions
 from mpnode_cli.solver import Status
@@ -31,12 +31,9 @@ from mpnode_cli.training.run import checkpoint_path, read_config, read_metrics
 
 
 @pytest.fixture(scope="module")
-def gene(tmp_path_factory):
+def gene(gene_2x2):
     """Gene dynamics on a 2×2 grid (ER graph): 48 trajectories × 21 samples."""
-    out = tmp_path_factory.mktemp("data") / "gene.h5"
-    generate(GenerateConfig(system="gene", grid=2, topology="er", trajectories=48, t_end=2.0,
-                            dt=0.1, out=out))
-    return out
+    return gene_2x2
 
 
 def config(dataset, run_dir, **kw) -> TrainConfig:
@@ -319,10 +316,7 @@ def test_flat_fields_of_mpnode_map_onto_its_options():
 @pytest.fixture(scope="module")
 def gene9(tmp_path_factory):
     """Gene dynamics on a 3×3 grid: N = 9 beside `gene`'s 4, and 11 samples, not 21."""
-    out = tmp_path_factory.mktemp("data9") / "gene9.h5"
-    generate(GenerateConfig(system="gene", grid=3, topology="er", trajectories=20, t_end=1.0,
-                            dt=0.1, out=out))
-    return out
+    return gene_data(tmp_path_factory.mktemp("data9"), grid=3, trajectories=20, t_end=1.0)
 
 
 def test_one_dataset_as_a_list_trains_as_one_dataset(gene, tmp_path):

@@ -78,15 +78,17 @@ def _export(report, member: int, out: Path, force: bool) -> dict:
 
 def _check(path: Path):
     from mpnode_cli.data.validate import Report, check_dataset
+    from mpnode_cli.paths import begins
 
     if not path.exists():
         return Report(path, "file", [f"no such file or folder: {path}"])
     if path.is_file() and path.stat().st_size == 0:
         return Report(path, "file", [f"{path} is an empty file (0 bytes): neither a dataset "
                                      "nor a checkpoint"])
-    if path.is_file() and _is_hdf5(path):
+    if path.is_file() and begins(path, _HDF5_SIGNATURE):
         return check_dataset(path)
-    if path.is_file() and path.suffix.lower() in _HDF5_SUFFIXES and not _is_zip(path):
+    if (path.is_file() and path.suffix.lower() in _HDF5_SUFFIXES
+            and not begins(path, _ZIP_SIGNATURE)):
         import h5py  # an HDF5 file may start after a user block: h5py looks further
 
         if h5py.is_hdf5(path):
@@ -96,24 +98,6 @@ def _check(path: Path):
     from mpnode_cli.training.checkpoint_check import check_checkpoint
 
     return check_checkpoint(path)
-
-
-def _is_zip(path: Path) -> bool:
-    """A zip archive's signature at the file's start (`torch.save` writes one)."""
-    try:
-        with open(path, "rb") as f:
-            return f.read(len(_ZIP_SIGNATURE)) == _ZIP_SIGNATURE
-    except OSError:
-        return False
-
-
-def _is_hdf5(path: Path) -> bool:
-    """HDF5's signature at the file's start (where mpnode and h5py put it)."""
-    try:
-        with open(path, "rb") as f:
-            return f.read(len(_HDF5_SIGNATURE)) == _HDF5_SIGNATURE
-    except OSError:
-        return False
 
 
 def _shown(value) -> str:

@@ -166,7 +166,7 @@ def trained_runs(text: str, experiment: Experiment) -> list[str]:
 def departures(text: str, results: dict[str, dict[str, Any]],
                experiment: Experiment | None) -> list[str]:
     """How the MP-NODE runs a claim reads differ from the paper's model: an aggregation
-    other than the paper's mean (mpnode's recipe uses PNA for gene and Kuramoto)."""
+    other than the paper's mean (mpnode's recipe sums over the neighbours)."""
     if experiment is None:
         return []
     found = []

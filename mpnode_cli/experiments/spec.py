@@ -36,10 +36,11 @@ from mpnode_cli.textfiles import read_text
 SCALES = ("tiny", "small", "paper")
 Scale = Literal["tiny", "small", "paper"]
 _ID = r"^[a-z0-9][a-z0-9-]*$"
-# Fields of a train config that the runner sets: the data, the run folder, the recipe, the
-# parent checkpoint, the ensemble's members (from the step's `data`, its folder, `--recipe`,
-# `checkpoint`, `--seeds`).
-RUNNER_FIELDS = ("dataset", "run_dir", "recipe", "init_checkpoint", "seeds")
+# Fields of a train config that the runner sets: the data, the run folder, the parent
+# checkpoint, the ensemble's members (from the step's `data`, its folder, `checkpoint`,
+# `--seeds`). The recipe is `--recipe`'s unless the step names its own (`recipe = "paper"`:
+# an experiment that compares recipes pins each step's).
+RUNNER_FIELDS = ("dataset", "run_dir", "init_checkpoint", "seeds")
 TINY_TRAJECTORIES = 24  # per generated dataset at the tiny scale
 TINY_SAMPLES = 5  # sample times per trajectory at the tiny scale
 TINY_EPOCHS = 2
@@ -326,9 +327,10 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1) -> dict[str, A
     its fingerprint hashes (with its inputs' fingerprints).
 
     - generate: `{"config": GenerateConfig fields}`, the preset merged in (no `out`).
-    - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}`, with
-      `seeds` when it is over 1 (an ensemble of that many members; left out at 1, so a
-      single model's step keeps the fingerprint and folder it had before seeds).
+    - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}` (the
+      step's own `recipe` where it names one), with `seeds` when it is over 1 (an
+      ensemble of that many members; left out at 1, so a single model's step keeps the
+      fingerprint and folder it had before seeds).
     - others: their options.
 
     Raises:
@@ -365,7 +367,8 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1) -> dict[str, A
             raise ValueError("a finetune keeps its checkpoint's model (no model options)")
         if seeds > 1:
             options["seeds"] = seeds
-        _validated(TrainConfig, {**options, "dataset": "data.h5"})
+        recipe = options.pop("recipe", recipe)
+        _validated(TrainConfig, {**options, "dataset": "data.h5", "recipe": recipe})
         model = options.get("model", "mpnode")
         if model in OPTIONS:
             resolve_options(model, options.get("model_options", {}))

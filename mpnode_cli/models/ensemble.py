@@ -34,7 +34,6 @@ from torch.func import functional_call
 
 from mpnode_cli.graphs import EdgeBatch
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout
-from mpnode_cli.models.options import ModelOptions
 from mpnode_cli.models.stacked import StackedMembers
 from mpnode_cli.solver.options import SolverOptions
 
@@ -77,6 +76,17 @@ def repeat_graph(graph: Graph, times: int, batch: int) -> Graph:
         return EdgeBatch(graph.senders, graph.receivers, graph.offsets, index.repeat(times),
                          graph.num_nodes)
     return graph.expand(batch, *graph.shape[1:]).repeat(times, 1, 1)
+
+
+class _FromFirst:
+    """A read-only attribute of the `NeuralModel` interface that an ensemble's members share,
+    read from member 0 (named one by one: unknown names are not forwarded)."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __get__(self, ensemble: Any, owner: type | None = None) -> Any:
+        return self if ensemble is None else getattr(ensemble.members[0], self.name)
 
 
 @dataclass
@@ -124,37 +134,15 @@ class Ensemble(nn.Module):
         """S, the number of members."""
         return len(self.members)
 
-    @property
-    def kind(self) -> str:
-        return self.members[0].kind
-
-    @property
-    def transferable(self) -> bool:
-        return self.members[0].transferable
-
-    @property
-    def statistics_need_states(self) -> bool:
-        return self.members[0].statistics_need_states
-
-    @property
-    def options(self) -> ModelOptions:
-        return self.members[0].options
-
-    @property
-    def node_dim(self) -> int:
-        return self.members[0].node_dim
-
-    @property
-    def control_dim(self) -> int:
-        return self.members[0].control_dim
-
-    @property
-    def num_nodes(self) -> int | None:
-        return self.members[0].num_nodes
-
-    @property
-    def initial_states(self) -> int:
-        return self.members[0].initial_states
+    # Alike in every member (one kind and config), so read from the first.
+    kind = _FromFirst()
+    transferable = _FromFirst()
+    statistics_need_states = _FromFirst()
+    options = _FromFirst()
+    node_dim = _FromFirst()
+    control_dim = _FromFirst()
+    num_nodes = _FromFirst()
+    initial_states = _FromFirst()
 
     @property
     def config(self) -> dict[str, Any]:

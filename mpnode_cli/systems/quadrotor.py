@@ -130,18 +130,12 @@ class Quadrotor(System):
         inputs = {"start": start, "goal": goal, "phase": phase, "timing": timing}
         return quads.numpy(), inputs
 
-    def simulate(
-        self,
-        adjacency: torch.Tensor,
-        params: dict[str, torch.Tensor],
-        y0: torch.Tensor,
-        ts: torch.Tensor,
-        inputs: dict[str, torch.Tensor],
-        *,
-        solver: SolverOptions,
-        progress: Callable[[float], None] | None = None,
-    ) -> Simulation:
-        """Fly B planned flights closed-loop; see `quadrotor_flight.fly`."""
+    def simulate(self, adjacency: torch.Tensor, params: dict[str, torch.Tensor],
+                 y0: torch.Tensor, ts: torch.Tensor, inputs: dict[str, torch.Tensor], *,
+                 solver: SolverOptions, progress: Callable[[float], None] | None = None,
+                 ) -> Simulation:
+        """Fly B planned flights closed-loop (`System.simulate`'s arguments); see
+        `quadrotor_flight.fly`."""
         from mpnode_cli.systems.quadrotor_flight import fly
 
         return fly(self.params, y0, ts, inputs, solver=solver, progress=progress)
