@@ -281,13 +281,14 @@ def entry_point(monkeypatch):
         sys.modules.pop(module, None)
 
 
-def gene_data(folder: Path, grid: int = 2, trajectories: int = 48, t_end: float = 2.0) -> Path:
-    """`folder/gene.h5`: gene dynamics on a grid × grid ER graph, sampled every 0.1 up to
+def gene_data(folder: Path, grid: int = 2, trajectories: int = 48, t_end: float = 2.0,
+              name: str = "gene") -> Path:
+    """`folder/<name>.h5`: gene dynamics on a grid × grid ER graph, sampled every 0.1 up to
     `t_end` (48 trajectories split 34 / 7 / 7 by default)."""
     from mpnode_cli.config import GenerateConfig
     from mpnode_cli.data.generate import generate
 
-    out = folder / "gene.h5"
+    out = folder / f"{name}.h5"
     generate(GenerateConfig(system="gene", grid=grid, topology="er", trajectories=trajectories,
                             t_end=t_end, dt=0.1, out=out))
     return out

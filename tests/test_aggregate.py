@@ -198,3 +198,63 @@ def test_the_registries_are_the_declared_choices():
     assert all(kind.name == name for name, kind in AGGREGATIONS.items())
     assert set(STRATEGIES) | {"auto"} == set(get_args(Backend))
     assert [channels(how, 5) for how in AGGREGATES] == [5, 5, 15]
+
+
+# ----- aggregations as modules: PNA owns its δ, fitted once; old checkpoints move it -------------
+
+@pytest.mark.parametrize("kind", ["mpnode", "gnode"])
+def test_pna_owns_its_degree_statistic_fitted_once_on_every_training_graph(kind):
+    """δ is PNA's buffer, fitted on every training graph (two datasets' of other sizes
+    pooled over their nodes, by hand from the degrees), once; the other aggregations keep
+    no statistic."""
+    from mpnode_cli.models.registry import build_model
+
+    small, large = random_graph(3, 4, 0.5, seed=1), random_graph(2, 7, 0.4, seed=2)
+    degrees = [d for a in (small, large) for d in a.sum(dim=2).flatten().tolist()]
+    model = build_model(kind, {"node_dim": 1, "aggregate": "pna"})
+    assert [k for k in model.state_dict() if "delta" in k] == ["aggregation.delta"]
+    model.fit_statistics(None, 0.1, [small, large])
+    expected = sum(math.log(1 + d) for d in degrees) / len(degrees)
+    assert float(model.aggregation.delta) == pytest.approx(expected, rel=1e-12)
+    model.fit_statistics(None, 0.1, large)  # a finetune keeps its parent's
+    assert float(model.aggregation.delta) == pytest.approx(expected, rel=1e-12)
+    for how in ("mean", "sum"):
+        other = build_model(kind, {"node_dim": 1, "aggregate": how})
+        other.fit_statistics(None, 0.1, small)
+        assert not [k for k in other.state_dict() if "delta" in k]
+
+
+@pytest.mark.parametrize("how", ["pna", "sum"])
+def test_a_version_7_checkpoint_with_the_models_delta_reads_as_before(how, tmp_path):
+    """Version 7 kept δ as the model's `degree_delta` whatever it aggregated with: PNA's
+    moves into its module, the others' goes, and the weights load and predict as saved."""
+    from mpnode_cli.models.registry import build_model
+    from mpnode_cli.training.checkpoint_upgrade import upgrade_payload
+
+    model = build_model("mpnode", {"node_dim": 1, "aggregate": how})
+    adj = random_graph(2, 5, 0.5, seed=3)
+    model.fit_statistics(None, 0.1, adj)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    old = {k: v for k, v in state.items() if k != "aggregation.delta"}
+    old["degree_delta"] = state.get("aggregation.delta", torch.tensor(0.7, dtype=torch.float64))
+    payload = {"format": "mpnode-checkpoint", "format_version": 7, "model_kind": "mpnode",
+               "model_config": model.config, "state_dict": old}
+    upgrade_payload(payload, 7)
+    assert payload["state_dict"].keys() == state.keys()
+    for key, value in state.items():
+        assert torch.equal(payload["state_dict"][key], value)
+
+
+def test_a_version_7_file_loads_through_the_reader(user_files, tmp_path):
+    """A whole checkpoint as version 7 wrote it (with the model's `degree_delta`) loads,
+    and its model takes the weights (a strict load)."""
+    from mpnode_cli.training.checkpoint import load_checkpoint
+
+    raw = torch.load(user_files["checkpoint"], weights_only=True)
+    now = set(raw["state_dict"])
+    raw["format_version"] = 7
+    raw["state_dict"]["degree_delta"] = torch.tensor(0.9, dtype=torch.float64)
+    torch.save(raw, tmp_path / "v7.pt")
+    ckpt = load_checkpoint(tmp_path / "v7.pt")
+    assert set(ckpt.state_dict) == now
+    assert ckpt.build_model().config == raw["model_config"]

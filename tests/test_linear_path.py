@@ -28,7 +28,7 @@ from mpnode_cli.training.run import checkpoint_path
 F64 = torch.float64
 AFFINE = {"update": "affine", "aggregate": "sum", "message_init": "learned"}
 # Today's weight names (before the option) of a model with every node network.
-TODAYS_AFFINE_KEYS = ["degree_delta"] + [
+TODAYS_AFFINE_KEYS = [
     f"{net}.{i}.{w}" for net, layers in (("net", (0, 2, 4)), ("emit", (0, 2)),
                                         ("init_net", (0, 2)))
     for i in layers for w in ("weight", "bias")]

@@ -273,9 +273,9 @@ def test_a_version_6_checkpoint_reads_with_no_periodic_states(user_files, tmp_pa
 
     from mpnode_cli.training.checkpoint import FORMAT_VERSION, load_checkpoint
 
-    assert FORMAT_VERSION == 7
+    assert FORMAT_VERSION == 8
     raw = torch.load(user_files["checkpoint"], weights_only=True)
-    assert raw["format_version"] == 7 and raw["dataset"]["periodic_states"] == []
+    assert raw["format_version"] == 8 and raw["dataset"]["periodic_states"] == []
     # What version 6 wrote: the same, less the periodic states.
     raw["format_version"] = 6
     del raw["dataset"]["periodic_states"]

@@ -1,4 +1,4 @@
-"""Neighbour aggregation: mean, sum or PNA, each a small class registered by name.
+"""Neighbour aggregation: mean, sum or PNA, each a small `nn.Module` registered by name.
 
 An aggregation (after PyG's `torch_geometric.nn.aggr`) pools the features of each node's
 in-neighbours; `how` names it, one of `options.Aggregate`, the one declared list. How it is
@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from typing import ClassVar, get_args
 
 import torch
+from torch import nn
 
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch
 from mpnode_cli.models.backend import Graph, Strategy, strategy_for
@@ -38,13 +39,15 @@ def mean_log_degree(adjacency: Graph | Sequence[Graph]) -> float:
     return float(torch.cat([torch.log1p(in_degree(a)).flatten() for a in adjacency]).mean())
 
 
-class Aggregation:
-    """One way of pooling in-neighbours' features (after PyG's
-    `torch_geometric.nn.aggr.Aggregation`), computed by any `Strategy`.
+class Aggregation(nn.Module):
+    """One way of pooling in-neighbours' features, a module as PyG's
+    `torch_geometric.nn.aggr.Aggregation` (built once, in the model's constructor, from
+    the options' name), computed by any `Strategy`.
 
     A subclass names itself (`name`, one of `options.Aggregate`), says how many output
-    features it makes per input feature, whether it reads PNA's degree statistic δ, and
-    binds itself to a strategy: `bind(strategy) → agg(m [B, N, F]) → [B, N, channels(F)]`.
+    features it makes per input feature and whether it reads the training graphs' degree
+    statistic (then `fit` sets it, once), and binds itself to a strategy:
+    `bind(strategy) → agg(m [B, N, F]) → [B, N, channels(F)]`.
     """
 
     name: ClassVar[str]
@@ -56,11 +59,19 @@ class Aggregation:
         """Output features for `features` input features."""
         return cls.multiplier * features
 
-    @classmethod
-    def fitted(cls, delta: float | None) -> Aggregation:
-        """This aggregation for graphs whose degree statistic is `delta` (read only by
-        those that declare `degree_statistic`)."""
-        return cls()
+    @property
+    def fitted(self) -> bool:
+        """Whether what it reads of the training graphs is set (nothing to set here)."""
+        return True
+
+    def fit(self, graphs: Graph | Sequence[Graph]) -> None:
+        """Fit the degree statistic on the training graphs (none here)."""
+
+    def over(self, adjacency: Graph, backend: str = "auto"
+             ) -> Callable[[torch.Tensor], torch.Tensor]:
+        """The aggregation over one batch of graphs (`aggregator`'s arguments), its graph
+        work done once."""
+        return self.bind(strategy_for(adjacency, backend))
 
     def bind(self, strategy: Strategy) -> Callable[[torch.Tensor], torch.Tensor]:
         raise NotImplementedError
@@ -96,38 +107,46 @@ class PNA(Aggregation):
     features.
 
     Args:
-        delta: δ, the training graphs' mean of log(d + 1): a fitted statistic of the
-            training data, kept with the model and used unchanged on any other graph
-            (zero-shot, finetune).
-
-    Raises:
-        ValueError: δ missing, not finite or not positive.
+        delta: δ, the training graphs' mean of log(d + 1), or None to fit it later
+            (`fit`). A buffer of the module: saved with the weights, and used unchanged
+            on any other graph (zero-shot, finetune).
     """
 
     name = "pna"
     multiplier = 3
     degree_statistic = True
+    delta: torch.Tensor
 
-    def __init__(self, delta: float | None):
-        if delta is None:
-            raise ValueError("PNA aggregation needs the degree statistic δ")
-        if not math.isfinite(delta) or delta <= 0:
-            raise ValueError(f"PNA needs a positive degree statistic δ, got {delta!r} (fit "
-                             "it on training graphs with at least one edge)")
-        self.delta = delta
+    def __init__(self, delta: float | None = None):
+        super().__init__()
+        # 0: not yet fitted (the statistic of graphs with an edge is positive).
+        self.register_buffer("delta", torch.tensor(0.0 if delta is None else float(delta),
+                                                   dtype=torch.float64))
 
-    @classmethod
-    def fitted(cls, delta: float | None) -> PNA:
-        return cls(delta)
+    @property
+    def fitted(self) -> bool:
+        return float(self.delta) != 0.0
+
+    def fit(self, graphs: Graph | Sequence[Graph]) -> None:
+        """δ of the training graphs, once: a finetune keeps its parent's."""
+        if not self.fitted:
+            self.delta.fill_(mean_log_degree(graphs))
 
     def scalers(self, adjacency: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         """The amplification and attenuation scalers `[B, N, 1]` for `adjacency: [B, N, N]`
         or an `EdgeBatch`. An isolated node (d = 0) gets 0 for both: its mean is zero
-        anyway, and δ / log(1) would be infinite."""
+        anyway, and δ / log(1) would be infinite.
+
+        Raises:
+            ValueError: δ not finite or not positive (not fitted).
+        """
+        delta = float(self.delta)
+        if not math.isfinite(delta) or delta <= 0:
+            raise ValueError(f"PNA needs a positive degree statistic δ, got {delta!r} (fit "
+                             "it on training graphs with at least one edge)")
         log_d = torch.log1p(in_degree(adjacency)).unsqueeze(-1)  # (B, N, 1)
-        amp = log_d / self.delta
-        att = torch.where(log_d > 0, self.delta / log_d.clamp_min(1e-12),
-                          torch.zeros_like(log_d))
+        amp = log_d / delta
+        att = torch.where(log_d > 0, delta / log_d.clamp_min(1e-12), torch.zeros_like(log_d))
         return amp, att
 
     def bind(self, strategy: Strategy) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -171,8 +190,18 @@ def aggregator(adjacency: Graph, how: str = "mean", backend: str = "auto",
         `agg(m: [B, N, F]) → [B, N, channels(how, F)]`.
     """
     kind = aggregation(how)
-    compute = strategy_for(adjacency, backend)
-    return kind.fitted(delta).bind(compute)
+    if kind.degree_statistic and delta is None:
+        raise ValueError(f"{how} aggregation needs the degree statistic δ")
+    return (kind(delta) if kind.degree_statistic else kind()).over(adjacency, backend)
+
+
+def build_aggregation(how: str) -> Aggregation:
+    """The aggregation module registered as `how`, its statistic (if any) not yet fitted.
+
+    Raises:
+        ValueError: an unknown name.
+    """
+    return aggregation(how)()
 
 
 def channels(how: str, features: int) -> int:
@@ -195,22 +224,16 @@ def full_graph(adjacency: Graph) -> torch.Tensor:
     return torch.ones_like(adjacency)
 
 
-class DegreeAwareAggregation:
-    """What MP-NODE and GNN-ODE share about their neighbours: the graph mode, PNA's δ and the
-    aggregation over one batch of graphs.
+class NeighbourAggregation:
+    """What MP-NODE and GNN-ODE share about their neighbours: the graph mode and the
+    aggregation module.
 
-    A subclass (an `nn.Module`) sets `self.graph` ("sys" or "full"), `self.aggregate` and
-    calls `_register_degree_statistic()` in its constructor.
+    A subclass (an `nn.Module`) sets `self.graph` ("sys" or "full") and
+    `self.aggregation = build_aggregation(options.aggregate)` in its constructor.
     """
 
     graph: str
-    aggregate: str
-    degree_delta: torch.Tensor
-
-    def _register_degree_statistic(self) -> None:
-        # PNA's δ, the training graphs' mean log(in-degree + 1): fitted once by
-        # `fit_statistics`, saved with the weights, used unchanged on any other graph.
-        self.register_buffer("degree_delta", torch.zeros((), dtype=torch.float64))
+    aggregation: Aggregation
 
     def _graph(self, adjacency: Graph) -> Graph:
         """The graph messages pass over: the data's, or complete with self-loops."""
@@ -218,12 +241,13 @@ class DegreeAwareAggregation:
 
     def fit_statistics(self, states: torch.Tensor | None, dt: float,
                        adjacency: Graph | Sequence[Graph]) -> None:
-        """Fit PNA's δ on the training graphs `adjacency: [K, N, N]` or an `EdgeBatch`, or
-        a list of them (several datasets: pooled over their nodes); states, dt unused."""
-        if float(self.degree_delta) == 0.0:  # fitted once: a finetune keeps the parent's
-            graphs = (self._graph(adjacency) if isinstance(adjacency, torch.Tensor | EdgeBatch)
-                      else [self._graph(a) for a in adjacency])
-            self.degree_delta.fill_(mean_log_degree(graphs))
+        """Fit the aggregation's degree statistic (PNA's δ) on the training graphs
+        `adjacency: [K, N, N]` or an `EdgeBatch`, or a list of them (several datasets:
+        pooled over their nodes), once; states, dt unused."""
+        if self.aggregation.degree_statistic and not self.aggregation.fitted:
+            self.aggregation.fit(
+                self._graph(adjacency) if isinstance(adjacency, torch.Tensor | EdgeBatch)
+                else [self._graph(a) for a in adjacency])
 
     def aggregator(self, adjacency: Graph, backend: str = "auto"):
         """The aggregation over in-neighbours: `m [B, N, F] → [B, N, channels(F)]`.
@@ -231,6 +255,4 @@ class DegreeAwareAggregation:
         Args:
             adjacency: `[B, N, N]`, `A[b, i, j] ≠ 0` iff j sends to i, or an `EdgeBatch`.
         """
-        reads_delta = aggregation(self.aggregate).degree_statistic
-        delta = float(self.degree_delta) if reads_delta else None
-        return aggregator(self._graph(adjacency), self.aggregate, backend, delta)
+        return self.aggregation.over(self._graph(adjacency), backend)

@@ -69,15 +69,6 @@ def stack_graphs(graphs: Sequence[Graph]) -> Graph:
                      torch.cat(index), graphs[0].num_nodes)
 
 
-def repeat_graph(graph: Graph, times: int, batch: int) -> Graph:
-    """One batch's graphs (`batch` trajectories) repeated `times` times, member after member."""
-    if isinstance(graph, EdgeBatch):
-        index = graph.graph_index.expand(batch) if graph.batch == 1 else graph.graph_index
-        return EdgeBatch(graph.senders, graph.receivers, graph.offsets, index.repeat(times),
-                         graph.num_nodes)
-    return graph.expand(batch, *graph.shape[1:]).repeat(times, 1, 1)
-
-
 class _FromFirst:
     """A read-only attribute of the `NeuralModel` interface that an ensemble's members share,
     read from member 0 (named one by one: unknown names are not forwarded)."""

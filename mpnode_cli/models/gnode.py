@@ -21,7 +21,7 @@ from typing import ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import DegreeAwareAggregation, channels
+from mpnode_cli.models.aggregate import NeighbourAggregation, build_aggregation, channels
 from mpnode_cli.models.backend import Graph
 from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import GNODEOptions
@@ -29,7 +29,7 @@ from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.runge_kutta import RHS
 
 
-class GNODE(DegreeAwareAggregation, NeuralODEModel):
+class GNODE(NeighbourAggregation, NeuralODEModel):
     """Graph neural ODE with sum aggregation and skip connections.
 
     Args:
@@ -48,7 +48,7 @@ class GNODE(DegreeAwareAggregation, NeuralODEModel):
                  options: GNODEOptions | None = None):
         super().__init__(node_dim, control_dim, num_nodes, options)
         o = self.options
-        self.depth, self.graph, self.aggregate = o.depth, o.graph, o.aggregate
+        self.depth, self.graph = o.depth, o.graph
         hidden = o.hidden
         self.lift = Linear(node_dim + control_dim, hidden)
         self.message = Linear(hidden, hidden)
@@ -57,7 +57,7 @@ class GNODE(DegreeAwareAggregation, NeuralODEModel):
         for layer in (self.lift, self.message, self.update, self.decode):
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
-        self._register_degree_statistic()
+        self.aggregation = build_aggregation(o.aggregate)
 
     def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
         """`f(t [B], x [B, N, D]) → ẋ [B, N, D]`, the equations of the module docstring.

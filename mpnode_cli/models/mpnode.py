@@ -64,7 +64,7 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.models.aggregate import DegreeAwareAggregation, aggregator, channels
+from mpnode_cli.models.aggregate import Mean, NeighbourAggregation, build_aggregation, channels
 from mpnode_cli.models.backend import Graph
 from mpnode_cli.models.base import LinearPathMLP, mlp
 from mpnode_cli.models.ode import Control, NeuralODEModel
@@ -73,7 +73,7 @@ from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.runge_kutta import RHS
 
 
-class MPNODE(DegreeAwareAggregation, NeuralODEModel):
+class MPNODE(NeighbourAggregation, NeuralODEModel):
     """Message-passing neural ODE over a batch of graphs.
 
     Args:
@@ -116,7 +116,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         self._angles = list(self.periodic_dims)
         self._plain = [i for i in range(node_dim) if i not in self.periodic_dims]
         self.message_dim, self.graph, self.messages = o.message_dim, o.graph, o.messages
-        self.aggregate, self.backend = o.aggregate, o.backend
+        self.backend = o.backend
         self.update, self.message_init = o.update, o.message_init
         c = channels(o.aggregate, o.message_dim)
         d, m = node_dim, o.message_dim
@@ -140,7 +140,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
                            o.linear_path)
         if o.message_init == "learned":
             self.init_net = mlp(e + control_dim, o.hidden, 1, m, o.activation, o.linear_path)
-        self._register_degree_statistic()
+        self.aggregation = build_aggregation(o.aggregate)
         if o.input_scale == "asinh":
             # The plain states' median and median absolute deviation (normalized units),
             # fitted once by `fit_statistics` (a spread of 0: not yet fitted).
@@ -153,7 +153,7 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         return self.options.input_scale == "asinh"
 
     def fit_statistics(self, states, dt: float, adjacency) -> None:
-        """PNA's δ (`DegreeAwareAggregation.fit_statistics`), and with asinh inputs the
+        """PNA's δ (`NeighbourAggregation.fit_statistics`), and with asinh inputs the
         plain states' median and median absolute deviation over every train value
         (pooled over datasets; fitted once: a finetune keeps the parent's)."""
         super().fit_statistics(states, dt, adjacency)
@@ -228,8 +228,8 @@ class MPNODE(DegreeAwareAggregation, NeuralODEModel):
         # The affine update drives the messages by their neighbours' *mean*: a sum there
         # would make the messages' own feedback gain grow with the in-degree, and a node
         # with more neighbours than any in training would see an unstable message ODE.
-        average = aggregate if self.aggregate == "mean" else aggregator(
-            self._graph(adjacency), "mean", self.backend)
+        average = aggregate if isinstance(self.aggregation, Mean) else Mean().over(
+            self._graph(adjacency), self.backend)
 
         def f(t: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)

@@ -51,6 +51,10 @@ Version 7 added the training dataset's `periodic_states` to `dataset` (and to ea
 states' indices in `model_config` as `periodic_dims`; a version 6 file reads with no
 periodic states (`_upgrade_v6`). An older mpnode would refuse the option, and would measure
 the errors of a run trained with `wrap_angles` without wrapping, hence the new version.
+Version 8 made each aggregation a module of the model (`mpnode_cli.models.aggregate`): PNA's
+δ is its buffer `aggregation.delta`, and a model that aggregates otherwise keeps no δ; a
+version 7 file's `degree_delta` moves or goes (`_upgrade_v7`). An older mpnode would miss
+`degree_delta` in the weights, hence the new version.
 `dataset["train_range"]` came later without a new version: a file without it only goes
 without the extrapolation warning, and an older mpnode that ignores it computes the same.
 
@@ -78,7 +82,7 @@ if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
 
 FORMAT = "mpnode-checkpoint"
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 
 
 class CheckpointFormatError(ValueError):

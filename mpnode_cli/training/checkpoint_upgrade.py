@@ -11,8 +11,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import torch
-
 from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
 
 
@@ -42,16 +40,16 @@ def upgrade_payload(payload: dict[str, Any], version: int) -> None:
         payload["train_config"] = pin_stored_solver(payload["train_config"])
     if version < 7:
         _upgrade_v6(payload)
+    if version < 8:
+        _upgrade_v7(payload)
 
 
 def _upgrade_v1(payload: dict[str, Any]) -> None:
-    """Version 1 → 2 in place: the renamed MP-NODE option and the new PNA buffer."""
+    """Version 1 → 2 in place: the renamed MP-NODE option (version 2's PNA buffer is gone
+    again since version 8, so it is not added)."""
     kind, config = payload.get("model_kind"), payload.get("model_config")
     if isinstance(config, dict) and kind == "mpnode" and "aggregation" in config:
         config["backend"] = config.pop("aggregation")
-    state = payload.get("state_dict")
-    if kind in ("mpnode", "gnode") and isinstance(state, dict):
-        state.setdefault("degree_delta", torch.zeros((), dtype=torch.float64))
 
 
 def _upgrade_v2(payload: dict[str, Any]) -> None:
@@ -74,3 +72,17 @@ def _upgrade_v6(payload: dict[str, Any]) -> None:
         for each in facts.get("datasets") or []:
             if isinstance(each, dict):
                 each.setdefault("periodic_states", [])
+
+
+def _upgrade_v7(payload: dict[str, Any]) -> None:
+    """Version 7 → 8 in place: PNA's δ belongs to its aggregation module
+    (`aggregation.delta`); the other aggregations read no statistic, so their models' δ,
+    fitted but unused, goes."""
+    kind, config, state = (payload.get(k) for k in ("model_kind", "model_config", "state_dict"))
+    if kind not in ("mpnode", "gnode") or not isinstance(state, dict):
+        return
+    pna = isinstance(config, dict) and config.get("aggregate") == "pna"
+    for key in [k for k in state if k == "degree_delta" or k.endswith(".degree_delta")]:
+        delta = state.pop(key)
+        if pna:
+            state[key.removesuffix("degree_delta") + "aggregation.delta"] = delta
