@@ -27,6 +27,7 @@ import typer
 from pydantic.fields import FieldInfo
 from typer.models import ArgumentInfo
 
+from mpnode_cli import flags
 from mpnode_cli.cli.common import (
     THREADS,
     _number,
@@ -71,12 +72,6 @@ _PANELS = {
           "json_out"),
     MODEL: ("model",),
 }
-
-# Flags spelt otherwise than `--name/--no-name`: two names for the two ways, or a switch
-# that only turns something on.
-_FLAGS = {"even_batches": ("--even-batches/--tail-batch",), "stream": ("--stream/--in-memory",),
-          "renormalize": ("--renormalize",), "allow_other_system": ("--allow-other-system",),
-          "allow_predictions": ("--allow-predictions",)}
 
 # Every system declares the loss of the paper recipe (`System.paper_loss`).
 _SYSTEM_CHOOSES = {"loss"}
@@ -197,7 +192,7 @@ def _field_parameter(name: str, panel: str) -> inspect.Parameter:
     field = TrainConfig.model_fields[name]
     choices = tuple(OPTIONS) if name == "model" else _choices(field.annotation)
     value_type = str if choices else _plain(field.annotation)
-    decls = _FLAGS.get(name) or _decls(name, value_type)
+    decls = _decls(name, value_type)
     default = _default_shown(name, field, switch="/" not in decls[0])
     help_text = " ".join(part for part in (
         field.description if default is None else
@@ -292,8 +287,7 @@ def _in_panel(option: Any, panel: str) -> Any:
 
 
 def _decls(name: str, value_type: type) -> tuple[str, ...]:
-    flag = "--" + name.replace("_", "-")
-    return (f"{flag}/--no-{flag[2:]}",) if value_type is bool else (flag,)
+    return flags.decls(name, value_type is bool)
 
 
 def _choices(annotation: Any) -> tuple[str, ...]:

@@ -14,17 +14,12 @@ import shlex
 from pathlib import Path
 from typing import Any
 
-# TrainConfig booleans whose CLI flags are not `--NAME/--no-NAME`.
-_BOOL_FLAGS = {"even_batches": ("--even-batches", "--tail-batch")}
-
-
-def _flag(name: str) -> str:
-    return "--" + name.replace("_", "-")
+from mpnode_cli import flags
 
 
 def _options(fields: dict[str, Any], skip: tuple[str, ...] = ()) -> list[str]:
-    """`--name value` for each field; booleans as switches; `solver` and `model_options`
-    tables as their own flags; `params` as `-p NAME=VALUE`."""
+    """The words of each field (`mpnode_cli.flags.words`); `solver` and `model_options`
+    tables as their own options; `params` as `-p NAME=VALUE`."""
     out: list[str] = []
     for name, value in fields.items():
         if name in skip or value is None:
@@ -34,13 +29,8 @@ def _options(fields: dict[str, Any], skip: tuple[str, ...] = ()) -> list[str]:
         elif name == "params":
             for key, item in value.items():
                 out += ["-p", f"{key}={item}"]
-        elif isinstance(value, bool):
-            on, off = _BOOL_FLAGS.get(name, (_flag(name), "--no-" + _flag(name)[2:]))
-            out.append(on if value else off)
-        elif isinstance(value, list | tuple):
-            out += [_flag(name), ",".join(str(v) for v in value)]
         else:
-            out += [_flag(name), str(value)]
+            out += flags.words(name, value)
     return out
 
 
