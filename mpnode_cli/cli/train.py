@@ -17,20 +17,16 @@ errors, 1 when training diverged, 130 for Ctrl-C and 143 for SIGTERM (both after
 
 from __future__ import annotations
 
-import copy
 import inspect
-import types
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Any
 
 import typer
 from pydantic.fields import FieldInfo
-from typer.models import ArgumentInfo
 
 from mpnode_cli import flags
 from mpnode_cli.cli.common import (
     THREADS,
-    _number,
     console,
     error_message,
     fail,
@@ -38,6 +34,15 @@ from mpnode_cli.cli.common import (
     solver_option,
     speaks,
     warn,
+)
+from mpnode_cli.cli.options import (
+    choices,
+    field_parameter,
+    in_panel,
+    parameter,
+    plain,
+    shown,
+    with_options,
 )
 from mpnode_cli.config import TrainConfig, train_solver
 from mpnode_cli.models.registry import OPTIONS
@@ -165,42 +170,31 @@ def _with_options(command, leave_out: tuple[str, ...] = (), model_options: bool 
     own parameters placed in their panels, an option for each `TrainConfig` field and
     solver option there but those in `leave_out`, and the models' options if
     `model_options`."""
-    signature = inspect.signature(command)
-    own = {p.name: p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD}
-    params = [p for p in own.values() if isinstance(p.default, ArgumentInfo)]
-    for panel, names in _PANELS.items():
-        for name in names:
-            if name in own:
-                params.append(own[name].replace(kind=inspect.Parameter.KEYWORD_ONLY,
-                                                default=_in_panel(own[name].default, panel)))
-            elif name in _SOLVER:
-                params.append(_solver_parameter(name, panel))
-            elif name in TrainConfig.model_fields and name not in leave_out:
-                params.append(_field_parameter(name, panel))
+    def build(name: str, panel: str) -> inspect.Parameter | None:
+        if name in _SOLVER:
+            return _solver_parameter(name, panel)
+        if name in TrainConfig.model_fields and name not in leave_out:
+            return _field_parameter(name, panel)
+        return None
+
+    command = with_options(command, _PANELS, build)
     if model_options:
-        params += _model_option_parameters()
-    if missing := set(own) - {p.name for p in params}:
-        raise TypeError(f"parameters of {command.__name__} in no panel: {sorted(missing)}")
-    command.__signature__ = signature.replace(parameters=params)
+        signature = inspect.signature(command)
+        command.__signature__ = signature.replace(
+            parameters=[*signature.parameters.values(), *_model_option_parameters()])
     return command
 
 
 def _field_parameter(name: str, panel: str) -> inspect.Parameter:
-    """The option of `TrainConfig` field `name`: its description, its choices (a `Literal`'s,
-    or the registry's models) where the description does not name them all, and the
-    default a user gets (`_default_shown`)."""
+    """The option of `TrainConfig` field `name` (`field_parameter`), its choices the
+    registry's models for `model`, with the default a user gets (`_default_shown`)."""
     field = TrainConfig.model_fields[name]
-    choices = tuple(OPTIONS) if name == "model" else _choices(field.annotation)
-    value_type = str if choices else _plain(field.annotation)
-    decls = _decls(name, value_type)
+    allowed = tuple(OPTIONS) if name == "model" else None
+    decls = flags.decls(name, field.annotation is bool)
     default = _default_shown(name, field, switch="/" not in decls[0])
-    help_text = " ".join(part for part in (
-        field.description if default is None else
-        f"{field.description.removesuffix('.')} (default {default}).",
-        None if all(c in field.description for c in choices) else
-        f"Choices: {', '.join(choices)}.",
-    ) if part)
-    return _parameter(name, value_type, decls, help_text, panel)
+    parser = output_parser("--run-dir", folder=True) if name == "run_dir" else None
+    return field_parameter(TrainConfig, name, panel, default=default, allowed=allowed,
+                           parser=parser)
 
 
 def _default_shown(name: str, field: FieldInfo, switch: bool) -> str | None:
@@ -213,24 +207,24 @@ def _default_shown(name: str, field: FieldInfo, switch: bool) -> str | None:
     ours = below.get(name, field.default)
     if ours is None or (ours is False and switch):
         return None
-    shown = _shown(ours)
+    text = shown(ours)
     if above.get(name, ours) != ours:  # the mpnode recipe decides by the trajectories' length
-        shown = f"{_shown(above[name])} from {CURRICULUM_MIN_SAMPLES} samples per trajectory"
+        text = f"{shown(above[name])} from {CURRICULUM_MIN_SAMPLES} samples per trajectory"
     paper = recipe_values("paper", {}, CURRICULUM_MIN_SAMPLES).get(name, field.default)
     if name in _SYSTEM_CHOOSES:
-        shown += "; paper recipe: the system's"
+        text += "; paper recipe: the system's"
     elif paper is not None and paper != ours:
-        shown += f"; paper recipe {_shown(paper)}"
-    return shown
+        text += f"; paper recipe {shown(paper)}"
+    return text
 
 
 def _solver_parameter(name: str, panel: str) -> inspect.Parameter:
     """The option of `SolverOptions` field `name` with `train_solver()`'s default
     (`solver_option`); its choices are checked with the config, in one line."""
     annotation = SolverOptions.model_fields[name].annotation
-    value_type = str if _choices(annotation) else _plain(annotation)
+    value_type = str if choices(annotation) else plain(annotation)
     return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, annotation=value_type | None,
-                             default=_in_panel(solver_option(name, train_solver()), panel))
+                             default=in_panel(solver_option(name, train_solver()), panel))
 
 
 def _model_option_parameters() -> list[inspect.Parameter]:
@@ -250,62 +244,21 @@ def _model_option_parameters() -> list[inspect.Parameter]:
             if name in TrainConfig.model_fields or name in _SOLVER:
                 raise TypeError(f"model option '{name}' ({kind}) has the name of a train "
                                 "option")
-            takers.append(f"{kind} ({_shown(field.default)})")
+            takers.append(f"{kind} ({shown(field.default)})")
     params = []
     for name, (field, takers) in fields.items():
         # Choices are checked with the rest of the options, so that a bad one is refused
         # in the same one line (click would draw its own error box).
-        choices = _choices(field.annotation)
-        value_type = str if choices else field.annotation
+        named = choices(field.annotation)
+        value_type = str if named else field.annotation
         help_text = " ".join(part for part in (
             field.description,
-            f"Choices: {', '.join(choices)}." if choices else None,
+            f"Choices: {', '.join(named)}." if named else None,
             f"Models (default): {', '.join(takers)}.",
         ) if part)
-        params.append(_parameter(name, value_type, _decls(name, value_type), help_text,
-                                 MODEL))
+        params.append(parameter(name, value_type, flags.decls(name, value_type is bool),
+                                help_text, MODEL))
     return params
-
-
-def _parameter(name: str, value_type: type, decls: tuple[str, ...], help_text: str,
-               panel: str) -> inspect.Parameter:
-    """A keyword parameter whose typer option is left out as None."""
-    if value_type not in (bool, int, float, str, Path):
-        raise TypeError(f"option '{name}' has a type the CLI cannot take: {value_type}")
-    parser = output_parser(decls[0], folder=True) if name == "run_dir" else None
-    option = typer.Option(None, *decls, help=help_text, rich_help_panel=panel, parser=parser)
-    return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
-                             annotation=value_type | None)
-
-
-def _in_panel(option: Any, panel: str) -> Any:
-    """A copy of a declared typer option, shown in `panel` (`THREADS` and the solver's
-    options serve other verbs as they are)."""
-    option = copy.copy(option)
-    option.rich_help_panel = panel
-    return option
-
-
-def _decls(name: str, value_type: type) -> tuple[str, ...]:
-    return flags.decls(name, value_type is bool)
-
-
-def _choices(annotation: Any) -> tuple[str, ...]:
-    return get_args(annotation) if get_origin(annotation) is Literal else ()
-
-
-def _plain(annotation: Any) -> Any:
-    """`int` of `int | None`; other types as they are."""
-    if get_origin(annotation) in (Union, types.UnionType):
-        (kept,) = [a for a in get_args(annotation) if a is not type(None)]
-        return kept
-    return annotation
-
-
-def _shown(value: Any) -> str:
-    if isinstance(value, bool):
-        return "on" if value else "off"
-    return _number(value)
 
 
 _MODEL_OPTIONS = {name for declared in OPTIONS.values() for name in declared.model_fields}
