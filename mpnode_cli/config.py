@@ -108,76 +108,62 @@ def _names(cls: type, value: Any) -> Any:
 class GenerateConfig(BaseModel):
     """What `mpnode generate` makes: one system on G graphs, K trajectories, one HDF5 file.
 
-    Fields left `None` take the system's defaults in `resolve_config`.
-
-    Attributes:
-        system: registry name (`mpnode_cli.systems.registry.SYSTEMS`: `pendulum`,
-            `lorenz`, `gene`, `kuramoto`, `quadrotor`, `sis`, `mak`, `mm`, `bd`, `nd`), or
-            a system of your own.
-        system_file: the Python file that defines `system` when it is your own and not an
-            installed entry point (`mpnode_cli.systems.registry.load_system_file`).
-        params: scalar parameters and options of the system, e.g. `{"coupling": 1.0}` for
-            lorenz, `{"init": "hotspot"}` for gene, `{"K": 0.5}` for kuramoto.
-        nodes: N, the number of nodes (default: the system's, or the edge list's).
-        grid: side of a square grid, N = grid² (gene's 4×4 and 8×8 layouts).
-        topology: one of the system's topologies (default: the system's).
-        graphs: G, distinct graphs in the dataset; trajectories are spread evenly over them.
-        graph_seed: graph g is built with seed `graph_seed + g`; per-graph parameters (lorenz
-            coupling, kuramoto ω) are drawn from `default_rng([graph_seed, g])`, so datasets
-            that share a graph seed share their systems whatever their trajectory seed.
-        edge_list: a user's graph as a text file of `i j` lines (then `topology` is
-            `"edgelist"`; see `mpnode_cli.edge_files.read_edge_list`).
-        hubs: degree coverage: in every graph this many nodes (those of highest degree)
-            are joined to every other node, so the data hold in-degrees up to N − 1
-            (`mpnode_cli.topologies.join_hubs`; docs/transfer.md). Not with an edge list.
-        hub_multiplicity: W ≥ 1: the hubs are joined by parallel edges (a multigraph), w_g
-            of them each way in graph g, w_g spread evenly from 1 to W over the G graphs
-            (`hub_multiplicities`), so hubs reach in-degree W·(N − 1) on N nodes. Needs
-            hubs, and N ≤ 256 (graphs held as matrices).
-        directed: read the edge list's `i j` as one edge from i to j, not an undirected
-            edge.
-        trajectories: K.
-        t_end: last sample time; samples are `0, dt, ..., t_end`.
-        dt: sample spacing.
-        seed: seed of the initial states and of the train/validation/test split.
-        split: train, validation, test fractions (by trajectory), summing to 1.
-        solver: how the trajectories are integrated (float64 throughout); default Tsit5 at
-            rtol 1e-8, atol 1e-10 (`generate_solver`). A table that names only some options
-            takes the others from that default.
-        dtype: storage dtype of `states`.
-        out: output file (default `datasets/<system>-n<N>-<topology>-s<seed>.h5`).
-        chunk_size: trajectories solved together in one batch (bounds memory).
-        shard: `(i, n)`: write only shard i of n (0 ≤ i < n), whole solver chunks of the
-            trajectories, to `<out stem>.shard-<i>-of-<n><suffix>`
-            (`mpnode_cli.data.shards`); given as `"i/n"` or `[i, n]`. None: the whole
-            dataset, one file.
+    Fields left `None` take the system's defaults in `resolve_config`. Each field's
+    description is its `mpnode generate` option's help (`mpnode_cli.cli.generate`).
     """
 
     # No inf or NaN in any number (`--t-end inf` would never end).
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    system: str
-    system_file: Path | None = None
-    params: dict[str, float | str] = Field(default_factory=dict)
-    nodes: int | None = Field(None, ge=1)
-    grid: int | None = Field(None, ge=1)
-    topology: str | None = None
-    graphs: int = Field(1, ge=1)
-    graph_seed: int = Field(0, ge=0, le=SEED_MAX)
-    edge_list: Path | None = None
-    hubs: int = Field(0, ge=0)
-    hub_multiplicity: int = Field(1, ge=1, le=MULTIPLICITY_MAX)
-    directed: bool = False
-    trajectories: int | None = Field(None, ge=1)
-    t_end: float | None = Field(None, gt=0)
-    dt: float | None = Field(None, gt=0)
-    seed: int = Field(0, ge=0, le=SEED_MAX)
-    split: tuple[float, float, float] = (0.7, 0.15, 0.15)
-    solver: SolverOptions = Field(default_factory=generate_solver)
-    dtype: Literal["float32", "float64"] = "float32"
-    out: Path | None = None
-    chunk_size: int = Field(1024, ge=1)
-    shard: tuple[int, int] | None = None
+    system: str = Field(description=(
+        "Registry name (`mpnode_cli.systems.registry.SYSTEMS`) or a system of your own."))
+    system_file: Path | None = Field(None, description=(
+        "A Python file defining your own System subclass (docs/custom-systems.md); its "
+        "options go in as -p NAME=VALUE."))
+    params: dict[str, float | str] = Field(default_factory=dict, description=(
+        "Scalar parameters and options of the system, e.g. K for kuramoto."))
+    nodes: int | None = Field(None, ge=1, description="Number of nodes N.")
+    grid: int | None = Field(None, ge=1, description="Square grid side: N = grid².")
+    topology: str | None = Field(None, description="One of the system's topologies.")
+    graphs: int = Field(1, ge=1, description="Distinct graphs G; trajectories spread evenly.")
+    graph_seed: int = Field(0, ge=0, le=SEED_MAX, description=(
+        "Graph g is built with seed graph-seed + g; per-graph parameters (lorenz coupling, "
+        "kuramoto ω) come from the same seeds, so datasets that share a graph seed share "
+        "their systems whatever their trajectory seed."))
+    edge_list: Path | None = Field(None, description=(
+        "Your own graph: text file of 'i j' lines, undirected unless --directed "
+        "(docs/dataset-format.md)."))
+    hubs: int = Field(0, ge=0, description=(
+        "Degree coverage: join the H highest-degree nodes of every graph to all others, so "
+        "in-degrees reach N − 1 (docs/transfer.md)."))
+    hub_multiplicity: int = Field(1, ge=1, le=MULTIPLICITY_MAX, description=(
+        "Join the hubs by parallel edges, 1 to W of them spread evenly over the graphs, so "
+        "hubs reach in-degree W·(N − 1) on N ≤ 256 nodes (a multigraph; docs/transfer.md)."))
+    directed: bool = Field(False, description="Read the edge list's 'i j' as one edge i → j.")
+    trajectories: int | None = Field(None, ge=1, description="Number of trajectories K.")
+    t_end: float | None = Field(None, gt=0, description=(
+        "Last sample time (samples 0, dt, ..., t_end)."))
+    dt: float | None = Field(None, gt=0, description="Sample spacing.")
+    seed: int = Field(0, ge=0, le=SEED_MAX, description=(
+        "Seed of the initial states and of the train/validation/test split."))
+    split: tuple[float, float, float] = Field((0.7, 0.15, 0.15), description=(
+        "Train, validation, test fractions by trajectory, summing to 1."))
+    solver: SolverOptions = Field(default_factory=generate_solver, description=(
+        "How the trajectories are integrated (float64 throughout); default Tsit5 at rtol "
+        "1e-8, atol 1e-10 (generate_solver). A table that names only some options takes "
+        "the others from that default."))
+    dtype: Literal["float32", "float64"] = Field("float32", description=(
+        "Storage dtype of the states."))
+    out: Path | None = Field(None, description=(
+        "Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5); with --shard, "
+        "the name its shards are named after. A path ending in / is refused: name the "
+        "file."))
+    chunk_size: int = Field(1024, ge=1, description=(
+        "Trajectories per solver batch (bounds memory)."))
+    shard: tuple[int, int] | None = Field(None, description=(
+        "Write only shard i of n (0 ≤ i < n) to <out stem>.shard-000i-of-000n.h5, for n "
+        "processes or machines; mpnode merge joins the n files into the one file generate "
+        "would write. Shards hold whole solver chunks (n ≤ trajectories / chunk-size)."))
 
     _parse_split = field_validator("split", mode="before")(_split_fractions)
     _check_split = field_validator("split")(_valid_split)

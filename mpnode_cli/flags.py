@@ -17,6 +17,7 @@ SWITCHES: dict[str, tuple[str, str | None]] = {
     "renormalize": ("--renormalize", None),
     "allow_other_system": ("--allow-other-system", None),
     "allow_predictions": ("--allow-predictions", None),
+    "directed": ("--directed", None),
 }
 
 

@@ -29,6 +29,7 @@ from mpnode_cli.cli.common import (
 )
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
+from mpnode_cli.cli.options import field_parameter, in_panel, shown, with_options
 from mpnode_cli.config import GenerateConfig, generate_solver
 from mpnode_cli.threads import applied_threads
 
@@ -78,8 +79,8 @@ def _parameters() -> str:
             + ", ".join(f"{k} ({v:g})" for k, v in GRAPH_DEFAULTS.items()))
 
 
-# The declarations that take more than a line, so that the command's signature reads as
-# its list of options.
+# The command's own declarations; its other options are `GenerateConfig`'s fields and the
+# solver's (`_field`), in `_PANELS`.
 _SYSTEM = typer.Argument(
     None,
     help=f"{_system_names()}, or your own with --system-file (may come from --preset "
@@ -87,9 +88,6 @@ _SYSTEM = typer.Argument(
     autocompletion=_complete_system,
     show_default=False,
 )
-_SYSTEM_FILE = typer.Option(
-    None, help="A Python file defining your own System subclass "
-    "(docs/custom-systems.md); its options go in as -p NAME=VALUE.")
 _PRESET = typer.Option(
     None,
     help="Start from one of the paper's datasets, e.g. lorenz10, gene-ba-8x8.",
@@ -98,24 +96,6 @@ _PRESET = typer.Option(
 _CONFIG = typer.Option(
     None, "--config", help="TOML (or JSON) file of config fields; options override it."
 )
-_GRID = typer.Option(
-    None, metavar="N", help=f"Square grid side: N = grid², for systems whose nodes sit on "
-    f"a grid ({_grid_systems()}); others refuse it (give --nodes).")
-_EDGE_LIST = typer.Option(
-    None, help="Your own graph: text file of 'i j' lines, undirected unless --directed "
-    "(docs/dataset-format.md).")
-_OUT = typer.Option(
-    None, "--out", "-o",
-    help="Output file (default datasets/<system>-n<N>-<topology>-s<seed>.h5); with "
-    "--shard, the name its shards are named after. A path ending in / is refused: name "
-    "the file.", parser=output_parser("--out"),
-)
-_SHARD = typer.Option(
-    None, metavar="i/n",
-    help="Write only shard i of n (0 ≤ i < n) to <out stem>.shard-000i-of-000n.h5, for "
-    "n processes or machines; mpnode merge joins the n files into the one file "
-    "generate would write. Shards hold whole solver chunks (n ≤ trajectories / "
-    "chunk-size).")
 _PARAM = typer.Option(
     None,
     "--param",
@@ -124,72 +104,69 @@ _PARAM = typer.Option(
     help=f"System parameter or option NAME=VALUE, e.g. -p K=0.5 (repeatable). "
     f"Parameters (default): {_parameters()}.",
 )
+GRAPHS, TRAJECTORIES, SOLVER, RUN, SYSTEM = (
+    "Graphs", "Trajectories", "Solver", "Input, output and run", "System options")
+_PANELS = {
+    GRAPHS: ("nodes", "grid", "topology", "graphs", "graph_seed", "edge_list", "directed",
+             "hubs", "hub_multiplicity"),
+    TRAJECTORIES: ("trajectories", "t_end", "dt", "seed", "split"),
+    SOLVER: ("method", "rtol", "atol", "fixed_dt", "chunk_size"),
+    RUN: ("system_file", "preset", "config_file", "out", "shard", "dtype", "force", "yes",
+          "json_out", "threads"),
+    SYSTEM: ("param",),
+}
+_SOLVER = ("method", "rtol", "atol", "fixed_dt")
+# Counts, given as 1000, 1_000 or 1e3 (`_whole`), and their metavars.
+_COUNTS = {"nodes": "N", "grid": "N", "graphs": "N", "trajectories": "N", "chunk_size": "N",
+           "hubs": "H", "hub_multiplicity": "W"}
 
 
 def generate_command(
     system: str | None = _SYSTEM,
-    system_file: Path | None = _SYSTEM_FILE,
     preset: str | None = _PRESET,
     config_file: Path | None = _CONFIG,
-    nodes: str | None = typer.Option(None, metavar="N", help="Number of nodes N."),
-    grid: str | None = _GRID,
-    topology: str | None = typer.Option(
-        None, help=f"One of the system's topologies ({_topologies()})."),
-    graphs: str | None = typer.Option(
-        None, metavar="N", help="Distinct graphs G; trajectories spread evenly."),
-    graph_seed: int | None = typer.Option(None, help="Seed of graph g is graph-seed + g."),
-    edge_list: Path | None = _EDGE_LIST,
-    hubs: str | None = typer.Option(
-        None, metavar="H", help="Degree coverage: join the H highest-degree nodes of every "
-        "graph to all others, so in-degrees reach N − 1 (docs/transfer.md)."),
-    hub_multiplicity: str | None = typer.Option(
-        None, metavar="W", help="Join the hubs by parallel edges, 1 to W of them over the "
-        "graphs, so hubs reach in-degree W·(N − 1) on N ≤ 256 nodes (a multigraph; "
-        "docs/transfer.md)."),
-    directed: bool = typer.Option(
-        False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
-    trajectories: str | None = typer.Option(None, metavar="N", help="Number of trajectories K."),
-    t_end: float | None = typer.Option(None, help="Last sample time (samples 0, dt, ..)."),
-    dt: float | None = typer.Option(None, help="Sample spacing."),
-    seed: int | None = typer.Option(None, help="Seed of initial states and split."),
-    split: str | None = typer.Option(
-        None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."
-    ),
-    method: str | None = solver_option("method", generate_solver()),
-    rtol: float | None = solver_option("rtol", generate_solver()),
-    atol: float | None = solver_option("atol", generate_solver()),
-    fixed_dt: float | None = solver_option("fixed_dt", generate_solver()),
-    dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
-    out: Path | None = _OUT,
-    shard: str | None = _SHARD,
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
     yes: bool = typer.Option(
         False, "--yes", "-y", help="Go ahead with a big job without asking."),
     json_out: bool = typer.Option(
         False, "--json", help="Print the summary as one JSON object on stdout."),
-    chunk_size: str | None = typer.Option(
-        None, metavar="N", help="Trajectories per solver batch (default 1024)."
-    ),
     param: list[str] | None = _PARAM,
     threads: str | None = THREADS,
-    **system_options: Any,
+    **options: Any,
 ) -> None:
     """Simulate ground truth on graphs and write an HDF5 dataset."""
-    given = {
-        "system": system, "nodes": nodes, "grid": grid, "topology": topology, "graphs": graphs,
-        "graph_seed": graph_seed, "edge_list": edge_list, "trajectories": trajectories,
-        "t_end": t_end, "dt": dt, "seed": seed, "split": split, "dtype": dtype, "out": out,
-        "chunk_size": chunk_size, "directed": directed or None, "system_file": system_file,
-        "shard": shard, "hubs": hubs, "hub_multiplicity": hub_multiplicity,
-    }  # fmt: skip
-    solver = {"method": method, "rtol": rtol, "atol": atol, "fixed_dt": fixed_dt}
+    given = {k: v for k, v in options.items() if k in GenerateConfig.model_fields}
+    solver = {k: v for k, v in options.items() if k in _SOLVER}
+    system_options = {k: v for k, v in options.items() if k not in given and k not in solver}
     try:
-        options = _command_line(given, solver, param or [], system_options)
-        config = _layered_config(preset, config_file, system_file, options)
+        fields = _command_line({"system": system, **given}, solver, param or [],
+                               system_options)
+        config = _layered_config(preset, config_file, given.get("system_file"), fields)
     except ValueError as exc:
         _usage_error(_message(exc))
     _run(config, force, yes, json_out, config_file)
+
+
+def _field(name: str, panel: str) -> inspect.Parameter | None:
+    """The option of `GenerateConfig`'s field `name`, or of the solver's with
+    `generate_solver()`'s default."""
+    if name in _SOLVER:
+        return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
+                                 annotation=(str if name == "method" else float) | None,
+                                 default=in_panel(solver_option(name, generate_solver()), panel))
+    field = GenerateConfig.model_fields[name]
+    default = None if field.default is None or field.default is False else (
+        ",".join(map(str, field.default)) if name == "split" else shown(field.default))
+    extra = {"grid": f"For systems whose nodes sit on a grid ({_grid_systems()}); others "
+                     "refuse it (give --nodes).",
+             "topology": f"Built in: {_topologies()}."}.get(name, "")
+    typed = {"split": str, "shard": str} | dict.fromkeys(_COUNTS, str)
+    return field_parameter(
+        GenerateConfig, name, panel, default=default, extra=extra,
+        metavar=_COUNTS.get(name) or {"shard": "i/n"}.get(name), value_type=typed.get(name),
+        decls=("--out", "-o") if name == "out" else None,
+        parser=output_parser("--out") if name == "out" else None)
 
 
 def _command_line(given: dict[str, Any], solver: dict[str, Any], param: list[str],
@@ -201,7 +178,7 @@ def _command_line(given: dict[str, Any], solver: dict[str, Any], param: list[str
         ValueError: a count that is not a whole number, or a --param that is not NAME=VALUE.
     """
     options = {key: value for key, value in given.items() if value is not None}
-    for key in ("nodes", "grid", "graphs", "trajectories", "chunk_size"):
+    for key in _COUNTS:
         if key in options:
             options[key] = _whole(options[key], "--" + key.replace("_", "-"))
     solver = {key: value for key, value in solver.items() if value is not None}
@@ -270,12 +247,14 @@ def _system_option_parameters() -> list[inspect.Parameter]:
         params.append(inspect.Parameter(
             name, inspect.Parameter.KEYWORD_ONLY, annotation=value_type | None,
             default=typer.Option(None, "--" + name.replace("_", "-"), help=help_text,
-                                 rich_help_panel="System options")))
+                                 rich_help_panel=SYSTEM)))
     return params
 
 
 def _with_system_options(command):
-    """Give `command` (whose `**system_options` collects them) the systems' options."""
+    """Give `command` (whose `**options` collects them) its options in `_PANELS`, then the
+    systems' options."""
+    command = with_options(command, _PANELS, _field)
     signature = inspect.signature(command)
     fixed = [p for p in signature.parameters.values() if p.kind is not p.VAR_KEYWORD]
     command.__signature__ = signature.replace(parameters=fixed + _system_option_parameters())

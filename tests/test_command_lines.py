@@ -1,5 +1,6 @@
-"""The `mpnode` command lines the reports give for each step (`experiments.commands`) parse
-with the real typer app: every option they name exists and takes the value given."""
+"""Command lines from declarations: the `mpnode` lines the reports give for each step
+(`experiments.commands`) parse with the real typer app (every option they name exists and
+takes the value given), and generate's options are `GenerateConfig`'s fields."""
 
 from __future__ import annotations
 
@@ -8,9 +9,11 @@ from pathlib import Path
 
 import pytest
 import typer
+from conftest import invoke
 
 from mpnode_cli import flags
 from mpnode_cli.cli.app import app
+from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.experiments import commands, spec
 
 # click's usage error (typer ships its own click): unknown options, values of a wrong type.
@@ -72,3 +75,32 @@ def test_every_train_switch_is_spelt_as_the_cli_takes_it(value):
         head = "mpnode finetune parent.pt data.h5" if name in (
             "renormalize", "allow_other_system") else "mpnode train data.h5"
         parses(" ".join([head, *flags.words(name, value)]))
+
+
+def test_every_generate_field_is_an_option_with_its_description_as_help():
+    """generate's options come from `GenerateConfig`'s declarations: one per field (the
+    system is the argument, params come as -p and the solver as its own options), its
+    help the field's description."""
+    from mpnode_cli.config import GenerateConfig
+
+    group = typer.main.get_command(app)
+    with group.make_context("mpnode", ["generate"], resilient_parsing=True) as parent:
+        _, command, _ = group.resolve_command(parent, ["generate"])
+    options = {p.name: p for p in command.params}
+    for name, field in GenerateConfig.model_fields.items():
+        if name in ("system", "params", "solver"):
+            continue
+        assert flags.flag(name) in options[name].opts, name
+        assert options[name].help.startswith(field.description.removesuffix(".")), name
+    for name in ("method", "rtol", "atol", "fixed_dt"):
+        assert name in options
+
+
+def test_a_count_is_a_whole_number_however_written(tmp_path):
+    out = tmp_path / "g.h5"
+    result = invoke("generate", "gene", "--nodes", "8", "--topology", "ba", "--hubs", "1e0",
+                    "--trajectories", "4", "--t-end", "0.2", "--dt", "0.1", "--out", out)
+    assert result.exit_code == 0, result.output
+    assert read_dataset(out).config["hubs"] == 1
+    result = invoke("generate", "gene", "--hubs", "1.5", "--out", tmp_path / "h.h5")
+    assert result.exit_code == 2 and "--hubs expects a whole number" in result.output
