@@ -23,6 +23,8 @@ experiment_app = typer.Typer(
 
 _SCALES = ("tiny", "small", "paper")
 _RECIPES = {"mpnode": "mpnode", "ours": "mpnode", "paper": "paper"}
+# The largest data draw: its seeds (draw × spec.DRAW_STRIDE) stay far inside an int64.
+_MAX_DRAW = 10**6
 
 
 def _complete_name(incomplete: str) -> list[str]:
@@ -114,11 +116,19 @@ def run_command(
         "step's seed + k); reports give each number as mean ± std over the members, and a "
         "claim holds, fails or is undecided from the members (docs/reproducing.md). 1: one "
         "model per training step."),
+    draw: int = typer.Option(
+        0, metavar="D",
+        help="Data draw: every generated dataset's seed and graph seed offset by D × 1000 "
+        "(other graphs, initial states, split, per-graph parameters such as Kuramoto's ω). "
+        "0 is the experiment's own data; each draw's report section goes beside it, and "
+        "with two or more draws every claim gets its margin and a 95% bootstrap interval "
+        "over the draws and seeds."),
     threads: str | None = THREADS,
 ) -> None:
     """Run (or resume) an experiment and write its report."""
     import shlex
 
+    from mpnode_cli.experiments.saved import run_folder
     from mpnode_cli.experiments.spec import load
     from mpnode_cli.paths import check_output_folder
     from mpnode_cli.threads import available_cpus
@@ -129,6 +139,8 @@ def run_command(
         fail(f"jobs: Input should be greater than or equal to 1 (got {jobs})")
     if seeds < 1:
         fail(f"seeds: Input should be greater than or equal to 1 (got {seeds})")
+    if not 0 <= draw <= _MAX_DRAW:
+        fail(f"draw: Input should be from 0 to {_MAX_DRAW} (got {draw})")
     if jobs > available_cpus():  # each job is a process holding torch: never one per typo
         fail(f"--jobs must be at most {available_cpus()}, the CPUs this process may use, "
              f"got {jobs}")
@@ -139,13 +151,14 @@ def run_command(
         # Both folders are written: --work by every step, --out after the last.
         check_output_folder(work)
         check_output_folder(out / experiment.name)
-        _check_reports(out, experiment.name, [f"{scale}-{_RECIPES[recipe]}"])
+        _check_reports(out, experiment.name, [run_folder(scale, _RECIPES[recipe], draw)])
     except (FileExistsError, ValueError) as exc:
         fail(error_message(exc))
     command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
-                          _RECIPES[recipe], "--seeds", str(seeds), *_given_paths(out, work),
+                          _RECIPES[recipe], "--seeds", str(seeds),
+                          *(["--draw", str(draw)] if draw else []), *_given_paths(out, work),
                           *(["--jobs", str(jobs)] if jobs > 1 else [])])
-    _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs, seeds)
+    _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs, seeds, draw)
 
 
 def _check_reports(out: Path, name: str, runs: list[str]) -> None:
@@ -183,7 +196,7 @@ def _given_paths(out: Path, work: Path) -> list[str]:
 
 
 def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: str,
-         jobs: int = 1, seeds: int = 1) -> None:
+         jobs: int = 1, seeds: int = 1, draw: int = 0) -> None:
     from mpnode_cli.experiments.report import write_report
     from mpnode_cli.experiments.runner import StepFailed, run_experiment
     from mpnode_cli.signals import exit_code, interrupt_on_signals, signal_name
@@ -194,7 +207,7 @@ def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: st
         with interrupt_on_signals():
             record = run_experiment(experiment, scale=scale, recipe=recipe, work=work,
                                     command=command, progress=display.on_event, jobs=jobs,
-                                    seeds=seeds)
+                                    seeds=seeds, draw=draw)
     except StepFailed as exc:
         display.close()
         fail(str(exc), code=1)

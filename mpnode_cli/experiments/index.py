@@ -53,7 +53,8 @@ def rebuild_index(out: Path) -> Path:
     for name in spec.names():
         experiment = spec.load(name)
         runs = [r for r in saved_runs(out, name) if r["scale"] != "tiny"]
-        shown_runs = {recipe: _shown_runs([r for r in runs if r["recipe"] == recipe])
+        main = [r for r in runs if not r.get("draw")]  # draw 0: the experiment's own data
+        shown_runs = {recipe: _shown_runs([r for r in main if r["recipe"] == recipe])
                       for recipe in ("paper", "mpnode")}
         link = f"[{name}]({name}/{REPORT})" if runs else name
         for i, claim in enumerate(experiment.claims):
@@ -69,7 +70,7 @@ def rebuild_index(out: Path) -> Path:
                     _, shown, said = claims.verdict(claim.holds, results, experiment)
                     size = members.count(results)
                     where = f"{run['scale']}, {size} seed{'s' if size > 1 else ''}"
-                    cell.append(f"{shown} ({where})")
+                    cell.append(f"{shown} ({where}){_over_draws(claim.holds, runs, run)}")
                     said_all.append(said if len(shown_runs[recipe]) == 1
                                     else f"{run['scale']}: {said}")
                     weak += _weak(name, claim, recipe, results, run["scale"])
@@ -106,7 +107,9 @@ def _coverage(out: Path) -> list[str]:
              "|---|" + "---|" * len(kinds)]
     for name in spec.names():
         experiment = spec.load(name)
-        runs = {(r["scale"], r["recipe"]): r for r in saved_runs(out, name)}
+        every = saved_runs(out, name)
+        runs = {(r["scale"], r["recipe"]): r for r in every if not r.get("draw")}
+        draws = {kind: sum((r["scale"], r["recipe"]) == kind for r in every) for kind in kinds}
         cells = []
         for kind in kinds:
             run = runs.get(kind)
@@ -117,6 +120,8 @@ def _coverage(out: Path) -> list[str]:
             seeds = int(run.get("seeds") or members.count(results))
             missing = [step.id for step in experiment.steps if step.id not in results]
             cell = f"{seeds} seed{'s' if seeds > 1 else ''}"
+            if draws[kind] > 1:
+                cell += f" × {draws[kind]} data draws"
             if run.get("started"):
                 cell += f", {str(run['started'])[:10]}"
             if missing:
@@ -124,6 +129,19 @@ def _coverage(out: Path) -> list[str]:
             cells.append(cell)
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _over_draws(text: str, runs: list[dict[str, Any]], run: dict[str, Any]) -> str:
+    """`run`'s claim margin over its scale's and recipe's data draws and seeds, with the
+    95% bootstrap interval (`claims.interval`), where it ran on more than one draw."""
+    group = [r for r in runs if (r["scale"], r["recipe"]) == (run["scale"], run["recipe"])]
+    if len(group) < 2:
+        return ""
+    found = claims.interval(text, [{s["id"]: s["result"] for s in r["steps"]} for r in group])
+    if found is None:
+        return f"; over {len(group)} data draws: —"
+    return (f"; over {len(group)} data draws, margin {found[0]:.3g} (95%: "
+            f"{found[1]:.3g}–{found[2]:.3g})")
 
 
 def _shown_runs(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -12,6 +12,7 @@ import math
 from typing import Any
 
 from mpnode_cli.experiments import curves, members
+from mpnode_cli.experiments.saved import run_folder
 from mpnode_cli.experiments.spec import TRAINING
 
 
@@ -24,12 +25,14 @@ def run_section(run: dict[str, Any]) -> list[str]:
     command and machine, the claims, the errors, training runs, Table-2 figures, figures,
     steps and the commands that do the same."""
     m = run["machine"]
-    sub = f"{run['scale']}-{run['recipe']}"
+    draw = run.get("draw", 0)
+    sub = run_folder(run["scale"], run["recipe"], draw)
     ran = [s["id"] for s in run["steps"] if s["status"] != "skipped"]
     size = _size(run)
     lines = [
         f"## `--scale {run['scale']} --recipe {run['recipe']}"
-        f"{f' --seeds {size}' if size > 1 else ''}`", "",
+        f"{f' --seeds {size}' if size > 1 else ''}"
+        f"{f' --draw {draw}' if draw else ''}`", "",
         f"Run `{run['command']}` on {run['started']}: {run['wall_seconds'] / 60:.1f} min wall"
         f"{_reused(len(ran), len(run['steps']))}. Machine: "
         f"{m['cores']} cores, torch {m['torch']} on {m['threads']} thread(s)"
@@ -276,3 +279,37 @@ def _pm(values: list[Any], digits: int = 4) -> str:
     if stats is None:
         return "—"
     return f"{_f(stats[0], digits)} ± {_f(stats[1], 2)}"
+
+
+def draws_sections(runs: list[dict[str, Any]], claims: list[tuple[str, str]]) -> list[str]:
+    """For each scale and recipe run on more than one data draw (`--draw`), each claim's
+    margin per draw and over the draws and seeds with its 95% bootstrap interval
+    (`claims.interval`); `claims` are the experiment's, as (what it says, `LEFT OP
+    RIGHT`)."""
+    from mpnode_cli.experiments.claims import interval
+
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for run in runs:
+        groups.setdefault((run["scale"], run["recipe"]), []).append(run)
+    lines: list[str] = []
+    for (scale, recipe), group in groups.items():
+        if len(group) < 2:
+            continue
+        draws = [{s["id"]: s["result"] for s in run["steps"]} for run in group]
+        numbers = ", ".join(str(run.get("draw", 0)) for run in group)
+        lines += [f"## Over data draws: `--scale {scale} --recipe {recipe}`", "",
+                  f"Draws {numbers} (each its own graphs, initial states and split; "
+                  "`--draw`). The margin is the ratio of a claim's two sides' means, the "
+                  "claimed way (above 1 holds); the interval is a 95% bootstrap over the "
+                  "draws and, within each, the seeds.", "",
+                  "| claim | margin per draw | margin over draws and seeds | 95% interval |",
+                  "|---|---|---|---|"]
+        for claim, text in claims:
+            each = [interval(text, [d]) for d in draws]
+            whole = interval(text, draws)
+            per = ", ".join("—" if e is None else f"{e[0]:.3g}" for e in each)
+            shown = ("—", "—") if whole is None else (
+                f"{whole[0]:.3g}", f"{whole[1]:.3g}–{whole[2]:.3g}")
+            lines.append(f"| {claim} | {per} | {shown[0]} | {shown[1]} |")
+        lines.append("")
+    return lines

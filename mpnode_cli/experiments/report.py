@@ -26,7 +26,7 @@ from typing import Any
 from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.experiments import claims, spec
 from mpnode_cli.experiments.index import rebuild_index
-from mpnode_cli.experiments.markdown import run_section
+from mpnode_cli.experiments.markdown import draws_sections, run_section
 from mpnode_cli.experiments.runner import RunRecord
 from mpnode_cli.experiments.saved import (
     FINDINGS,
@@ -34,6 +34,7 @@ from mpnode_cli.experiments.saved import (
     RESULTS,
     kept_facts,
     portable,
+    run_folder,
     saved_runs,
 )
 from mpnode_cli.jsonable import jsonable
@@ -46,7 +47,7 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
     Reports are committed, so they hold no folder of the machine that ran them: step
     folders are named relative to the work folder, commands are as run from it, and the
     work folder itself is shown relative to the current folder, or as `<work>`."""
-    folder = Path(out) / experiment.name / f"{record.scale}-{record.recipe}"
+    folder = Path(out) / experiment.name / run_folder(record.scale, record.recipe, record.draw)
     tmp = folder.with_name(folder.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
@@ -93,11 +94,13 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     findings = out / experiment.name / FINDINGS
     if findings.is_file():  # written by hand; kept as it is when the report is rebuilt
         lines += ["## Findings", "", findings.read_text().strip(), ""]
-    for run in saved_runs(out, experiment.name):
+    runs = saved_runs(out, experiment.name)
+    for run in runs:
         # Claims judged anew from the spec, so a claim added later is judged on old results.
         results = {s["id"]: s["result"] for s in run["steps"]}
         run["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
         lines += run_section(run)
+    lines += draws_sections(runs, [(c.claim, c.holds) for c in experiment.claims])
     path = out / experiment.name / REPORT
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_text(path, "\n".join(lines).rstrip() + "\n")

@@ -54,6 +54,7 @@ class RunRecord:
     machine: dict[str, Any]
     steps: list[StepRecord]
     seeds: int = 1  # members of every training's ensemble (`--seeds`)
+    draw: int = 0  # the data draw (`--draw`, `spec.DRAW_STRIDE`); 0: the experiment's data
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -61,7 +62,7 @@ class RunRecord:
 
 def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: Path,
                    command: str = "", progress: Progress | None = None,
-                   jobs: int = 1, seeds: int = 1) -> RunRecord:
+                   jobs: int = 1, seeds: int = 1, draw: int = 0) -> RunRecord:
     """Run (or resume) every step of `experiment` at `scale` with `recipe`.
 
     Args:
@@ -77,6 +78,10 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
             the step's seed + k; a finetune's members start from their parent's). Every
             step that reads a trained model then reports each member's numbers too
             (`mpnode_cli.experiments.members`). 1: a single model, as before seeds.
+        draw: the data draw: every generated dataset's seed and graph seed offset by
+            `draw` × `spec.DRAW_STRIDE` (0: the experiment's own data). Its report
+            section goes beside draw 0's, and the claims get intervals over the draws
+            (`claims.interval`).
 
     Raises:
         ValueError: a work folder that cannot be made or written in, or options that do
@@ -90,7 +95,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     emit = progress or (lambda event: None)
     command = command or (f"mpnode experiment run {experiment.name} --scale {scale} "
                           f"--recipe {recipe} --seeds {seeds} "
-                          f"--work {shown_path(work, '<work>')}")
+                          + (f"--draw {draw} " if draw else "")
+                          + f"--work {shown_path(work, '<work>')}")
     work = Path(work)
     check_output_folder(work)
     work.mkdir(parents=True, exist_ok=True)
@@ -99,7 +105,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         machine["jobs"] = jobs
     start = time.perf_counter()
     started = datetime.now().isoformat(timespec="seconds")
-    steps = plan(experiment, scale, recipe, work, seeds)
+    steps = plan(experiment, scale, recipe, work, seeds, draw)
     token = uuid.uuid4().hex  # marks in step.json the steps this run's processes ran
     workers = start_workers(steps, token, jobs - 1)
     try:
@@ -110,7 +116,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     return RunRecord(experiment=experiment.name, title=experiment.title, scale=scale,
                      recipe=recipe, command=command, work=str(work), started=started,
                      wall_seconds=time.perf_counter() - start, machine=machine,
-                     steps=[records[entry.step.id] for entry in steps], seeds=seeds)
+                     steps=[records[entry.step.id] for entry in steps], seeds=seeds,
+                     draw=draw)
 
 
 # ------------------------------------------------------------------------------ machine

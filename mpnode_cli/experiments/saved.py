@@ -57,12 +57,19 @@ def portable(data: dict[str, Any], work: Path) -> dict[str, Any]:
     return {**data, "work": shown_path(work, "<work>"), "steps": steps}
 
 
+def run_folder(scale: str, recipe: str, draw: int = 0) -> str:
+    """The folder of a run under `reports/<name>/`: `<scale>-<recipe>`, and `-draw<d>` for
+    data draw d > 0."""
+    return f"{scale}-{recipe}" + (f"-draw{draw}" if draw else "")
+
+
 def saved_runs(out: Path, name: str) -> list[dict[str, Any]]:
-    """Every saved run of an experiment, paper scale and mpnode recipe first."""
+    """Every saved run of an experiment, paper scale and mpnode recipe first, each
+    scale's and recipe's data draws in order (a record without one is draw 0)."""
     runs = []
     for path in sorted((out / name).glob(f"*/{RESULTS}")):
         if path.parent.name.endswith(".tmp"):
             continue
         runs.append(json.loads(path.read_text()))
     return sorted(runs, key=lambda r: (_SCALE_ORDER.get(r["scale"], 9),
-                                       _RECIPE_ORDER.get(r["recipe"], 9)))
+                                       _RECIPE_ORDER.get(r["recipe"], 9), r.get("draw", 0)))

@@ -66,10 +66,11 @@ class Planned:
 
 
 def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path,
-         seeds: int = 1) -> list[Planned]:
+         seeds: int = 1, draw: int = 0) -> list[Planned]:
     """Every step's options, fingerprint and folder, in the spec's order (a fingerprint
     depends on its inputs' fingerprints, not on their results, so nothing has to run);
-    every training an ensemble of `seeds` members when that is over 1.
+    every training an ensemble of `seeds` members when that is over 1; the data of draw
+    `draw` (`spec.DRAW_STRIDE`).
 
     Raises:
         ValueError: a step whose options do not resolve (e.g. its seeds past the largest).
@@ -77,7 +78,7 @@ def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path,
     planned: dict[str, Planned] = {}
     for index, step in enumerate(experiment.steps, start=1):
         try:
-            options = resolve(step, scale, recipe, seeds)
+            options = resolve(step, scale, recipe, seeds, draw)
         except ValueError as exc:
             raise ValueError(f"{experiment.name}: step '{step.id}': {exc}") from None
         fingerprint = step_fingerprint(step.verb, options, [planned[i].fingerprint

@@ -41,6 +41,10 @@ _ID = r"^[a-z0-9][a-z0-9-]*$"
 # `--seeds`). The recipe is `--recipe`'s unless the step names its own (`recipe = "paper"`:
 # an experiment that compares recipes pins each step's).
 RUNNER_FIELDS = ("dataset", "run_dir", "init_checkpoint", "seeds")
+# Data draw d (`mpnode experiment run --draw d`) offsets the seed and the graph seed of every
+# generated dataset by d × this: other graphs, initial states, split, and parameters drawn
+# per graph (Kuramoto's ω). Draw 0 is the experiment's own data.
+DRAW_STRIDE = 1000
 TINY_TRAJECTORIES = 24  # per generated dataset at the tiny scale
 TINY_SAMPLES = 5  # sample times per trajectory at the tiny scale
 TINY_EPOCHS = 2
@@ -322,11 +326,13 @@ def _wanted(step: Any, ref: str) -> tuple[str, ...]:
 # ----------------------------------------------------------------------------- resolving
 
 
-def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1) -> dict[str, Any]:
+def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
+            draw: int = 0) -> dict[str, Any]:
     """A step's verb options at `scale`, checked, as plain JSON: what the step does and what
     its fingerprint hashes (with its inputs' fingerprints).
 
-    - generate: `{"config": GenerateConfig fields}`, the preset merged in (no `out`).
+    - generate: `{"config": GenerateConfig fields}`, the preset merged in (no `out`), its
+      seeds offset by `draw` × `DRAW_STRIDE`.
     - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}` (the
       step's own `recipe` where it names one), with `seeds` when it is over 1 (an
       ensemble of that many members; left out at 1, so a single model's step keeps the
@@ -348,6 +354,9 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1) -> dict[str, A
         fields = merge_layers(layers)
         if "out" in fields:
             raise ValueError("'out' is the runner's (the step's folder)")
+        if draw:
+            fields = {**fields, **{key: int(fields.get(key, 0)) + draw * DRAW_STRIDE
+                                   for key in ("seed", "graph_seed")}}
         if scale == "tiny":
             fields = shrink_generate(fields)
         config = resolve_config(_validated(GenerateConfig, {**fields, "out": "data.h5"}))
