@@ -104,3 +104,36 @@ def test_a_count_is_a_whole_number_however_written(tmp_path):
     assert read_dataset(out).config["hubs"] == 1
     result = invoke("generate", "gene", "--hubs", "1.5", "--out", tmp_path / "h.h5")
     assert result.exit_code == 2 and "--hubs expects a whole number" in result.output
+
+
+@pytest.mark.parametrize("model", ["mpnode", "gnode"])
+def test_the_model_options_help_gives_the_defaults_each_recipe_resolves_to(model, user_files):
+    """`train --help` names each model option's default under mpnode's recipe and, where
+    it differs, the paper's: what a run on a dataset (a user's import, system "custom")
+    resolves to."""
+    import re
+
+    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.recipe import resolve_config
+
+    group = typer.main.get_command(app)
+    with group.make_context("mpnode", ["train"], resilient_parsing=True) as parent:
+        _, command, _ = group.resolve_command(parent, ["train"])
+    data = TrajectoryData.load(user_files["data"])
+    resolved = {recipe: resolve_config(TrainConfig(dataset=user_files["data"], model=model,
+                                                   recipe=recipe), data).model_options
+                for recipe in ("mpnode", "paper")}
+    checked = 0
+    for option in command.params:
+        found = re.search(rf"\b{model} \(([^;)]+)(?:; paper recipe ([^)]+))?\)", option.help or "")
+        if option.name not in resolved["mpnode"] or not found:
+            continue
+        ours, paper = found.group(1), found.group(2) or found.group(1)
+        for recipe, said in (("mpnode", ours), ("paper", paper)):
+            value = resolved[recipe][option.name]
+            assert said == (("on" if value else "off") if isinstance(value, bool)
+                            else f"{value:g}" if isinstance(value, float) else str(value)), (
+                option.name, recipe)
+        checked += 1
+    assert checked >= (6 if model == "mpnode" else 3)

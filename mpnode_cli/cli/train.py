@@ -231,9 +231,12 @@ def _model_option_parameters() -> list[inspect.Parameter]:
     """One CLI option per model option the registry's models declare.
 
     An option that several models declare appears once; its help is the first model's
-    description, the choices of a `Literal`, and the models that take it with their
-    defaults. Models must agree on an option's type.
+    description, the choices of a `Literal`, and the models that take it with the default
+    a user gets: the mpnode recipe's, and the paper recipe's where it differs. Models must
+    agree on an option's type.
     """
+    recipes = [recipe_values(name, {}, CURRICULUM_MIN_SAMPLES)["model_options"]
+               for name in ("mpnode", "paper")]
     fields: dict[str, tuple[FieldInfo, list[str]]] = {}
     for kind, declared in OPTIONS.items():
         for name, field in declared.model_fields.items():
@@ -244,7 +247,9 @@ def _model_option_parameters() -> list[inspect.Parameter]:
             if name in TrainConfig.model_fields or name in _SOLVER:
                 raise TypeError(f"model option '{name}' ({kind}) has the name of a train "
                                 "option")
-            takers.append(f"{kind} ({shown(field.default)})")
+            ours, paper = (shown(r.get(name, field.default)) for r in recipes)
+            takers.append(f"{kind} ({ours})" if ours == paper
+                          else f"{kind} ({ours}; paper recipe {paper})")
     params = []
     for name, (field, takers) in fields.items():
         # Choices are checked with the rest of the options, so that a bad one is refused
