@@ -233,40 +233,44 @@ class GenerateConfig(BaseModel):
 class ImportConfig(BaseModel):
     """What `mpnode import` makes: one dataset file (system "custom") from a user's arrays.
 
-    Attributes:
-        states: `[K, T, N, D]` as `.npy`, `.npz` (array `states`, optionally `time`) or a
-            long-format `.csv` with `trajectory`, `time`, `node` and one column per state.
-        adjacency: `.npy` of `[N, N]` (one graph) or `[K, N, N]` (one per trajectory),
-            `A[i, j] = 1` iff node j sends to node i.
-        edge_list: the graph as a text file of `i j` lines (or `i j w`, w 0 or 1);
-            `mpnode_cli.edge_files.read_edge_list`. Exactly one of the two.
-        directed: read the edge list's `i j` as one edge from i to j.
-        dt: sample spacing (a time column or array must step by it).
-        controls: `.npy` of `[K, T, N, U]` zero-order-hold controls.
-        state_names, control_names: names of the D states and U controls (default: the
-            CSV's columns, else `x0, x1, ...` and `u0, u1, ...`).
-        split: train, validation, test fractions (by trajectory).
-        seed: seed of the split (`numpy.random.default_rng([seed, 1])`, as generate).
-        dtype: storage dtype of `states` and `controls`.
-        out: output file (default `datasets/<states file stem>.h5`).
-        periodic: the state names that are angles (the dataset's `periodic_states`).
+    Each field's description is its `mpnode import` option's help
+    (`mpnode_cli.cli.importer`; the edge list is read by
+    `mpnode_cli.edge_files.read_edge_list`, the split drawn as generate's,
+    `numpy.random.default_rng([seed, 1])`).
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    states: Path
-    adjacency: Path | None = None
-    edge_list: Path | None = None
-    directed: bool = False
-    dt: float = Field(gt=0)
-    controls: Path | None = None
-    state_names: list[str] | None = None
-    control_names: list[str] | None = None
-    split: tuple[float, float, float] = (0.7, 0.15, 0.15)
-    seed: int = Field(0, ge=0, le=SEED_MAX)
-    dtype: Literal["float32", "float64"] = "float32"
-    out: Path | None = None
-    periodic: list[str] = Field(default_factory=list)
+    states: Path = Field(description=(
+        "Trajectories [K, T, N, D]: .npy, .npz (array 'states', optional 'time') or a long "
+        "CSV with columns trajectory, time, node and one per state."))
+    adjacency: Path | None = Field(None, description=(
+        "Graph(s) as .npy: [N, N] for all trajectories or [K, N, N] one each; A_ij = 1 "
+        "iff node j sends to node i."))
+    edge_list: Path | None = Field(None, description=(
+        "Graph as a text file of 'i j' lines (optional weight column, 0 or 1), undirected "
+        "unless --directed (docs/dataset-format.md)."))
+    directed: bool = Field(False, description="Read the edge list's 'i j' as one edge i → j.")
+    dt: float = Field(gt=0, description=(
+        "Sample spacing (a time column or array must step by it)."))
+    controls: Path | None = Field(None, description=(
+        "Zero-order-hold controls [K, T, N, U] as .npy."))
+    state_names: list[str] | None = Field(None, description=(
+        "Comma-separated names of the D states (default: the CSV's columns, else x0, x1, "
+        "...)."))
+    control_names: list[str] | None = Field(None, description=(
+        "Comma-separated names of the U controls (default u0, u1, ...)."))
+    split: tuple[float, float, float] = Field((0.7, 0.15, 0.15), description=(
+        "Train, validation, test fractions by trajectory, summing to 1."))
+    seed: int = Field(0, ge=0, le=SEED_MAX, description="Seed of the split.")
+    dtype: Literal["float32", "float64"] = Field("float32", description=(
+        "Storage dtype of the states and controls."))
+    out: Path | None = Field(None, description=(
+        "Output file (default datasets/<states>.h5); a path ending in / is refused: name "
+        "the file."))
+    periodic: list[str] = Field(default_factory=list, description=(
+        "A state that is an angle (mod 2π), by name; repeat for more. Recorded as the "
+        "dataset's periodic_states (docs/dataset-format.md)."))
 
     _parse_split = field_validator("split", mode="before")(_split_fractions)
     _check_split = field_validator("split")(_valid_split)
@@ -286,35 +290,36 @@ class ImportConfig(BaseModel):
 class SimulateConfig(BaseModel):
     """What `mpnode simulate` does: a trained node model rolled out on graphs of your own.
 
-    Attributes:
-        checkpoint: the checkpoint (`.pt`; a run folder means its `checkpoints/best.pt`).
-        x0: `[K, N, D]` (or `[N, D]`) initial states in physical units, `.npy`.
-        adjacency, edge_list, directed: the graph(s), as for `ImportConfig`.
-        t_end, dt: samples `0, dt, ..., t_end`.
-        controls: `[K, T, N, U]` physical zero-order-hold controls (`.npy`), T = t_end/dt + 1.
-        batch_size: trajectories per rollout.
-        device: where the rollouts run.
-        dtype: storage dtype of the predictions.
-        out: output file (default `predictions/<x0 file stem>.h5`).
-        member: an ensemble checkpoint's member to roll out alone (None: the members'
-            mean, with their spread in `hidden/ensemble_std`).
+    Each field's description is its `mpnode simulate` option's help
+    (`mpnode_cli.cli.simulate`); the graph is given as for `ImportConfig`.
     """
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    checkpoint: Path
-    x0: Path
-    adjacency: Path | None = None
-    edge_list: Path | None = None
-    directed: bool = False
-    t_end: float = Field(gt=0)
-    dt: float = Field(gt=0)
-    controls: Path | None = None
-    batch_size: int = Field(128, ge=1)
-    device: Literal["cpu", "cuda"] = "cpu"
-    dtype: Literal["float32", "float64"] = "float32"
-    out: Path | None = None
-    member: int | None = None
+    checkpoint: Path = Field(description=(
+        "A checkpoint (.pt), or a run folder (its checkpoints/best.pt)."))
+    x0: Path = Field(description=(
+        "Initial states [K, N, D] (or [N, D]) in physical units, .npy."))
+    adjacency: Path | None = Field(None, description=(
+        "Graph(s) as .npy: [N, N] for all or [K, N, N] one per trajectory."))
+    edge_list: Path | None = Field(None, description=(
+        "Graph as a text file of 'i j' lines, undirected unless --directed."))
+    directed: bool = Field(False, description="Read the edge list's 'i j' as one edge i → j.")
+    t_end: float = Field(gt=0, description="Last sample time (samples 0, dt, ..., t_end).")
+    dt: float = Field(gt=0, description="Sample spacing.")
+    controls: Path | None = Field(None, description=(
+        "Controls [K, T, N, U] in physical units (zero-order hold), T = t_end / dt + 1, "
+        ".npy."))
+    batch_size: int = Field(128, ge=1, description="Trajectories per rollout.")
+    device: Literal["cpu", "cuda"] = Field("cpu", description="Where the rollouts run.")
+    dtype: Literal["float32", "float64"] = Field("float32", description=(
+        "Storage dtype of the predictions."))
+    out: Path | None = Field(None, description=(
+        "Output file (default predictions/<x0 file name>.h5); a path ending in / is "
+        "refused: name the file."))
+    member: int | None = Field(None, description=(
+        "An ensemble checkpoint's member to roll out alone (none: the members' mean, with "
+        "their spread in hidden/ensemble_std)."))
 
     @model_validator(mode="after")
     def _check(self) -> SimulateConfig:

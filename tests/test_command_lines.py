@@ -77,23 +77,33 @@ def test_every_train_switch_is_spelt_as_the_cli_takes_it(value):
         parses(" ".join([head, *flags.words(name, value)]))
 
 
-def test_every_generate_field_is_an_option_with_its_description_as_help():
-    """generate's options come from `GenerateConfig`'s declarations: one per field (the
-    system is the argument, params come as -p and the solver as its own options), its
-    help the field's description."""
-    from mpnode_cli.config import GenerateConfig
-
+def _options_of(verb: str) -> dict:
     group = typer.main.get_command(app)
-    with group.make_context("mpnode", ["generate"], resilient_parsing=True) as parent:
-        _, command, _ = group.resolve_command(parent, ["generate"])
-    options = {p.name: p for p in command.params}
-    for name, field in GenerateConfig.model_fields.items():
-        if name in ("system", "params", "solver"):
+    with group.make_context("mpnode", [verb], resilient_parsing=True) as parent:
+        _, command, _ = group.resolve_command(parent, [verb])
+    return {p.name: p for p in command.params}
+
+
+@pytest.mark.parametrize(("verb", "config", "elsewhere"), [
+    ("generate", "GenerateConfig", ("system", "params", "solver")),  # argument, -p, own
+    ("import", "ImportConfig", ()),
+    ("simulate", "SimulateConfig", ("checkpoint", "member")),  # argument, shared --member
+])
+def test_every_config_field_is_an_option_with_its_description_as_help(verb, config, elsewhere):
+    """The verbs' options come from their configs' declarations: one per field, its help
+    the field's description, required where the field is."""
+    import mpnode_cli.config
+
+    fields = getattr(mpnode_cli.config, config).model_fields
+    options = _options_of(verb)
+    for name, field in fields.items():
+        if name in elsewhere:
             continue
         assert flags.flag(name) in options[name].opts, name
         assert options[name].help.startswith(field.description.removesuffix(".")), name
-    for name in ("method", "rtol", "atol", "fixed_dt"):
-        assert name in options
+        assert options[name].required == field.is_required(), name
+    if verb == "generate":
+        assert {"method", "rtol", "atol", "fixed_dt"} <= set(options)
 
 
 def test_a_count_is_a_whole_number_however_written(tmp_path):

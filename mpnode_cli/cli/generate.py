@@ -29,7 +29,7 @@ from mpnode_cli.cli.common import (
 )
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
-from mpnode_cli.cli.options import field_parameter, in_panel, shown, with_options
+from mpnode_cli.cli.options import field_default, field_parameter, in_panel, with_options
 from mpnode_cli.config import GenerateConfig, generate_solver
 from mpnode_cli.threads import applied_threads
 
@@ -155,15 +155,12 @@ def _field(name: str, panel: str) -> inspect.Parameter | None:
         return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY,
                                  annotation=(str if name == "method" else float) | None,
                                  default=in_panel(solver_option(name, generate_solver()), panel))
-    field = GenerateConfig.model_fields[name]
-    default = None if field.default is None or field.default is False else (
-        ",".join(map(str, field.default)) if name == "split" else shown(field.default))
     extra = {"grid": f"For systems whose nodes sit on a grid ({_grid_systems()}); others "
                      "refuse it (give --nodes).",
              "topology": f"Built in: {_topologies()}."}.get(name, "")
     typed = {"split": str, "shard": str} | dict.fromkeys(_COUNTS, str)
     return field_parameter(
-        GenerateConfig, name, panel, default=default, extra=extra,
+        GenerateConfig, name, panel, default=field_default(GenerateConfig, name), extra=extra,
         metavar=_COUNTS.get(name) or {"shard": "i/n"}.get(name), value_type=typed.get(name),
         decls=("--out", "-o") if name == "out" else None,
         parser=output_parser("--out") if name == "out" else None)

@@ -7,62 +7,44 @@ exit 2, before anything is written. Ctrl-C and SIGTERM leave no file (130 / 143)
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
+from typing import Any
 
 import typer
 
 from mpnode_cli.cli.common import console, output_parser, warn
+from mpnode_cli.cli.options import field_default, field_parameter, with_options
+from mpnode_cli.config import ImportConfig
 from mpnode_cli.terminal import suggested
+
+DATA, WRITTEN = "Your data", "The dataset written"
+_PANELS = {
+    DATA: ("states", "adjacency", "edge_list", "directed", "dt", "controls", "state_names",
+           "control_names", "periodic"),
+    WRITTEN: ("split", "seed", "dtype", "out", "force", "json_out"),
+}
 
 
 def import_command(
-    states: Path = typer.Option(
-        ..., help="Trajectories [K, T, N, D]: .npy, .npz (array 'states', optional 'time') "
-        "or a long CSV with columns trajectory, time, node and one per state.",
-        show_default=False),
-    adjacency: Path | None = typer.Option(
-        None, help="Graph(s) as .npy: [N, N] for all trajectories or [K, N, N] one each; "
-        "A[i, j] = 1 iff node j sends to node i."),
-    edge_list: Path | None = typer.Option(
-        None, help="Graph as a text file of 'i j' lines (optional weight column, 0 or 1), "
-        "undirected unless --directed (docs/dataset-format.md)."),
-    directed: bool = typer.Option(
-        False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
-    dt: float = typer.Option(..., help="Sample spacing.", show_default=False),
-    controls: Path | None = typer.Option(
-        None, help="Zero-order-hold controls [K, T, N, U] as .npy."),
-    state_names: str | None = typer.Option(
-        None, help="Comma-separated names of the D states (default: the CSV's columns, "
-        "else x0, x1, ...)."),
-    control_names: str | None = typer.Option(
-        None, help="Comma-separated names of the U controls (default u0, u1, ...)."),
     periodic: list[str] | None = typer.Option(
-        None, "--periodic", help="A state that is an angle (mod 2π), by name; repeat for "
-        "more. Recorded as the dataset's periodic_states (docs/dataset-format.md).",
-        show_default=False),
-    split: str | None = typer.Option(
-        None, help="Train,validation,test fractions (default 0.7,0.15,0.15)."),
-    seed: int | None = typer.Option(None, help="Seed of the split (default 0)."),
-    dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
-    out: Path | None = typer.Option(
-        None, help="Output file (default datasets/<states>.h5); a path ending in / is "
-        "refused: name the file.", parser=output_parser("--out")),
+        None, "--periodic", metavar="NAME", show_default=False,
+        help=ImportConfig.model_fields["periodic"].description),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
     json_out: bool = typer.Option(
         False, "--json", help="Print the summary as one JSON object on stdout."),
+    **options: Any,
 ) -> None:
     """Turn your own trajectories and graph into an mpnode dataset (system "custom")."""
-    options = dict(locals())  # the parameters, before any other local name
     import json
 
     from mpnode_cli.cli.common import config_from, split_by_name, with_bar
-    from mpnode_cli.config import ImportConfig
     from mpnode_cli.data.importers import import_arrays
     from mpnode_cli.data.splits import split_warning
 
-    config = config_from(ImportConfig, options)
-    summary = with_bar(f"importing {states.name}",
+    config = config_from(ImportConfig, {**options, "periodic": periodic})
+    summary = with_bar(f"importing {config.states.name}",
                        lambda progress: import_arrays(config, overwrite=force, progress=progress),
                        quiet=json_out, stopped="nothing written")
     empty = split_warning(summary.split_counts, config.split)
@@ -85,3 +67,15 @@ def import_command(
         + f", {summary.graphs} graph{'s' * (summary.graphs > 1)}", highlight=False)
     console().print(f"fingerprint {summary.fingerprint}; check it with: "
                     f"{suggested('check', Path(summary.path))}", highlight=False, markup=False)
+
+
+def _field(name: str, panel: str) -> inspect.Parameter:
+    """The option of `ImportConfig`'s field `name` (names and fractions as the command
+    line writes them, comma-separated)."""
+    return field_parameter(
+        ImportConfig, name, panel, default=field_default(ImportConfig, name),
+        value_type=str if name in ("split", "state_names", "control_names") else None,
+        parser=output_parser("--out") if name == "out" else None)
+
+
+import_command = with_options(import_command, _PANELS, _field)

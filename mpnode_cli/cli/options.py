@@ -69,19 +69,34 @@ def field_parameter(config: type[BaseModel], name: str, panel: str, *,
         None if all(c in text for c in named) else f"Choices: {', '.join(named)}.",
     ) if part)
     return parameter(name, value_type, decls or flags.decls(name, value_type is bool),
-                     help_text, panel, metavar=metavar, parser=parser)
+                     help_text, panel, metavar=metavar, parser=parser,
+                     required=field.is_required())
+
+
+def field_default(config: type[BaseModel], name: str) -> str | None:
+    """A field's own default as `--help` shows it (a tuple as the command line writes it,
+    `0.7,0.15,0.15`); None for a required field, a default of None, or a switch's off."""
+    field = config.model_fields[name]
+    if field.is_required() or field.default is None or field.default is False:
+        return None
+    if isinstance(field.default, tuple):
+        return ",".join(str(v) for v in field.default)
+    return shown(field.default)
 
 
 def parameter(name: str, value_type: type, decls: tuple[str, ...], help_text: str,
               panel: str, *, metavar: str | None = None,
-              parser: Callable[[Any], Any] | None = None) -> inspect.Parameter:
-    """A keyword parameter whose typer option is left out as None."""
+              parser: Callable[[Any], Any] | None = None,
+              required: bool = False) -> inspect.Parameter:
+    """A keyword parameter whose typer option is left out as None, or must be given
+    (`required`)."""
     if value_type not in (bool, int, float, str, Path):
         raise TypeError(f"option '{name}' has a type the CLI cannot take: {value_type}")
-    option = typer.Option(None, *decls, help=help_text, rich_help_panel=panel, parser=parser,
-                          metavar=metavar)
+    option = typer.Option(... if required else None, *decls, help=help_text,
+                          rich_help_panel=panel, parser=parser, metavar=metavar,
+                          show_default=not required)
     return inspect.Parameter(name, inspect.Parameter.KEYWORD_ONLY, default=option,
-                             annotation=value_type | None)
+                             annotation=value_type if required else value_type | None)
 
 
 def in_panel(option: Any, panel: str) -> Any:

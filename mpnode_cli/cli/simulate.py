@@ -11,7 +11,9 @@ finish, 130 / 143 for Ctrl-C / SIGTERM (nothing written).
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
+from typing import Any
 
 import typer
 
@@ -25,57 +27,46 @@ from mpnode_cli.cli.common import (
     fail,
     output_parser,
 )
+from mpnode_cli.cli.options import field_default, field_parameter, with_options
+from mpnode_cli.config import SimulateConfig
+
+INPUTS, ROLLOUT = "Model, initial states and graph", "Rollout and output"
+_PANELS = {
+    INPUTS: ("x0", "adjacency", "edge_list", "directed", "controls", "member"),
+    ROLLOUT: ("t_end", "dt", "batch_size", "device", "dtype", "out", "force", "yes",
+              "json_out", "threads"),
+}
 
 
 def simulate_command(
     checkpoint: Path = typer.Argument(
-        ..., help="A checkpoint (.pt), or a run folder (its best.pt)."),
-    x0: Path = typer.Option(
-        ..., "--x0", help="Initial states [K, N, D] (or [N, D]) in physical units, .npy.",
-        show_default=False),
-    adjacency: Path | None = typer.Option(
-        None, help="Graph(s) as .npy: [N, N] for all or [K, N, N] one per trajectory."),
-    edge_list: Path | None = typer.Option(
-        None, help="Graph as a text file of 'i j' lines, undirected unless --directed."),
-    directed: bool = typer.Option(
-        False, "--directed", help="Read the edge list's 'i j' as one edge i → j."),
-    t_end: float = typer.Option(..., help="Last sample time (samples 0, dt, ..).",
-                                show_default=False),
-    dt: float = typer.Option(..., help="Sample spacing.", show_default=False),
-    controls: Path | None = typer.Option(
-        None, help="Controls [K, T, N, U] in physical units (zero-order hold), .npy."),
-    out: Path | None = typer.Option(
-        None, help="Output file (default predictions/<x0 file name>.h5); a path ending in / "
-        "is refused: name the file.", parser=output_parser("--out")),
+        ..., help=SimulateConfig.model_fields["checkpoint"].description),
     force: bool = typer.Option(
         False, "--force", help="Overwrite an existing output file (regular files only)."),
-    batch_size: int | None = typer.Option(None, help="Trajectories per rollout (128)."),
-    device: str | None = typer.Option(None, help="cpu (default) or cuda."),
-    dtype: str | None = typer.Option(None, help="Storage dtype: float32 (default) or float64."),
     yes: bool = typer.Option(
         False, "--yes", "-y", help="Go ahead with a big job without asking."),
     json_out: bool = typer.Option(
         False, "--json", help="Print the summary as one JSON object on stdout."),
     member: int | None = MEMBER,
     threads: str | None = THREADS,
+    **options: Any,
 ) -> None:
     """Roll a trained model out from your initial states on your graph (no data needed)."""
-    options = dict(locals())  # the parameters, before any other local name
     import json
     from dataclasses import asdict
 
     from mpnode_cli.cli.common import config_from, with_bar
     from mpnode_cli.cli.evaluate import extrapolated_nodes
-    from mpnode_cli.config import SimulateConfig
     from mpnode_cli.devices import torch_device
     from mpnode_cli.training.predict import PredictionFailed, simulate
 
-    config = config_from(SimulateConfig, options)
+    config = config_from(SimulateConfig, {**options, "checkpoint": checkpoint,
+                                           "member": member})
     try:
         torch_device(config.device)
     except ValueError as exc:
         fail(error_message(exc))
-    summary = with_bar(f"simulating {x0.name}",
+    summary = with_bar(f"simulating {config.x0.name}",
                        lambda progress: simulate(
                            config, overwrite=force, progress=progress,
                            confirm=lambda size, job: confirm_size(size, job, yes)),
@@ -96,3 +87,14 @@ def simulate_command(
                         "members; their std is hidden/ensemble_std", highlight=False)
     extrapolation_note(record)
     extrapolated_nodes(record)
+
+
+def _field(name: str, panel: str) -> inspect.Parameter:
+    """The option of `SimulateConfig`'s field `name`."""
+    return field_parameter(
+        SimulateConfig, name, panel, default=field_default(SimulateConfig, name),
+        decls=("--x0",) if name == "x0" else None,
+        parser=output_parser("--out") if name == "out" else None)
+
+
+simulate_command = with_options(simulate_command, _PANELS, _field)
