@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -680,3 +681,22 @@ def test_an_option_added_later_leaves_fingerprints_alone_at_its_default():
     assert step_fingerprint("generate", now, ["a"]) == step_fingerprint("generate", before, ["a"])
     assert step_fingerprint("generate", off, ["a"]) != step_fingerprint("generate", before, ["a"])
 
+
+
+def test_experiment_report_rebuilds_the_committed_reports_from_their_records(tmp_path):
+    """`mpnode experiment report` runs nothing: from a copy of the committed records it
+    writes every committed report and the index again, byte for byte; a folder's README.md
+    that mpnode did not write is refused in one line."""
+    shutil.copytree(ROOT / "reports", tmp_path / "reports")
+    for report in (tmp_path / "reports").glob("*/report.md"):
+        report.unlink()
+    (tmp_path / "reports" / "README.md").unlink()
+    result = runner.invoke(app, ["experiment", "report", "--out", str(tmp_path / "reports")])
+    assert result.exit_code == 0, result.output
+    for path in [ROOT / "reports" / "README.md", *(ROOT / "reports").glob("*/report.md")]:
+        rebuilt = tmp_path / "reports" / path.relative_to(ROOT / "reports")
+        assert rebuilt.read_text() == path.read_text(), path
+    (tmp_path / "own").mkdir()
+    (tmp_path / "own" / "README.md").write_text("# my notes\n")
+    result = runner.invoke(app, ["experiment", "report", "--out", str(tmp_path / "own")])
+    assert result.exit_code == 2 and "README.md" in result.output

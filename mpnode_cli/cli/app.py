@@ -20,7 +20,12 @@ from mpnode_cli import __version__
 from mpnode_cli.cli.check import check_command
 from mpnode_cli.cli.common import ascii_fallback, fail, hide_flag_types
 from mpnode_cli.cli.evaluate import compare_command, evaluate_command, zeroshot_command
-from mpnode_cli.cli.experiment import experiment_app, list_command, run_command
+from mpnode_cli.cli.experiment import (
+    experiment_app,
+    list_command,
+    report_command,
+    run_command,
+)
 from mpnode_cli.cli.generate import generate_command
 from mpnode_cli.cli.importer import import_command
 from mpnode_cli.cli.info import info_command
@@ -108,6 +113,7 @@ app.command("simulate", no_args_is_help=True, cls=_Computing)(simulate_command)
 app.command("compare", no_args_is_help=True, cls=_Threadless)(compare_command)
 experiment_app.command("list")(list_command)
 experiment_app.command("run", no_args_is_help=True, cls=_Computing)(run_command)
+experiment_app.command("report", cls=_Threadless)(report_command)
 app.add_typer(experiment_app, name="experiment")
 
 

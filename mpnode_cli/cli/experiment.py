@@ -89,6 +89,36 @@ def _explain_paper_cost(estimates: dict[str, Any], out: Path) -> None:
         typer.echo(line)
 
 
+def report_command(
+    names: list[str] | None = typer.Argument(
+        None, metavar="NAME", show_default=False,
+        help="Experiments whose reports to rebuild (default: every one with saved runs)."),
+    out: Path = typer.Option(Path("reports"), help="Where the runs' records and reports "
+                             "are (<out>/<name>/<scale>-<recipe>/results.json).",
+                             parser=output_parser("--out", folder=True)),
+) -> None:
+    """Rebuild reports and the index from the saved runs' records alone, running nothing:
+    every claim is judged anew from its experiment's spec."""
+    from mpnode_cli.experiments.index import rebuild_index
+    from mpnode_cli.experiments.report import rebuild_report
+    from mpnode_cli.experiments.saved import saved_runs
+    from mpnode_cli.experiments.spec import load
+    from mpnode_cli.experiments.spec import names as shipped
+
+    try:
+        experiments = [load(name) for name in (names or shipped())]
+        chosen = [e for e in experiments if names or saved_runs(out, e.name)]
+        _check_reports(out, None, [])
+        for experiment in chosen:
+            if not saved_runs(out, experiment.name):
+                raise ValueError(f"no saved run of {experiment.name} under {out}")
+            _check_reports(out, experiment.name, [])
+            typer.echo(f"rebuilt {rebuild_report(experiment, out)}")
+        typer.echo(f"rebuilt {rebuild_index(out)}")
+    except (FileExistsError, ValueError) as exc:
+        fail(error_message(exc))
+
+
 def run_command(
     name: str = typer.Argument(..., help="An experiment (mpnode experiment list), or a .toml "
                                "file of one.", autocompletion=_complete_name,
@@ -161,10 +191,11 @@ def run_command(
     _run(experiment, scale, _RECIPES[recipe], out, work, command, jobs, seeds, draw)
 
 
-def _check_reports(out: Path, name: str, runs: list[str]) -> None:
+def _check_reports(out: Path, name: str | None, runs: list[str]) -> None:
     """The files `write_report` rewrites (`<out>/README.md`, `<out>/<name>/report.md`) and
     the folders it replaces (`<out>/<name>/<scale>-<recipe>/`, `runs`) may be there only as
-    mpnode wrote them: a user's own README.md or folder is never replaced.
+    mpnode wrote them: a user's own README.md or folder is never replaced. With `name`
+    None, the index only.
 
     Raises:
         FileExistsError, ValueError: one line (`mpnode_cli.paths.check_output_file`).
@@ -173,6 +204,8 @@ def _check_reports(out: Path, name: str, runs: list[str]) -> None:
     from mpnode_cli.paths import check_output_file
 
     check_output_file(out / INDEX, overwrite=False, mine=INDEX_TITLE.encode())
+    if name is None:  # the index only
+        return
     check_output_file(out / name / REPORT, overwrite=False, mine=f"# {name}: ".encode())
     for run in runs:
         folder = out / name / run
