@@ -105,6 +105,15 @@ def _names(cls: type, value: Any) -> Any:
     return value
 
 
+# A user's graph, as `import` and `simulate` take it (an adjacency array or an edge list),
+# and `generate` an edge list.
+_ADJACENCY = ("Graph(s) as .npy: [N, N] for all trajectories or [K, N, N] one each; A_ij = 1 "
+              "iff node j sends to node i.")
+_EDGE_LIST = ("Graph as a text file of 'i j' lines (optional weight column, 0 or 1), "
+              "undirected unless --directed (docs/dataset-format.md).")
+_DIRECTED = "Read the edge list's 'i j' as one edge i → j."
+
+
 class GenerateConfig(BaseModel):
     """What `mpnode generate` makes: one system on G graphs, K trajectories, one HDF5 file.
 
@@ -139,7 +148,7 @@ class GenerateConfig(BaseModel):
     hub_multiplicity: int = Field(1, ge=1, le=MULTIPLICITY_MAX, description=(
         "Join the hubs by parallel edges, 1 to W of them spread evenly over the graphs, so "
         "hubs reach in-degree W·(N − 1) on N ≤ 256 nodes (a multigraph; docs/transfer.md)."))
-    directed: bool = Field(False, description="Read the edge list's 'i j' as one edge i → j.")
+    directed: bool = Field(False, description=_DIRECTED)
     trajectories: int | None = Field(None, ge=1, description="Number of trajectories K.")
     t_end: float | None = Field(None, gt=0, description=(
         "Last sample time (samples 0, dt, ..., t_end)."))
@@ -244,13 +253,9 @@ class ImportConfig(BaseModel):
     states: Path = Field(description=(
         "Trajectories [K, T, N, D]: .npy, .npz (array 'states', optional 'time') or a long "
         "CSV with columns trajectory, time, node and one per state."))
-    adjacency: Path | None = Field(None, description=(
-        "Graph(s) as .npy: [N, N] for all trajectories or [K, N, N] one each; A_ij = 1 "
-        "iff node j sends to node i."))
-    edge_list: Path | None = Field(None, description=(
-        "Graph as a text file of 'i j' lines (optional weight column, 0 or 1), undirected "
-        "unless --directed (docs/dataset-format.md)."))
-    directed: bool = Field(False, description="Read the edge list's 'i j' as one edge i → j.")
+    adjacency: Path | None = Field(None, description=_ADJACENCY)
+    edge_list: Path | None = Field(None, description=_EDGE_LIST)
+    directed: bool = Field(False, description=_DIRECTED)
     dt: float = Field(gt=0, description=(
         "Sample spacing (a time column or array must step by it)."))
     controls: Path | None = Field(None, description=(
@@ -300,11 +305,9 @@ class SimulateConfig(BaseModel):
         "A checkpoint (.pt), or a run folder (its checkpoints/best.pt)."))
     x0: Path = Field(description=(
         "Initial states [K, N, D] (or [N, D]) in physical units, .npy."))
-    adjacency: Path | None = Field(None, description=(
-        "Graph(s) as .npy: [N, N] for all or [K, N, N] one per trajectory."))
-    edge_list: Path | None = Field(None, description=(
-        "Graph as a text file of 'i j' lines, undirected unless --directed."))
-    directed: bool = Field(False, description="Read the edge list's 'i j' as one edge i → j.")
+    adjacency: Path | None = Field(None, description=_ADJACENCY)
+    edge_list: Path | None = Field(None, description=_EDGE_LIST)
+    directed: bool = Field(False, description=_DIRECTED)
     t_end: float = Field(gt=0, description="Last sample time (samples 0, dt, ..., t_end).")
     dt: float = Field(gt=0, description="Sample spacing.")
     controls: Path | None = Field(None, description=(

@@ -27,6 +27,14 @@ THREADS = typer.Option(
     None, "--threads", metavar="N", show_default=False,
     help="CPU threads torch may use (default 1, or MPNODE_THREADS).")
 
+# The switches of the verbs that write one output file (generate, import, merge, simulate),
+# that may ask before a big job (generate, simulate), and that summarize as JSON.
+FORCE = typer.Option(
+    False, "--force", help="Overwrite an existing output file (regular files only).")
+YES = typer.Option(False, "--yes", "-y", help="Go ahead with a big job without asking.")
+JSON_OUT = typer.Option(
+    False, "--json", help="Print the summary as one JSON object on stdout.")
+
 # `--member K` of the verbs that roll a checkpoint out (evaluate, zeroshot, simulate).
 MEMBER = typer.Option(
     None, "--member", metavar="K", show_default=False,

@@ -18,7 +18,10 @@ from typing import Any
 import typer
 
 from mpnode_cli.cli.common import (
+    FORCE,
+    JSON_OUT,
     THREADS,
+    YES,
     confirm_size,
     console,
     output_parser,
@@ -125,12 +128,9 @@ def generate_command(
     system: str | None = _SYSTEM,
     preset: str | None = _PRESET,
     config_file: Path | None = _CONFIG,
-    force: bool = typer.Option(
-        False, "--force", help="Overwrite an existing output file (regular files only)."),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Go ahead with a big job without asking."),
-    json_out: bool = typer.Option(
-        False, "--json", help="Print the summary as one JSON object on stdout."),
+    force: bool = FORCE,
+    yes: bool = YES,
+    json_out: bool = JSON_OUT,
     param: list[str] | None = _PARAM,
     threads: str | None = THREADS,
     **options: Any,

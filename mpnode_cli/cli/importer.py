@@ -13,7 +13,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import console, output_parser, warn
+from mpnode_cli.cli.common import FORCE, JSON_OUT, console, output_parser, warn
 from mpnode_cli.cli.options import field_default, field_parameter, with_options
 from mpnode_cli.config import ImportConfig
 from mpnode_cli.terminal import suggested
@@ -30,10 +30,8 @@ def import_command(
     periodic: list[str] | None = typer.Option(
         None, "--periodic", metavar="NAME", show_default=False,
         help=ImportConfig.model_fields["periodic"].description),
-    force: bool = typer.Option(
-        False, "--force", help="Overwrite an existing output file (regular files only)."),
-    json_out: bool = typer.Option(
-        False, "--json", help="Print the summary as one JSON object on stdout."),
+    force: bool = FORCE,
+    json_out: bool = JSON_OUT,
     **options: Any,
 ) -> None:
     """Turn your own trajectories and graph into an mpnode dataset (system "custom")."""

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from mpnode_cli.cli.common import console, output_parser
+from mpnode_cli.cli.common import FORCE, JSON_OUT, console, output_parser
 
 
 def merge_command(
@@ -30,10 +30,8 @@ def merge_command(
         help="Write an HDF5 virtual dataset that reads the trajectories from the shards "
         "instead of copying them (fast, no second copy on disk). The shards must then stay "
         "where they are: the file finds them by their paths relative to its own folder."),
-    force: bool = typer.Option(
-        False, "--force", help="Overwrite an existing output file (regular files only)."),
-    json_out: bool = typer.Option(
-        False, "--json", help="Print the summary as one JSON object on stdout."),
+    force: bool = FORCE,
+    json_out: bool = JSON_OUT,
 ) -> None:
     """Merge the shards of one dataset into one dataset file."""
     import json

@@ -18,8 +18,11 @@ from typing import Any
 import typer
 
 from mpnode_cli.cli.common import (
+    FORCE,
+    JSON_OUT,
     MEMBER,
     THREADS,
+    YES,
     confirm_size,
     console,
     error_message,
@@ -41,12 +44,9 @@ _PANELS = {
 def simulate_command(
     checkpoint: Path = typer.Argument(
         ..., help=SimulateConfig.model_fields["checkpoint"].description),
-    force: bool = typer.Option(
-        False, "--force", help="Overwrite an existing output file (regular files only)."),
-    yes: bool = typer.Option(
-        False, "--yes", "-y", help="Go ahead with a big job without asking."),
-    json_out: bool = typer.Option(
-        False, "--json", help="Print the summary as one JSON object on stdout."),
+    force: bool = FORCE,
+    yes: bool = YES,
+    json_out: bool = JSON_OUT,
     member: int | None = MEMBER,
     threads: str | None = THREADS,
     **options: Any,

@@ -26,6 +26,7 @@ from pydantic.fields import FieldInfo
 
 from mpnode_cli import flags
 from mpnode_cli.cli.common import (
+    JSON_OUT,
     THREADS,
     console,
     error_message,
@@ -83,7 +84,6 @@ _SYSTEM_CHOOSES = {"loss"}
 
 
 _CONFIG = typer.Option(None, "--config", help="TOML (or JSON) file of train config fields.")
-_JSON = typer.Option(False, "--json", help="Print the summary as one JSON object on stdout.")
 
 
 def train_command(
@@ -95,7 +95,7 @@ def train_command(
         None, help="Continue the run in this folder, as configured: only "
         f"{resumable_options()} may change."),
     config_file: Path | None = _CONFIG, threads: str | None = THREADS,
-    json_out: bool = _JSON, **options: Any,
+    json_out: bool = JSON_OUT, **options: Any,
 ) -> None:
     """Train a model on a dataset's train split, or on several datasets' at once (fitted on
     their train splits pooled; validation and test reported per dataset and pooled, the
@@ -122,7 +122,7 @@ def finetune_command(
         ..., help="The dataset to finetune on (.h5), or several at once (as train takes "
         "them).", metavar="DATASET"),
     config_file: Path | None = _CONFIG, threads: str | None = THREADS,
-    json_out: bool = _JSON, **options: Any,
+    json_out: bool = JSON_OUT, **options: Any,
 ) -> None:
     """Train from a checkpoint's weights and architecture on another dataset, or on several
     at once (a new run).

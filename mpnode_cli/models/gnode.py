@@ -48,8 +48,7 @@ class GNODE(NeighbourAggregation, NeuralODEModel):
                  options: GNODEOptions | None = None):
         super().__init__(node_dim, control_dim, num_nodes, options)
         o = self.options
-        self.depth, self.graph = o.depth, o.graph
-        hidden = o.hidden
+        self.depth, self.graph, hidden = o.depth, o.graph, o.hidden
         self.lift = Linear(node_dim + control_dim, hidden)
         self.message = Linear(hidden, hidden)
         self.update = Linear(channels(o.aggregate, hidden), hidden)
