@@ -279,6 +279,33 @@ def test_a_foreign_or_damaged_run_folder_is_refused_before_anything_is_written(
     assert words in one_line_error(result)
 
 
+def _as_written_before(path: Path, option: str, value=None) -> None:
+    """The checkpoint as an mpnode written before model option `option` existed (left out
+    of its train config), or with another value of it."""
+    payload = torch.load(path, weights_only=True)
+    options = payload["train_config"]["model_options"]
+    options.pop(option) if value is None else options.update({option: value})
+    torch.save(payload, path)
+
+
+def test_a_checkpoint_from_before_a_model_option_resumes_as_its_default(runs, tmp_path):
+    """A run resumed across a version that added a model option: its older best.pt (no
+    better epoch since) lacks the option, which means its default, so the resume goes on
+    exactly as the never-stopped run; another value of an option is still refused."""
+    run = _copy(runs["base"], tmp_path / "run")
+    for which in ("best", "last"):
+        _as_written_before(checkpoint_path(run, which), "input_scale")
+    result = invoke("train", "--resume", run, "--epochs", EPOCHS)
+    assert result.exit_code == 0, result.output
+    _assert_same_run(run, runs["whole"])
+    other = _copy(runs["base"], tmp_path / "other")
+    _as_written_before(checkpoint_path(other, "best"), "input_scale", "asinh")
+    before = _hashes(other)
+    result = invoke("train", "--resume", other, "--epochs", EPOCHS)
+    assert "best.pt is not this run's checkpoint" in one_line_error(result)
+    assert _hashes(other) == before
+
+
 @pytest.mark.parametrize(("path", "mode", "words"), [
     ("checkpoints", 0o555, "cannot write in"),
     ("metrics.jsonl", 0o444, "metrics.jsonl: it is read-only"),

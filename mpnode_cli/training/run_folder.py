@@ -185,8 +185,11 @@ def _model_of(stored: TrainConfig, last: Checkpoint, run_dir: Path) -> torch.nn.
 def _check_own(ckpt: Checkpoint, stored: TrainConfig, model: torch.nn.Module,
                run_dir: Path) -> None:
     """Refuse a checkpoint of another run, or one whose weights do not fit the model."""
-    theirs = _settled(ckpt.train_config)
-    ours = stored.model_dump(mode="json")
+    theirs, ours = _settled(ckpt.train_config), stored.model_dump(mode="json")
+    # A model option added since the checkpoint was written is its default there: the
+    # model that older mpnode built (a checkpoint of an earlier session's resume).
+    for config in (theirs, ours):
+        config["model_options"] = _with_defaults(config["model"], config["model_options"])
     differ = [k for k in ours if k not in _MAY_DIFFER and theirs.get(k) != ours[k]]
     if differ:
         raise ValueError(f"{ckpt.path} is not this run's checkpoint: it and "
@@ -202,6 +205,17 @@ def _check_own(ckpt: Checkpoint, stored: TrainConfig, model: torch.nn.Module,
             raise ValueError(f"{ckpt.path} does not fit the model {run_dir}/{runs.CONFIG} "
                              f"builds: it {what}: {', '.join(names[:3])}"
                              + (" ..." if len(names) > 3 else ""))
+
+
+def _with_defaults(model: str, options: dict[str, Any]) -> dict[str, Any]:
+    """`options` with every option the model declares (its defaults where left out), or
+    as they are for a model this mpnode does not know (`_check_own` then refuses it)."""
+    from mpnode_cli.models.registry import resolve_options
+
+    try:
+        return resolve_options(model, options).model_dump(mode="json")
+    except ValueError:
+        return options
 
 
 def _settled(train_config: dict[str, Any]) -> dict[str, Any]:
