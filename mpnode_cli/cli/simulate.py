@@ -93,7 +93,6 @@ def _field(name: str, panel: str) -> inspect.Parameter:
     """The option of `SimulateConfig`'s field `name`."""
     return field_parameter(
         SimulateConfig, name, panel, default=field_default(SimulateConfig, name),
-        decls=("--x0",) if name == "x0" else None,
         parser=output_parser("--out") if name == "out" else None)
 
 

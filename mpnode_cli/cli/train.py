@@ -194,7 +194,7 @@ def _field_parameter(name: str, panel: str) -> inspect.Parameter:
     default = _default_shown(name, field, switch="/" not in decls[0])
     parser = output_parser("--run-dir", folder=True) if name == "run_dir" else None
     return field_parameter(TrainConfig, name, panel, default=default, allowed=allowed,
-                           parser=parser)
+                           decls=decls, parser=parser)
 
 
 def _default_shown(name: str, field: FieldInfo, switch: bool) -> str | None:

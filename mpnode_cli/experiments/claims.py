@@ -269,15 +269,9 @@ def interval(text: str, draws: list[dict[str, dict[str, Any]]]
     """
     import numpy as np
 
-    per_draw = [decide(text, results).pairs for results in draws]
-    if not per_draw or any(not pairs or None in (v for p in pairs for v in p)
-                           for pairs in per_draw):
-        return None
-    flip = parse_claim(text)[1] in (">", ">=")
-    sides = [np.array(pairs, dtype=float)[:, ::-1] if flip else np.array(pairs, dtype=float)
-             for pairs in per_draw]  # each [S, 2]: (the side claimed lower, the other)
-    whole = np.concatenate(sides)
-    if (whole.mean(axis=0) <= 0).any():
+    sides = _claimed_sides(text, draws)
+    found = margin(text, draws)
+    if sides is None or found is None:
         return None
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     ratios = np.empty(BOOTSTRAP_RESAMPLES)
@@ -287,4 +281,30 @@ def interval(text: str, draws: list[dict[str, dict[str, Any]]]
         low, high = np.concatenate(taken).mean(axis=0)
         ratios[b] = high / low if low > 0 else np.inf
     lower, upper = np.percentile(ratios, [2.5, 97.5])
-    return float(whole[:, 1].mean() / whole[:, 0].mean()), float(lower), float(upper)
+    return found, float(lower), float(upper)
+
+
+def margin(text: str, draws: list[dict[str, dict[str, Any]]]) -> float | None:
+    """A claim's margin on every pair of every draw (`interval`'s ratio, without the
+    bootstrap), or None with a number missing or a side's mean not positive."""
+    import numpy as np
+
+    sides = _claimed_sides(text, draws)
+    if sides is None:
+        return None
+    low, high = np.concatenate(sides).mean(axis=0)
+    return float(high / low) if low > 0 and high > 0 else None
+
+
+def _claimed_sides(text: str, draws: list[dict[str, dict[str, Any]]]) -> list | None:
+    """Each draw's pairs as an array `[S, 2]`: (the side claimed lower, the other); None
+    with a number missing."""
+    import numpy as np
+
+    per_draw = [decide(text, results).pairs for results in draws]
+    if not per_draw or any(not pairs or None in (v for p in pairs for v in p)
+                           for pairs in per_draw):
+        return None
+    flip = parse_claim(text)[1] in (">", ">=")
+    return [np.array(pairs, dtype=float)[:, ::-1] if flip else np.array(pairs, dtype=float)
+            for pairs in per_draw]

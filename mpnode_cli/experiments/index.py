@@ -9,7 +9,7 @@ from typing import Any
 
 from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.experiments import claims, members, spec
-from mpnode_cli.experiments.saved import INDEX, INDEX_TITLE, REPORT, saved_runs
+from mpnode_cli.experiments.saved import INDEX, INDEX_TITLE, REPORT, saved_runs, step_results
 
 # The seeds a row should rest on; a cell of a run with fewer also shows a smaller scale's run
 # with more, where there is one (`rebuild_index`).
@@ -66,7 +66,7 @@ def rebuild_index(out: Path) -> Path:
                     continue
                 cell, said_all = [], []
                 for run in shown_runs[recipe]:
-                    results = {s["id"]: s["result"] for s in run["steps"]}
+                    results = step_results(run)
                     _, shown, said = claims.verdict(claim.holds, results, experiment)
                     size = members.count(results)
                     where = f"{run['scale']}, {size} seed{'s' if size > 1 else ''}"
@@ -137,7 +137,7 @@ def _over_draws(text: str, runs: list[dict[str, Any]], run: dict[str, Any]) -> s
     group = [r for r in runs if (r["scale"], r["recipe"]) == (run["scale"], run["recipe"])]
     if len(group) < 2:
         return ""
-    found = claims.interval(text, [{s["id"]: s["result"] for s in r["steps"]} for r in group])
+    found = claims.interval(text, [step_results(r) for r in group])
     if found is None:
         return f"; over {len(group)} data draws: —"
     return (f"; over {len(group)} data draws, margin {found[0]:.3g} (95%: "
@@ -152,10 +152,10 @@ def _shown_runs(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
     if not runs:
         return []
     first = runs[0]
-    size = members.count({s["id"]: s["result"] for s in first["steps"]})
+    size = members.count(step_results(first))
     if size >= SEEDS_WANTED:
         return [first]
-    counted = [(members.count({s["id"]: s["result"] for s in r["steps"]}), r)
+    counted = [(members.count(step_results(r)), r)
                for r in runs[1:]]
     more = [(n, r) for n, r in counted if n > size]
     if not more:

@@ -12,7 +12,8 @@ import math
 from typing import Any
 
 from mpnode_cli.experiments import curves, members
-from mpnode_cli.experiments.saved import run_folder
+from mpnode_cli.experiments.claims import interval, margin
+from mpnode_cli.experiments.saved import run_folder, step_results
 from mpnode_cli.experiments.spec import TRAINING
 
 
@@ -92,7 +93,7 @@ _ENSEMBLE = (
 
 def _size(run: dict[str, Any]) -> int:
     """S, the members a run's numbers are over (1 for a record of one seed)."""
-    return members.count({s["id"]: s["result"] for s in run["steps"]})
+    return members.count(step_results(run))
 
 
 def _reused(ran: int, total: int) -> str:
@@ -286,8 +287,6 @@ def draws_sections(runs: list[dict[str, Any]], claims: list[tuple[str, str]]) ->
     margin per draw and over the draws and seeds with its 95% bootstrap interval
     (`claims.interval`); `claims` are the experiment's, as (what it says, `LEFT OP
     RIGHT`)."""
-    from mpnode_cli.experiments.claims import interval
-
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for run in runs:
         groups.setdefault((run["scale"], run["recipe"]), []).append(run)
@@ -295,7 +294,7 @@ def draws_sections(runs: list[dict[str, Any]], claims: list[tuple[str, str]]) ->
     for (scale, recipe), group in groups.items():
         if len(group) < 2:
             continue
-        draws = [{s["id"]: s["result"] for s in run["steps"]} for run in group]
+        draws = [step_results(run) for run in group]
         numbers = ", ".join(str(run.get("draw", 0)) for run in group)
         lines += [f"## Over data draws: `--scale {scale} --recipe {recipe}`", "",
                   f"Draws {numbers} (each its own graphs, initial states and split; "
@@ -305,9 +304,9 @@ def draws_sections(runs: list[dict[str, Any]], claims: list[tuple[str, str]]) ->
                   "| claim | margin per draw | margin over draws and seeds | 95% interval |",
                   "|---|---|---|---|"]
         for claim, text in claims:
-            each = [interval(text, [d]) for d in draws]
+            each = [margin(text, [d]) for d in draws]
             whole = interval(text, draws)
-            per = ", ".join("—" if e is None else f"{e[0]:.3g}" for e in each)
+            per = ", ".join("—" if e is None else f"{e:.3g}" for e in each)
             shown = ("—", "—") if whole is None else (
                 f"{whole[0]:.3g}", f"{whole[1]:.3g}–{whole[2]:.3g}")
             lines.append(f"| {claim} | {per} | {shown[0]} | {shown[1]} |")

@@ -36,6 +36,7 @@ from mpnode_cli.experiments.saved import (
     portable,
     run_folder,
     saved_runs,
+    step_results,
 )
 from mpnode_cli.jsonable import jsonable
 
@@ -97,7 +98,7 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     runs = saved_runs(out, experiment.name)
     for run in runs:
         # Claims judged anew from the spec, so a claim added later is judged on old results.
-        results = {s["id"]: s["result"] for s in run["steps"]}
+        results = step_results(run)
         run["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
         lines += run_section(run)
     lines += draws_sections(runs, [(c.claim, c.holds) for c in experiment.claims])

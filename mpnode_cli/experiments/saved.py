@@ -57,6 +57,11 @@ def portable(data: dict[str, Any], work: Path) -> dict[str, Any]:
     return {**data, "work": shown_path(work, "<work>"), "steps": steps}
 
 
+def step_results(run: dict[str, Any]) -> dict[str, Any]:
+    """A saved run's results by step id."""
+    return {step["id"]: step["result"] for step in run["steps"]}
+
+
 def run_folder(scale: str, recipe: str, draw: int = 0) -> str:
     """The folder of a run under `reports/<name>/`: `<scale>-<recipe>`, and `-draw<d>` for
     data draw d > 0."""

@@ -244,7 +244,7 @@ class NeighbourAggregation:
         """Fit the aggregation's degree statistic (PNA's δ) on the training graphs
         `adjacency: [K, N, N]` or an `EdgeBatch`, or a list of them (several datasets:
         pooled over their nodes), once; states, dt unused."""
-        if self.aggregation.degree_statistic and not self.aggregation.fitted:
+        if not self.aggregation.fitted:
             self.aggregation.fit(
                 self._graph(adjacency) if isinstance(adjacency, torch.Tensor | EdgeBatch)
                 else [self._graph(a) for a in adjacency])
