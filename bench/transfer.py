@@ -53,6 +53,7 @@ from transfer_specs import (  # noqa: E402
     LONG_SOURCE_PATIENCE,
     LONG_SOURCE_SECONDS,
     LONG_VARIANTS,
+    ORACLE_EPOCH_VARIANTS,
     PROCESS_SECONDS,
     SETS,
     SYSTEMS,
@@ -196,10 +197,14 @@ def oracle_chunk(patience: int) -> int:
 
 
 def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
-    """Train the source model (fresh) and write its record."""
+    """Train the source model and write its record. A run cut off before its record was
+    written (it has a last checkpoint) resumes to its epochs, which continues it exactly
+    (one that reached them is only recorded); any other leftover folder starts afresh."""
     name = job_name(args, bench, seed, "source")
     run = args.runs / name
-    shutil.rmtree(run, ignore_errors=True)
+    resume = (run / "checkpoints" / "last.pt").is_file() and (run / "metrics.jsonl").is_file()
+    if not resume:
+        shutil.rmtree(run, ignore_errors=True)
     run.parent.mkdir(parents=True, exist_ok=True)
     clock: dict[str, float] = {}
     extra: dict[str, Any] = {}
@@ -215,9 +220,16 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
     if args.variant in LONG_VARIANTS and args.scale == "full":
         budget = ("--epochs", LONG_SOURCE_EPOCHS, "--stop-patience", LONG_SOURCE_PATIENCE,
                   "--time-limit", LONG_SOURCE_SECONDS)
-    mpnode("train", *datasets, *budget, "--seed", seed,
-           "--run-dir", run, "--no-plots", "--threads", 1, *VARIANTS[args.variant],
-           log=run.parent / "log.txt", clock=clock)
+    if args.variant in ORACLE_EPOCH_VARIANTS:
+        budget = ("--epochs", ORACLE_EPOCHS[args.scale], "--stop-patience", NEVER)
+    if resume:
+        if run_state(run)[0] < budget[1]:
+            mpnode("train", "--resume", run, *budget[:2], "--no-plots",
+                   log=run.parent / "log.txt", clock=clock)
+    else:
+        mpnode("train", *datasets, *budget, "--seed", seed,
+               "--run-dir", run, "--no-plots", "--threads", 1, *VARIANTS[args.variant],
+               log=run.parent / "log.txt", clock=clock)
     summary = json.loads((run / "summary.json").read_text())
     epochs, best, seconds = run_state(run)
     record = {**base_record(args, bench, seed, "source", "own", bench.source),

@@ -73,6 +73,9 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # the coverage data the hubs still count in full.
     "hub-coverage-balanced": ("--balance-datasets",),
     "hub-coverage-balanced-long": ("--balance-datasets",),
+    # Degree coverage with the source trained as long as the oracles may train: their
+    # epoch cap, with no early stop, so that zero-shot and oracle get the same epochs.
+    "hub-coverage-oracle-epochs": (),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -240,12 +243,14 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
 COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse",
                      "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs",
                      "hub-coverage-asinh-inputs-long", "hub-coverage-periodic-off",
-                     "hub-coverage-balanced", "hub-coverage-balanced-long")
+                     "hub-coverage-balanced", "hub-coverage-balanced-long",
+                     "hub-coverage-oracle-epochs")
 LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long",
                  "hub-coverage-balanced-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000
 LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
+ORACLE_EPOCH_VARIANTS = ("hub-coverage-oracle-epochs",)
 COVERAGE_HUBS = 2  # hubs per coverage graph
 COVERAGE_SEED = 500  # the coverage data's graph and data seeds are the source's + this
 
