@@ -289,15 +289,18 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
     assert claims.not_learned("on.test.mse < off.test.mse", results) == ["off"]
     assert claims.not_learned("zeroed.mse > on.test.mse", results) == []
     assert claims.not_learned("2 * off.test.mse > off.min_val_loss", results) == ["off"]
+    # Holding against a run that never learned tests nothing; failing against it does.
     assert claims.verdict("on.test.mse < off.test.mse", results)[2] == (
-        "yes (off: not below the time mean)")
+        "not tested (off, the side it beats, did not learn) (off: not below the time mean)")
+    assert claims.verdict("off.test.mse > on.test.mse", results)[2].startswith(
+        "not tested (off, the side it beats")
     assert claims.verdict("off.test.mse < on.test.mse", results)[2] == (
         "**no** (off: not below the time mean)")
     assert claims.verdict("zeroed.mse > on.test.mse", results)[2] == "yes"
     assert claims.verdict("on.val.mse < 1", results)[2] == "—"
-    # 1.006× below the time mean "beats" it but has barely learned, as has 1.4×; 10× has.
+    # 1.006× below the time mean "beats" it but has barely learned, as has 2.9×; 10× has.
     results["near"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.006}}
-    results["weak"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 1.4}}
+    results["weak"] = {"best_epoch": 9, "test": {"mse": 1.0, "time_mean": 2.9}}
     assert claims.barely_learned("near.test.mse < weak.test.mse", results) == ["near", "weak"]
     assert claims.barely_learned("on.test.mse < off.test.mse", results) == []
     assert claims.verdict("near.test.mse < on.test.mse", results)[2] == (
@@ -308,12 +311,13 @@ def test_a_verdict_names_the_runs_that_did_not_beat_the_time_mean():
     assert holds is None and said == ("not tested (no run it compares learned) (off: not "
                                       "below the time mean; flat2: not below the time mean)")
     assert claims.verdict("off.test.mse < 2 * off.test.mse", results)[2].startswith("not tested")
-    # One side learned (on), or a member of an ensemble did: tested, with the notes.
-    assert claims.verdict("on.test.mse < flat2.test.mse", results)[2].startswith("yes")
+    # A member of an ensemble learned: tested, with the notes.
     mixed = {"best_epoch": 9, "test": {"mse": 1.2, "time_mean": 1.0},
              "members": [{"best_epoch": 9, "test": {"mse": 1.2, "time_mean": 1.0}},
                          {"best_epoch": 9, "test": {"mse": 0.1, "time_mean": 1.0}}]}
     assert not claims.nothing_learned("m.test.mse < 2", {"m": mixed})
+    assert claims.beaten_unlearned("0.01 < m.test.mse", {"m": mixed}) == []
+    assert claims.beaten_unlearned("0.01 < off.test.mse", results) == ["off"]
 
 
 def test_a_verdict_says_when_the_model_is_not_the_papers():

@@ -33,7 +33,8 @@ def with_derived(result: Any) -> Any:
 
 # A training run less than this many times below the time-mean predictor has barely
 # learned: a claim comparing it says little, though it "beats" the time mean (by 1.006×).
-BARELY_LEARNED = 1.5
+# 3×: a baseline that a reviewer accepts beats the time mean at least that far.
+BARELY_LEARNED = 3.0
 # The paper averages the incoming messages (§3.2, eq. (3)); mpnode's recipe may not.
 PAPER_AGGREGATE = "mean"
 _AGGREGATE_NAMES = {"pna": "PNA", "sum": "sum"}
@@ -110,6 +111,20 @@ def nothing_learned(text: str, results: dict[str, dict[str, Any]]) -> bool:
         for step in runs)
 
 
+def beaten_unlearned(text: str, results: dict[str, dict[str, Any]]) -> list[str]:
+    """The training run on the side a claim says it beats (the right of `<` and `<=`, the
+    left of `>` and `>=`) when every member of it is not below the time-mean predictor: a
+    claim that holds against it rests on a run that never learned."""
+    left, op, right = parse_claim(text)
+    step = ((right if op in ("<", "<=") else left)[1] or "").partition(".")[0]
+    named = _named(text, results)
+    if "best_epoch" not in (members.view(named, 0).get(step) or {}):
+        return []
+    found = member_learning(text, results).get(step, {})
+    unlearned = len(found) == members.count(named) and all(r <= 1 for r in found.values())
+    return [step] if unlearned else []
+
+
 def learning_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str]:
     """What `member_learning` finds, a phrase per run: `not below the time mean` or
     `barely learned, 1.3× below the time mean`; for an ensemble `member 1 not below the
@@ -182,7 +197,8 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
             experiment: Experiment | None = None) -> tuple[bool | None, str, str]:
     """Whether a claim holds (None: undecided, or a number missing), the numbers shown, and
     the verdict as the reports write it: yes, **no**, undecided, not tested (no training run
-    it compares beat the time mean, `nothing_learned`) or — (a number missing),
+    it compares beat the time mean, `nothing_learned`, or it holds against one that did
+    not, `beaten_unlearned`) or — (a number missing),
     followed by what it rests on: for an ensemble, how many members it holds for and
     whether the means differ by more than their combined std (`members.decide`); the
     runs (members) that did not beat the time mean or barely did; and a model that is not
@@ -196,6 +212,8 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
         decision.outcome or "", "—")
     if decision.outcome and nothing_learned(text, results):
         holds, said = None, "not tested (no run it compares learned)"
+    elif decision.outcome == "holds" and (beaten := beaten_unlearned(text, results)):
+        holds, said = None, f"not tested ({beaten[0]}, the side it beats, did not learn)"
     notes = [decision.reason()] if _ensemble(_named(text, results)) and decision.outcome else []
     notes += [f"{step}: {note}" for step, note in learning_notes(text, results).items()]
     notes += departures(text, results, experiment)
