@@ -216,12 +216,11 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
         datasets.append(data_path(args, cov))
         extra = {"coverage": cov.name, "coverage_multiplicity": cov.multiplicity,
                  "targets_max_in_degree": reach}
-    budget: tuple[Any, ...] = ("--epochs", bench.epochs)
+    budget: tuple[Any, ...] = ("--epochs", source_epochs(args, bench))
     if args.variant in LONG_VARIANTS and args.scale == "full":
-        budget = ("--epochs", LONG_SOURCE_EPOCHS, "--stop-patience", LONG_SOURCE_PATIENCE,
-                  "--time-limit", LONG_SOURCE_SECONDS)
+        budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit", LONG_SOURCE_SECONDS)
     if args.variant in ORACLE_EPOCH_VARIANTS:
-        budget = ("--epochs", ORACLE_EPOCHS[args.scale], "--stop-patience", NEVER)
+        budget += ("--stop-patience", NEVER)
     if resume:
         if run_state(run)[0] < budget[1]:
             mpnode("train", "--resume", run, *budget[:2], "--no-plots",
@@ -238,6 +237,16 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
               "model": summary["model"], "options": list(VARIANTS[args.variant]), **extra}
     write_json(record_path(args, name), record)
     return record
+
+
+def source_epochs(args, bench: Bench) -> int:
+    """The epochs a source trains for (at most, for a variant that stops early): the
+    system's, the long variants' cap, or the oracles' cap."""
+    if args.variant in LONG_VARIANTS and args.scale == "full":
+        return LONG_SOURCE_EPOCHS
+    if args.variant in ORACLE_EPOCH_VARIANTS:
+        return ORACLE_EPOCHS[args.scale]
+    return bench.epochs
 
 
 def max_in_degree(path: Path) -> int:
@@ -320,8 +329,8 @@ def score_in_worker(checkpoint: Path, dataset: Path, range_from: Path | None,
 def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
     """The jobs of one bench and seed: its datasets, source, oracles and scorings."""
     src = bench.source
-    per_epoch = epoch_seconds(bench.system, src, src)
-    train_s = bench.epochs * per_epoch * curriculum_share(bench.system, bench.epochs)
+    per_epoch, epochs = epoch_seconds(bench.system, src, src), source_epochs(args, bench)
+    train_s = epochs * per_epoch * curriculum_share(bench.system, epochs)
     source = job_name(args, bench, seed, "source")
     jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
                 lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())
