@@ -379,12 +379,15 @@ def test_the_index_flags_table2_figures_of_best_epoch_0_or_the_budgets_end(tmp_p
         "steps": [{"id": step, "result": result} for step, result in results.items()]}))
     from mpnode_cli.experiments.index import rebuild_index
 
-    weak = rebuild_index(tmp_path).read_text().split("## Verdicts that rest on runs")[1]
+    index = rebuild_index(tmp_path).read_text()
+    first = next(line for line in index.splitlines() if line.startswith("| [finetune-lorenz]"))
+    assert "finetune-50: member 0's best epoch is the budget's last (50): not converged" in first
+    weak = index.split("## Verdicts that rest on runs")[1]
     flagged = [line for line in weak.splitlines() if line.startswith("- finetune-lorenz")]
     assert flagged and all("scratch-50 (member 1's best epoch is 0 (figure 0))" in line
                            for line in flagged)
-    assert any("finetune-50 (member 0's best epoch is the budget's last (50))" in line
-               for line in flagged)
+    assert any("finetune-50 (member 0's best epoch is the budget's last (50): not "
+               "converged)" in line for line in flagged)
     assert all("table2" in next(c.holds for c in spec.load("finetune-lorenz").claims
                                 if c.claim in line) for line in flagged)
 

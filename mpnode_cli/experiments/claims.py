@@ -158,10 +158,19 @@ def table2_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str
             if best == 0:
                 phrases.append(f"{who} best epoch is 0 (figure 0)")
             elif best is not None and best == last:
-                phrases.append(f"{who} best epoch is the budget's last ({last})")
+                phrases.append(f"{who} best epoch is the budget's last ({last}): "
+                               "not converged")
         if phrases:
             out[step] = ", ".join(phrases)
     return out
+
+
+def run_notes(text: str, results: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """`learning_notes` and `table2_notes` together, a phrase per run."""
+    notes = learning_notes(text, results)
+    for step, note in table2_notes(text, results).items():
+        notes[step] = f"{notes[step]}; {note}" if step in notes else note
+    return notes
 
 
 def trained_runs(text: str, experiment: Experiment) -> list[str]:
@@ -201,7 +210,8 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     not, `beaten_unlearned`) or — (a number missing),
     followed by what it rests on: for an ensemble, how many members it holds for and
     whether the means differ by more than their combined std (`members.decide`); the
-    runs (members) that did not beat the time mean or barely did; and a model that is not
+    runs (members) that did not beat the time mean or barely did, and Table-2 figures
+    that are 0 or still improving at the budget's end (`run_notes`); and a model that is not
     the paper's (with `experiment`, to find the runs behind an evaluation).
 
     One model's results show their two numbers (`0.025 < 0.62`), an ensemble's their means
@@ -215,7 +225,7 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     elif decision.outcome == "holds" and (beaten := beaten_unlearned(text, results)):
         holds, said = None, f"not tested ({beaten[0]}, the side it beats, did not learn)"
     notes = [decision.reason()] if _ensemble(_named(text, results)) and decision.outcome else []
-    notes += [f"{step}: {note}" for step, note in learning_notes(text, results).items()]
+    notes += [f"{step}: {note}" for step, note in run_notes(text, results).items()]
     notes += departures(text, results, experiment)
     if notes:
         said += f" ({'; '.join(notes)})"

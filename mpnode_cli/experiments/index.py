@@ -169,9 +169,7 @@ def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any],
           scale: str) -> list[str]:
     """A line for the index if `claim`'s verdict under `recipe` at `scale` rests on runs
     that did not learn or barely learned."""
-    notes = claims.learning_notes(claim.holds, results)
-    for step, note in claims.table2_notes(claim.holds, results).items():
-        notes[step] = f"{notes[step]}; {note}" if step in notes else note
+    notes = claims.run_notes(claim.holds, results)
     if not notes:
         return []
     runs = ", ".join(f"{step} ({note})" for step, note in notes.items())
