@@ -34,19 +34,26 @@ _CHECKPOINT = typer.Argument(..., help="A checkpoint (.pt), or a run folder (its
 _OTHER_SYSTEM = typer.Option(
     False, "--allow-other-system",
     help="Accept datasets of another system than the checkpoint was trained on.")
+_TABLE_JSON = typer.Option(False, "--json", help="Print JSON instead of a table.")
+_BATCH = typer.Option(128, help="Trajectories per rollout.")
+_DEVICE = typer.Option("cpu", help="cpu or cuda.")
+
+
+def _split(default: str) -> Any:
+    return typer.Option(default, help=f"Which trajectories: {_SPLITS}.")
 
 
 def evaluate_command(
     checkpoint: Path = _CHECKPOINT,
     dataset: Path = typer.Argument(..., help="An mpnode dataset (.h5)."),
-    split: str = typer.Option("test", help=f"Which trajectories: {_SPLITS}."),
+    split: str = _split("test"),
     plot: bool = typer.Option(False, "--plot", help="Draw the Fig. 2 rollout and error plots."),
     plot_dir: Path | None = typer.Option(
         None, help="Where plots go (default <run>/plots beside the checkpoint).",
         parser=output_parser("--plot-dir", folder=True)),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
-    batch_size: int = typer.Option(128, help="Trajectories per rollout."),
-    device: str = typer.Option("cpu", help="cpu or cuda."),
+    json_out: bool = _TABLE_JSON,
+    batch_size: int = _BATCH,
+    device: str = _DEVICE,
     allow_other_system: bool = _OTHER_SYSTEM,
     save_predictions: Path | None = typer.Option(
         None, metavar="FILE", help="Write the split's predictions (physical units, messages "
@@ -101,10 +108,10 @@ def evaluate_command(
 def zeroshot_command(
     checkpoint: Path = _CHECKPOINT,
     datasets: list[Path] = typer.Argument(..., help="Datasets of unseen graphs (.h5)."),
-    split: str = typer.Option("all", help=f"Which trajectories: {_SPLITS}."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
-    batch_size: int = typer.Option(128, help="Trajectories per rollout."),
-    device: str = typer.Option("cpu", help="cpu or cuda."),
+    split: str = _split("all"),
+    json_out: bool = _TABLE_JSON,
+    batch_size: int = _BATCH,
+    device: str = _DEVICE,
     allow_other_system: bool = _OTHER_SYSTEM,
     member: int | None = MEMBER,
     threads: str | None = THREADS,
@@ -134,7 +141,7 @@ def zeroshot_command(
 
 def compare_command(
     runs: list[Path] = typer.Argument(..., help="Run folders (runs/<name>)."),
-    json_out: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+    json_out: bool = _TABLE_JSON,
 ) -> None:
     """Compare training runs: best epoch, min validation loss, Table-2 figure, test error."""
     from mpnode_cli.report.tables import compare_table
