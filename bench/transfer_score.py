@@ -60,21 +60,35 @@ def by_degree(per_node: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     return rows
 
 
-def node_mse(pred: np.ndarray, true: np.ndarray) -> np.ndarray:
+def difference(pred: np.ndarray, true: np.ndarray, angles: tuple[int, ...] = ()) -> np.ndarray:
+    """`pred − true` `[..., D]`, with the components `angles` (radians) wrapped into
+    [−π, π): an angle defined only mod 2π is as far from θ + 2π as from θ."""
+    diff = pred - true
+    if angles:
+        dims = list(angles)
+        diff[..., dims] = np.mod(diff[..., dims] + np.pi, 2 * np.pi) - np.pi
+    return diff
+
+
+def node_mse(pred: np.ndarray, true: np.ndarray, angles: tuple[int, ...] = ()) -> np.ndarray:
     """`[K, N]`: each node-trajectory's MSE over its predicted samples (t₀ excluded) and
-    components, physical units; `pred, true: [K, T, N, D]`."""
-    return ((pred[:, 1:] - true[:, 1:]) ** 2).mean(axis=(1, 3))
+    components, physical units; `pred, true: [K, T, N, D]`; `angles` as `difference`."""
+    return (difference(pred[:, 1:], true[:, 1:], angles) ** 2).mean(axis=(1, 3))
 
 
-def time_mean_per_node(train: np.ndarray, test: np.ndarray) -> np.ndarray:
+def time_mean_per_node(train: np.ndarray, test: np.ndarray,
+                       angles: tuple[int, ...] = ()) -> np.ndarray:
     """`[K, N]`: the time-mean predictor's MSE per test node-trajectory, physical units.
 
     The predictor is `mpnode_cli.training.evaluate.baseline_mse`'s (x̂(t_k) = the mean of
     the train split's states at t_k over trajectories and nodes, per component); train and
     test of one dataset share the sample grid, so t_k matches sample by sample. `score`
-    checks that the mean of this equals `baseline_mse`'s number."""
+    checks that the mean of this equals `baseline_mse`'s number. `angles` as
+    `difference` (the predictor is still the plain mean, as `baseline_mse` takes it)."""
     mean_t = train.mean(axis=(0, 2))  # (T, D)
-    return ((test[:, 1:] - mean_t[None, 1:, None, :]) ** 2).mean(axis=(1, 3))
+    diff = difference(np.broadcast_to(mean_t[None, 1:, None, :], test[:, 1:].shape),
+                      test[:, 1:], angles)
+    return (diff ** 2).mean(axis=(1, 3))
 
 
 def outside_share(states: np.ndarray, train_range: list[list[float]]) -> np.ndarray:
@@ -106,6 +120,7 @@ def score(checkpoint: Path, dataset: Path, range_from: Path | None = None) -> di
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.checkpoint import load_checkpoint
     from mpnode_cli.training.evaluate import baseline_mse
+    from mpnode_cli.training.losses import run_angles
     from mpnode_cli.training.predict import roll_out
 
     ckpt, data = load_checkpoint(checkpoint), TrajectoryData.load(dataset)
@@ -115,9 +130,13 @@ def score(checkpoint: Path, dataset: Path, range_from: Path | None = None) -> di
     pred = roll_out(ckpt, x[:, 0], test.time.numpy(), test.graphs, test.graph_index.numpy(),
                     controls)
     ok = (pred.status == 0) & np.isfinite(pred.states).reshape(len(x), -1).all(axis=1)
-    mse = node_mse(np.where(ok[:, None, None, None], pred.states, np.nan), x)  # (K, N)
-    base = baseline_mse(train, test, _identity(x.shape[-1]))
-    tm = time_mean_per_node(train.states.double().numpy(), x)
+    # A checkpoint trained with `--wrap-angles` is scored as it was trained: its dataset's
+    # periodic states mod 2π, in its errors and the baselines' alike.
+    angles = run_angles(bool(ckpt.train_config.get("wrap_angles")), ckpt.dataset, None)
+    dims = angles.dims if angles else ()
+    mse = node_mse(np.where(ok[:, None, None, None], pred.states, np.nan), x, dims)  # (K, N)
+    base = baseline_mse(train, test, _identity(x.shape[-1]), angles)
+    tm = time_mean_per_node(train.states.double().numpy(), x, dims)
     if not math.isclose(float(tm.mean()), base["time_mean"], rel_tol=1e-6, abs_tol=1e-12):
         raise AssertionError(f"time mean per node {tm.mean()} != baseline_mse "
                              f"{base['time_mean']}")
@@ -130,6 +149,7 @@ def score(checkpoint: Path, dataset: Path, range_from: Path | None = None) -> di
     value = float(np.nanmean(mse)) if ok.any() else None
     return {"dataset": Path(dataset).name, "trajectories": len(x), "nodes": x.shape[2],
             "failed": int((~ok).sum()), "mse": value, "time_mean": base["time_mean"],
+            "wrapped": list(dims),
             "hold_x0": base["hold_x0"],
             "skill": value / base["time_mean"] if value is not None else None,
             "states_outside": float(outside.mean()),

@@ -44,6 +44,9 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # (Kuramoto, the pendulum, the grid), in place of the unwrapped θ (`--periodic embed`);
     # errors stay plain differences, so the rows compare with the default's.
     "periodic": ("--periodic", "embed"),
+    # The same, with the loss and every error of those angles taken mod 2π
+    # (`--wrap-angles`): a phase slip of 2π costs nothing, as the physics says.
+    "periodic-wrapped": ("--periodic", "embed", "--wrap-angles"),
     # The angles fed as they are: the recipe before its `--periodic auto` (rows of angle
     # systems labelled `default` before that change are kept under these two names).
     "periodic-off": ("--periodic", "off"),

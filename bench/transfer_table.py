@@ -90,12 +90,19 @@ def grouped(records: Iterable[dict[str, Any]]) -> dict[tuple, dict[str, dict[int
             src = sources.get((*key[:4], seed))
             if src:
                 kinds.setdefault("source", {})[seed] = src
-    for key, kinds in groups.items():  # a variant run with --no-oracles: its base's
+    for key, kinds in groups.items():  # a variant run with --no-oracles: its base's,
+        # where both measure in the same units (angles wrapped or not)
         base = "periodic-off" if key[3].endswith("periodic-off") else "default"
         default = groups.get((*key[:3], base, key[4]), {}).get("oracle")
-        if key[3] != base and "oracle" not in kinds and default:
+        if (key[3] != base and "oracle" not in kinds and default
+                and _wrapped(kinds.get("zeroshot", {})) == _wrapped(default)):
             kinds["oracle"], kinds["borrowed"] = default, {}
     return dict(sorted(groups.items(), key=lambda kv: _order(kv[0])))
+
+
+def _wrapped(records: dict[int, dict]) -> bool:
+    """Whether scored records took angles mod 2π (`transfer_score.score`'s `wrapped`)."""
+    return any((r.get("score") or {}).get("wrapped") for r in records.values())
 
 
 # ------------------------------------------------------------------------------ cells

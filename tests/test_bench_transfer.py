@@ -98,6 +98,38 @@ def test_time_mean_per_node_is_baseline_mse():
     assert per_node.mean() == pytest.approx(expected, rel=1e-9)
 
 
+def test_wrapped_errors_are_mod_2pi_and_match_baseline_mse():
+    """An angle and the same angle a turn on are 0 apart; the wrapped time-mean predictor's
+    error per node is mpnode's `baseline_mse` with the same component wrapped."""
+    from mpnode_cli.training.evaluate import baseline_mse
+    from mpnode_cli.training.losses import Angles
+
+    theta = np.random.default_rng(3).uniform(-3, 3, size=(2, 5, 3, 2))
+    turned = theta.copy()
+    turned[..., 0] += 2 * np.pi * np.array([1, -3, 7])[None, None, :]
+    assert np.abs(ts.node_mse(turned, theta, (0,))).max() < 1e-24
+    assert ts.node_mse(turned, theta).min() > 1.0  # plain differences see the turns
+    train, test = synthetic(6, 8, seed=1), synthetic(4, 8, seed=2)
+    test.states[..., 0] *= 10.0  # angles far beyond one turn
+    per_node = ts.time_mean_per_node(train.states.double().numpy(),
+                                     test.states.double().numpy(), (0,))
+    expected = baseline_mse(train, test, ts._identity(2), Angles((0,)))["time_mean"]
+    assert per_node.mean() == pytest.approx(expected, rel=1e-9)
+    plain = ts.time_mean_per_node(train.states.double().numpy(), test.states.double().numpy())
+    assert per_node.mean() < plain.mean() / 2  # the turns are not counted
+
+
+def test_a_wrapped_variant_borrows_no_plain_oracle(tmp_path):
+    degree = np.array([1, 2, 3, 9, 20])
+    oracle = _record("oracle", 0, epochs=400, best_epoch=200, train_seconds=300.0,
+                     stopped_by="patience", score=_score(0.1, 2.0, degree))
+    variant = {**_record("zeroshot", 0, score={**_score(0.3, 2.0, degree), "wrapped": [0]}),
+               "variant": "periodic-wrapped", "job": "size/gene/periodic-wrapped/s0/zeroshot-x4"}
+    text = tt.page({r["job"]: r for r in (oracle, variant)})
+    row = next(line for line in text.splitlines() if "| periodic-wrapped | x4 |" in line)
+    assert "†" not in row
+
+
 def test_node_mse_and_outside_share():
     true = np.zeros((2, 3, 4, 1))
     pred = true.copy()
