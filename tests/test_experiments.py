@@ -267,9 +267,14 @@ def test_tiny_run_reports_resumes_and_reruns_what_changed(tmp_path):
 def test_table2_per_mean_does_not_depend_on_the_normalization():
     # One run's validation errors in two normalizations: the same predictions, scaled by
     # the square of a std ratio, as a finetune (parent's normalization) and a scratch run.
-    run = {"best_epoch": 40, "table2": 40 * 0.02, "val": {"mse": 0.02, "time_mean": 0.5}}
+    run = {"best_epoch": 40, "table2": 40 * 0.02, "val": {"mse": 0.02, "time_mean": 0.5},
+           "test": {"mse": 0.03, "time_mean": 0.6}}
     scaled = {**run, "table2": 40 * 0.02 * 9.0, "val": {"mse": 0.02 * 9.0,
-                                                         "time_mean": 0.5 * 9.0}}
+                                                         "time_mean": 0.5 * 9.0},
+              "test": {"mse": 0.03 * 9.0, "time_mean": 0.6 * 9.0}}
+    assert claims.with_derived(run)["test_per_mean"] == pytest.approx(0.05)
+    assert claims.judge("a.test.mse < b.test.mse", {"a": scaled, "b": run})[0] is False
+    assert claims.with_derived(scaled)["test_per_mean"] == pytest.approx(0.05)
     results = {"a": run, "b": scaled}
     assert claims.with_derived(run)["table2_per_mean"] == pytest.approx(40 * 0.02 / 0.5)
     assert claims.judge("a.table2 < b.table2", results)[0] is True  # units differ

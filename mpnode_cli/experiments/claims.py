@@ -17,18 +17,25 @@ from mpnode_cli.experiments.spec import TRAINING, Experiment, parse_claim
 
 
 def with_derived(result: Any) -> Any:
-    """A step's results with `table2_per_mean` added where a training run's are: the
-    Table-2 figure with the best checkpoint's validation MSE divided by the time-mean
-    predictor's (best epoch × val MSE ÷ time-mean MSE). Both MSEs are in the run's own
-    normalization, so the ratio is not: a finetune keeps its parent's normalization, and
-    its training loss is in other units than a scratch run's on the same data."""
+    """A step's results with two ratios added where a training run's are:
+
+    - `table2_per_mean`: the Table-2 figure with the best checkpoint's validation MSE
+      divided by the time-mean predictor's (best epoch × val MSE ÷ time-mean MSE);
+    - `test_per_mean`: the test MSE ÷ the time-mean predictor's on the test split.
+
+    Both MSEs are in the run's own normalization, so the ratios are not: a finetune keeps
+    its parent's normalization, and two models normalize the same data differently where
+    one embeds angles, so their MSEs are in other units while these ratios compare."""
     if not isinstance(result, dict) or "best_epoch" not in result:
         return result
-    val = result.get("val") or {}
-    mse, mean = val.get("mse"), val.get("time_mean")
-    if isinstance(mse, int | float) and isinstance(mean, int | float) and mean > 0:
-        return {**result, "table2_per_mean": result["best_epoch"] * mse / mean}
-    return result
+    derived = {}
+    for split, key, factor in (("val", "table2_per_mean", result["best_epoch"]),
+                               ("test", "test_per_mean", 1)):
+        part = result.get(split) or {}
+        mse, mean = part.get("mse"), part.get("time_mean")
+        if isinstance(mse, int | float) and isinstance(mean, int | float) and mean > 0:
+            derived[key] = factor * mse / mean
+    return {**result, **derived} if derived else result
 
 
 # A training run less than this many times below the time-mean predictor has barely
