@@ -61,13 +61,18 @@ def by_degree(per_node: dict[str, np.ndarray]) -> list[dict[str, Any]]:
 
 
 def difference(pred: np.ndarray, true: np.ndarray, angles: tuple[int, ...] = ()) -> np.ndarray:
-    """`pred − true` `[..., D]`, with the components `angles` (radians) wrapped into
-    [−π, π): an angle defined only mod 2π is as far from θ + 2π as from θ."""
-    diff = pred - true
-    if angles:
-        dims = list(angles)
-        diff[..., dims] = np.mod(diff[..., dims] + np.pi, 2 * np.pi) - np.pi
-    return diff
+    """`pred − true` `[..., D]`, with the components `angles` (radians) wrapped: mpnode's
+    own `losses.difference`, the one every loss and error takes, on float64 arrays."""
+    if not angles:
+        return pred - true
+    import torch
+
+    from mpnode_cli.training.losses import Angles
+    from mpnode_cli.training.losses import difference as wrapped
+
+    return wrapped(torch.from_numpy(np.ascontiguousarray(pred, dtype=np.float64)),
+                   torch.from_numpy(np.ascontiguousarray(true, dtype=np.float64)),
+                   Angles(tuple(angles))).numpy()
 
 
 def node_mse(pred: np.ndarray, true: np.ndarray, angles: tuple[int, ...] = ()) -> np.ndarray:
