@@ -114,9 +114,24 @@ def default_run_dir(dataset: Path | list[Path], model: str, root: Path | None = 
     return path
 
 
+def check_new(run_dir: Path) -> None:
+    """Refuse a new run's folder that holds a run already or cannot be made: checked before
+    any work (loading, building, measuring), and again by `create`.
+
+    Raises:
+        ValueError: one line.
+    """
+    from mpnode_cli.paths import check_output_folder
+
+    check_output_folder(run_dir)
+    if run_dir.is_dir() and any(run_dir.iterdir()):
+        raise ValueError(f"run folder {run_dir} already exists: continue it with "
+                         f"{suggested('train', '--resume', run_dir)}, or choose another --run-dir")
+
+
 def create(run_dir: Path) -> bool:
-    """Make a new run folder; refuse to train over an existing run, or beside another
-    training that took the same folder (`mpnode_cli.paths.reserve_folder`).
+    """Make a new run folder; refuse to train over an existing run (`check_new`), or beside
+    another training that took the same folder (`mpnode_cli.paths.reserve_folder`).
 
     Returns:
         Whether the folder itself was made (an existing empty folder is used as it is).
@@ -124,12 +139,9 @@ def create(run_dir: Path) -> bool:
     Raises:
         ValueError: the folder holds a run already, or cannot be made (one line).
     """
-    from mpnode_cli.paths import check_output_folder, reserve_folder
+    from mpnode_cli.paths import reserve_folder
 
-    check_output_folder(run_dir)
-    if run_dir.is_dir() and any(run_dir.iterdir()):
-        raise ValueError(f"run folder {run_dir} already exists: continue it with "
-                         f"{suggested('train', '--resume', run_dir)}, or choose another --run-dir")
+    check_new(run_dir)
     try:
         return reserve_folder(run_dir, "checkpoints")
     except FileExistsError:  # since the line above

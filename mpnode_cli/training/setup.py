@@ -198,8 +198,11 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
     Raises:
         ValueError, FileNotFoundError: as `mpnode_cli.training.loop.train` says.
     """
-    if not resume and world.main:  # the run folder's place must be writable before any work
-        check_output_folder(config.run_dir or runs.default_root())
+    if not resume and world.main:  # the run folder must be free and writable before any work
+        if config.run_dir:
+            runs.check_new(Path(config.run_dir))
+        else:
+            check_output_folder(runs.default_root())
     datas = load_datasets(config.datasets, config.stream)
     if not config.allow_predictions:
         check_ground_truth(datas)

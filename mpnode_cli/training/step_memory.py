@@ -112,7 +112,10 @@ def check_run(model: torch.nn.Module, config: Any, train_sets: Sequence, normali
         ValueError: one line (`check_step_memory`).
     """
     batch = per_rank_batch(config.batch_size, world.size)
+    # Measured uncompiled: a compiled step would compile here for this one trajectory (tens
+    # of seconds on a CPU) and once more for the run's own batch.
+    solver = config.solver.model_copy(update={"compile": False})
     need = step_need(model, train_sets, normalize, getattr(torch, config.dtype), device,
-                     config.solver, batch)
+                     solver, batch)
     need = int(world.max(torch.tensor([need], dtype=torch.float64))[0])
     check_step_memory(need, batch, len(model.members))
