@@ -198,11 +198,10 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
     Raises:
         ValueError, FileNotFoundError: as `mpnode_cli.training.loop.train` says.
     """
-    if not resume and world.main:  # the run folder must be free and writable before any work
-        if config.run_dir:
-            runs.check_new(Path(config.run_dir))
-        else:
-            check_output_folder(runs.default_root())
+    if not resume:  # the run folder must be free and writable before any work (every rank
+        # refuses together)
+        world.from_main(lambda: runs.check_new(Path(config.run_dir)) if config.run_dir
+                        else check_output_folder(runs.default_root()))
     datas = load_datasets(config.datasets, config.stream)
     if not config.allow_predictions:
         check_ground_truth(datas)
