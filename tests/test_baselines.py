@@ -75,6 +75,34 @@ def test_l2s_statistics_and_one_step_loss():
                     history=states[:, :2])
 
 
+def test_l2s_unrolled_loss_is_the_error_of_its_own_rollouts():
+    """Without noise, `unrolled_loss` of k steps is the mean, over every start and the k
+    steps, of the squared error of `rollout` from that start (a separate code path), over
+    Δ's std; one step of it is `one_step_loss`. With controls and a history of 2."""
+    net = build_model("l2s", {"node_dim": 2, "control_dim": 1, "latent": 8, "hidden": 8,
+                              "steps": 2, "history": 2})
+    states = torch.randn(2, 8, 3, 2).cumsum(dim=1) * 0.3
+    controls = torch.randn(2, 8, 3, 1)
+    adj = random_graph(2, 3, seed=5)
+    net.fit_statistics(states, dt=0.1)
+    ts = torch.arange(8, dtype=torch.float64) * 0.1
+    k, c = 3, 2
+    errors = []
+    for start in range(8 - c - k + 1):
+        span = slice(start, start + c + k)
+        out = net.rollout(states[:, start + c - 1], ts[span], adj, controls[:, span],
+                          history=states[:, start:start + c]).states
+        errors.append(((out[:, c:] - states[:, start + c:start + c + k]) / net.delta_std)
+                      .square().mean())
+    expected = torch.stack(errors).mean()
+    loss = net.unrolled_loss(states, adj, controls, steps=k, noise_std=0.0)
+    torch.testing.assert_close(loss, expected)
+    torch.testing.assert_close(net.unrolled_loss(states, adj, controls, steps=1, noise_std=0.0),
+                               net.one_step_loss(states, adj, controls, noise_std=0.0))
+    with pytest.raises(ValueError, match="needs more than 7 samples"):
+        net.unrolled_loss(states[:, :7], adj, controls[:, :7], steps=6, noise_std=0.0)
+
+
 def test_monolithic_node_refuses_another_node_count():
     net = built("node", num_nodes=3)
     out = net.rollout(torch.randn(2, 3, 2), TS, torch.ones(2, 3, 3))

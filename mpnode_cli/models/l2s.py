@@ -8,8 +8,10 @@ The paper's Fig. 1 (right): encode → process → decode, one step ahead.
   [h_receiver, h_sender], sum over incoming edges, node MLP on [h_i, Σ_j e_ij], residual
   h_i ← h_i + node(...); MLPs are 2×128 ReLU followed by LayerNorm.
 - Decoder: MLP (no LayerNorm) → the normalized next-step state difference Δ.
-Trained one step ahead with random-walk input noise (`one_step_loss`); evaluated by
-autoregressive rollout over the whole horizon, x_{t+1} = x_t + Δ̂. Departures from DeepMind's
+Trained one step ahead with random-walk input noise (`one_step_loss`), or, with `unroll` > 1,
+on short rollouts of its own predictions from noisy data states (`unrolled_loss`, a mpnode
+option, not in the paper); evaluated by autoregressive rollout over the whole horizon,
+x_{t+1} = x_t + Δ̂. Departures from DeepMind's
 simulator (deepmind-research `learning_to_simulate/`; docs/authors-code.md): no positions, so
 no edge features and no connectivity radius; a first-order Δ instead of an acceleration with
 semi-implicit Euler.
@@ -43,7 +45,8 @@ class L2S(NeuralModel):
         options: `L2SOptions` — latent, the node/edge latent size; hidden, layers of the
             MLPs (128, 2); steps, message-passing steps (unshared weights); history, C
             states in the input window (C − 1 differences are fed); graph ("sys" or
-            "full", complete with self-loops); step_noise, the training input noise.
+            "full", complete with self-loops); step_noise, the training input noise;
+            unroll, the steps of each training rollout (1: one step ahead).
     """
 
     kind: ClassVar[str] = "l2s"
@@ -150,13 +153,67 @@ class L2S(NeuralModel):
         pred = self.delta(windows, self.edge_index(adj), u)
         return ((pred - (target - self.delta_mean) / self.delta_std) ** 2).mean()
 
+    def unrolled_loss(self, states: torch.Tensor, adjacency: torch.Tensor,
+                      controls: torch.Tensor | None = None, *, steps: int,
+                      noise_std: float = 3e-3) -> torch.Tensor:
+        """MSE of `steps`-step rollouts from every start of every trajectory, in the units
+        of the fitted Δ statistics (so that `steps` = 1 is `one_step_loss` with its
+        target and units).
+
+        Each rollout starts from a data window with the random walk of `one_step_loss` on
+        it and feeds the model its own predictions; the error of the state reached after
+        each step, over Δ's std, is averaged over the steps. Backpropagating through the
+        steps (unrolled, or multi-step, training) trains the model against the drift its
+        own errors cause, which one step ahead sees only through the input noise.
+
+        Args:
+            states: `[B, T, N, D]` normalized, T > C + `steps` − 1; adjacency: `[B, N, N]`;
+                controls `[B, T, N, U]`.
+        """
+        c = self.history
+        batch, starts = states.shape[0], states.shape[1] - c - steps + 1
+        if starts < 1:
+            raise ValueError(f"an unrolled L2S loss of {steps} steps needs more than "
+                             f"{c + steps - 1} samples per trajectory, not {states.shape[1]}")
+        # Windows of C + steps states from every start: (B·starts, C + steps, N, D).
+        span = c + steps
+        runs = states.unfold(1, span, 1)[:, :starts].permute(0, 1, 4, 2, 3)
+        runs = runs.reshape(batch * starts, span, *states.shape[2:])
+        window = runs[:, :c]
+        if noise_std > 0:
+            eps = torch.randn(window.shape, dtype=window.dtype,
+                              device=window.device) * (noise_std / c**0.5)
+            window = window + eps.cumsum(dim=1)
+        repeat = torch.arange(batch, device=states.device).repeat_interleave(starts)
+        adj = adjacency.take(repeat) if isinstance(adjacency, EdgeBatch) else adjacency[repeat]
+        edges = self.edge_index(adj)
+        u_all = None
+        if self.control_dim:
+            u_all = controls.unfold(1, span, 1)[:, :starts].permute(0, 1, 4, 2, 3)
+            u_all = u_all.reshape(batch * starts, span, *controls.shape[2:])
+        loss = states.new_zeros(())
+        for k in range(steps):
+            u = u_all[:, c - 1 + k] if u_all is not None else None
+            nxt = window[:, -1] + self.delta(window, edges, u) * self.delta_std + self.delta_mean
+            loss = loss + (((nxt - runs[:, c + k]) / self.delta_std) ** 2).mean()
+            window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
+        return loss / steps
+
     def training_loss(self, x: torch.Tensor, ts: torch.Tensor, adjacency: torch.Tensor,
                       controls: torch.Tensor | None,
                       loss_fn: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
                       **solver: Any) -> BatchLoss:
-        """One step ahead: `one_step_loss` with `step_noise` (`loss_fn` and the solver
-        options are unused); the model is rolled out only to validate."""
-        loss = self.one_step_loss(x, adjacency, controls, noise_std=self.options.step_noise)
+        """One step ahead: `one_step_loss` with `step_noise`, or with `unroll` > 1 the
+        rollouts of `unrolled_loss` (at most the batch's samples allow, so a horizon
+        curriculum's first short prefixes train fewer steps); `loss_fn` and the solver
+        options are unused."""
+        o = self.options
+        steps = min(o.unroll, x.shape[1] - self.history)
+        if steps > 1:
+            loss = self.unrolled_loss(x, adjacency, controls, steps=steps,
+                                      noise_std=o.step_noise)
+        else:
+            loss = self.one_step_loss(x, adjacency, controls, noise_std=o.step_noise)
         return BatchLoss(loss, torch.zeros(x.shape[0], dtype=torch.long, device=x.device), 0)
 
     # -------------------------------------------------------------- rollout

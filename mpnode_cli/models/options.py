@@ -127,6 +127,10 @@ class L2SOptions(ModelOptions):
     step_noise: float = Field(
         3e-3, ge=0,
         description="Std of the random-walk noise on one-step training inputs (normalized).")
+    unroll: int = Field(
+        1, ge=1, le=DEPTH_MAX,
+        description="Steps each training rollout takes from a noisy data state: 1 is L2S's "
+                    "one step ahead; more backpropagates through the model's own predictions.")
 
 
 class GNODEOptions(ModelOptions):
