@@ -15,6 +15,8 @@ members; `mpnode train --seeds 3`) on each swarm:
 - the horizon curriculum: mpnode's recipe trains on prefixes of the horizon that grow over
   the epochs, so a one-step model sees the late part of a flight only at the end; without
   it every transition is trained from the first epoch;
+- the batch size: mpnode's recipe takes 32 flights a batch, 4 optimizer steps an epoch on
+  105 training flights, where L2S was trained for millions of small steps;
 - `unroll`: training rollouts of several steps from noisy data states, backpropagated
   through the model's own predictions (`L2S.unrolled_loss`; multi-step training, not in
   L2S as published), which trains the model against the drift its errors cause.
@@ -27,7 +29,7 @@ not rerun) and their numbers are kept in `--records`, from which `--table-only` 
 the table.
 
 Usage:
-    .venv/bin/python bench/l2s_tuning.py --configs base,noise-0.03 --swarms quad6
+    .venv/bin/python bench/l2s_tuning.py --configs base,unroll-5 --swarms quad3
     .venv/bin/python bench/l2s_tuning.py --table-only
 Writes `bench/results/l2s-tuning.md` and `bench/results/l2s-tuning.json`.
 """
@@ -58,10 +60,9 @@ CONFIGS: dict[str, tuple[str, list[str]]] = {
     "base": ("the experiments' small L2S (noise 3e-3, curriculum on)", SMALL),
     "noise-0.03": ("step noise 0.03", [*SMALL, "--step-noise", "0.03"]),
     "no-curriculum": ("whole horizon from epoch 1", [*SMALL, "--no-horizon-curriculum"]),
+    "batch-4": ("batches of 4 flights (27 optimizer steps an epoch, not 4)",
+                [*SMALL, "--batch-size", "4"]),
     "unroll-5": ("5-step training rollouts", [*SMALL, "--unroll", "5"]),
-    "unroll-10": ("10-step training rollouts", [*SMALL, "--unroll", "10"]),
-    "unroll-5-noise-0.03": ("5-step training rollouts, step noise 0.03",
-                            [*SMALL, "--unroll", "5", "--step-noise", "0.03"]),
 }
 SWARMS = ("quad3", "quad6")
 
@@ -119,7 +120,9 @@ def table(records: list[dict]) -> str:
         f"mpnode's recipe, {SEEDS} members (seeds); test MSE in the run's normalized units,",
         "members' mean ± std; **÷ time mean**: each member's test MSE over the time-mean",
         "predictor's (the train split's mean at each time) on the same flights, worst member in",
-        "brackets; **learns**: every member below the time mean.",
+        "brackets; **learns**: every member below the time mean. Wall s: the run's, one torch",
+        "thread, with one other training job on the 2-core machine beside it (the runs of",
+        "2026-11-28).",
         "",
         "| swarm | config | what changes | members' test MSE | ÷ time mean [worst] | "
         "hold x(0) ÷ time mean | ensemble MSE | learns | best epochs | wall s |",
