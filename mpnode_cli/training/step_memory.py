@@ -16,7 +16,10 @@ That is a floor, not the peak: the backward pass adds its own temporaries, and a
 batch may take more solver steps than the one measured. A run is refused only when even
 the floor exceeds what this process may still take (`mpnode_cli.memory.available_memory`),
 so a refusal is certain and a run that fits is never refused; a run near the line may
-still fail in its step, where `mpnode_cli.memory.naming_memory` names it.
+still fail in its step, where `mpnode_cli.memory.naming_memory` names it. The probe runs
+uncompiled, whatever the run's `solver.compile` (compiling it would cost a CPU tens of
+seconds for one trajectory): for a compiled run it is the floor of the eager step, which
+the run falls back to if its compile fails.
 """
 
 from __future__ import annotations
