@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -163,7 +162,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     records = json.loads(args.records.read_text()) if args.records.exists() else []
     if not args.table_only:
-        os.environ.setdefault("OMP_NUM_THREADS", "1")
         for swarm in swarms:
             for config in configs:
                 rec = run_one(args.data, args.runs, swarm, config)

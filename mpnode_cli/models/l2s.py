@@ -37,6 +37,19 @@ def _mlp_ln(in_dim: int, hidden: int, layers: int, out_dim: int) -> nn.Sequentia
     return nn.Sequential(*mlp(in_dim, hidden, layers, out_dim, "relu"), LayerNorm(out_dim))
 
 
+def _windows(x: torch.Tensor, span: int, starts: int) -> torch.Tensor:
+    """The `starts` windows of `span` samples of `x` `[B, T, ...]`, each trajectory's from
+    sample 0 on, all at once: `[B·starts, span, ...]` (trajectory-major)."""
+    out = x.unfold(1, span, 1)[:, :starts].movedim(-1, 2)
+    return out.reshape(x.shape[0] * starts, span, *x.shape[2:])
+
+
+def _per_window(adjacency: Graph, batch: int, starts: int) -> Graph:
+    """Each trajectory's graph repeated for its `starts` windows (as `_windows` orders them)."""
+    repeat = torch.arange(batch, device=adjacency.device).repeat_interleave(starts)
+    return adjacency.take(repeat) if isinstance(adjacency, EdgeBatch) else adjacency[repeat]
+
+
 class L2S(NeuralModel):
     """Encode–process–decode GNN simulator, one step of the dataset's dt at a time.
 
@@ -137,21 +150,29 @@ class L2S(NeuralModel):
         """
         c = self.history
         batch, steps = states.shape[0], states.shape[1] - c
-        # All windows at once: (B, steps, C, N, D) → (B·steps, C, N, D).
-        windows = states.unfold(1, c, 1)[:, :steps].permute(0, 1, 4, 2, 3)
-        windows = windows.reshape(batch * steps, c, *states.shape[2:])
-        if noise_std > 0:
-            eps = torch.randn(windows.shape, generator=generator, dtype=windows.dtype,
-                              device=windows.device) * (noise_std / c**0.5)
-            windows = windows + eps.cumsum(dim=1)
+        windows = self._noisy(_windows(states, c, steps), noise_std, generator)
         target = states[:, c:].reshape(batch * steps, *states.shape[2:]) - windows[:, -1]
-        repeat = torch.arange(batch, device=states.device).repeat_interleave(steps)  # [B·steps]
-        adj = adjacency.take(repeat) if isinstance(adjacency, EdgeBatch) else adjacency[repeat]
         u = None
         if self.control_dim:
             u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
-        pred = self.delta(windows, self.edge_index(adj), u)
+        pred = self.delta(windows, self.edge_index(_per_window(adjacency, batch, steps)), u)
         return ((pred - (target - self.delta_mean) / self.delta_std) ** 2).mean()
+
+    def _noisy(self, windows: torch.Tensor, noise_std: float,
+               generator: torch.Generator | None = None) -> torch.Tensor:
+        """`windows` `[W, C, N, D]` with a random walk of total std `noise_std` along C."""
+        if noise_std <= 0:
+            return windows
+        c = windows.shape[1]
+        eps = torch.randn(windows.shape, generator=generator, dtype=windows.dtype,
+                          device=windows.device) * (noise_std / c**0.5)
+        return windows + eps.cumsum(dim=1)
+
+    def _advance(self, window: torch.Tensor, edges: EdgeIndex,
+                 u: torch.Tensor | None) -> torch.Tensor:
+        """The state after `window`'s last: x + Δ̂ in the units of the states."""
+        d = self.delta(window, edges, u) * self.delta_std + self.delta_mean
+        return window[:, -1] + d
 
     def unrolled_loss(self, states: torch.Tensor, adjacency: torch.Tensor,
                       controls: torch.Tensor | None = None, *, steps: int,
@@ -175,26 +196,13 @@ class L2S(NeuralModel):
         if starts < 1:
             raise ValueError(f"an unrolled L2S loss of {steps} steps needs more than "
                              f"{c + steps - 1} samples per trajectory, not {states.shape[1]}")
-        # Windows of C + steps states from every start: (B·starts, C + steps, N, D).
-        span = c + steps
-        runs = states.unfold(1, span, 1)[:, :starts].permute(0, 1, 4, 2, 3)
-        runs = runs.reshape(batch * starts, span, *states.shape[2:])
-        window = runs[:, :c]
-        if noise_std > 0:
-            eps = torch.randn(window.shape, dtype=window.dtype,
-                              device=window.device) * (noise_std / c**0.5)
-            window = window + eps.cumsum(dim=1)
-        repeat = torch.arange(batch, device=states.device).repeat_interleave(starts)
-        adj = adjacency.take(repeat) if isinstance(adjacency, EdgeBatch) else adjacency[repeat]
-        edges = self.edge_index(adj)
-        u_all = None
-        if self.control_dim:
-            u_all = controls.unfold(1, span, 1)[:, :starts].permute(0, 1, 4, 2, 3)
-            u_all = u_all.reshape(batch * starts, span, *controls.shape[2:])
+        runs = _windows(states, c + steps, starts)  # (B·starts, C + steps, N, D)
+        window = self._noisy(runs[:, :c], noise_std)
+        edges = self.edge_index(_per_window(adjacency, batch, starts))
+        u_all = _windows(controls, c + steps, starts) if self.control_dim else None
         loss = states.new_zeros(())
         for k in range(steps):
-            u = u_all[:, c - 1 + k] if u_all is not None else None
-            nxt = window[:, -1] + self.delta(window, edges, u) * self.delta_std + self.delta_mean
+            nxt = self._advance(window, edges, u_all[:, c - 1 + k] if self.control_dim else None)
             loss = loss + (((nxt - runs[:, c + k]) / self.delta_std) ** 2).mean()
             window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
         return loss / steps
@@ -243,9 +251,7 @@ class L2S(NeuralModel):
         edges = self.edge_index(as_graph(adjacency, x0))
         states = list(window.unbind(1))
         for k in range(c - 1, ts.numel() - 1):
-            u = controls[:, k] if self.control_dim else None
-            d = self.delta(window, edges, u) * self.delta_std + self.delta_mean
-            nxt = window[:, -1] + d
+            nxt = self._advance(window, edges, controls[:, k] if self.control_dim else None)
             states.append(nxt)
             window = torch.cat([window[:, 1:], nxt.unsqueeze(1)], dim=1)
         out = torch.stack(states, dim=1)  # (B, T, N, D)
