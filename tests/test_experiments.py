@@ -342,6 +342,19 @@ def test_a_verdict_says_when_the_model_is_not_the_papers():
     assert claims.verdict("run.test.mse < 1", {"run": mean}, experiment)[2] == "yes"
 
 
+def _index_of(reports: Path, name: str, results: dict) -> str:
+    """The index `rebuild_index` writes for one shipped experiment `name` whose small-scale
+    mpnode-recipe records hold `results` (step id → result)."""
+    from mpnode_cli.experiments.index import rebuild_index
+
+    folder = reports / name / "small-mpnode"
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "scale": "small", "recipe": "mpnode",
+        "steps": [{"id": step, "result": result} for step, result in results.items()]}))
+    return rebuild_index(reports).read_text()
+
+
 def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
     """From stored results alone: a claim comparing a run 1.01× below the time mean is
     listed under the table, and a PNA model is named in its verdict."""
@@ -352,14 +365,7 @@ def test_the_index_lists_the_verdicts_that_rest_on_unlearned_runs(tmp_path):
                "l2s": {"best_epoch": 5, "model": "l2s", "model_options": {},
                        "val": {"mse": 0.5}, "test": {"mse": 0.5, "time_mean": 0.505}},
                "zeroshot": {"gene-er-4x4": {"mse": 0.002}, "gene-ws-4x4": {"mse": 0.003}}}
-    folder = tmp_path / "zeroshot-gene" / "small-mpnode"
-    folder.mkdir(parents=True)
-    (folder / "results.json").write_text(json.dumps({
-        "scale": "small", "recipe": "mpnode",
-        "steps": [{"id": step, "result": result} for step, result in results.items()]}))
-    from mpnode_cli.experiments.index import rebuild_index
-
-    index = rebuild_index(tmp_path).read_text()
+    index = _index_of(tmp_path, "zeroshot-gene", results)
     row = next(line for line in index.splitlines() if "BA test error at or below" in line)
     assert row.endswith("| — / yes (PNA aggregation, not the paper's mean) |")
     weak = index.split("## Verdicts that rest on runs that did not learn")[1]
@@ -377,14 +383,7 @@ def test_the_index_flags_table2_figures_of_best_epoch_0_or_the_budgets_end(tmp_p
     scratch = {**run(10, 0.1), "members": [run(10, 0.1), run(0, 0.2)]}
     results = {"finetune-50": {**run(50, 0.05), "members": [run(50, 0.05), run(40, 0.06)]},
                "scratch-50": scratch}
-    folder = tmp_path / "finetune-lorenz" / "small-mpnode"
-    folder.mkdir(parents=True)
-    (folder / "results.json").write_text(json.dumps({
-        "scale": "small", "recipe": "mpnode",
-        "steps": [{"id": step, "result": result} for step, result in results.items()]}))
-    from mpnode_cli.experiments.index import rebuild_index
-
-    index = rebuild_index(tmp_path).read_text()
+    index = _index_of(tmp_path, "finetune-lorenz", results)
     first = next(line for line in index.splitlines() if line.startswith("| [finetune-lorenz]"))
     assert "finetune-50: member 0's best epoch is the budget's last (50): not converged" in first
     weak = index.split("## Verdicts that rest on runs")[1]
