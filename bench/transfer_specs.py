@@ -76,6 +76,12 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # the coverage data the hubs still count in full.
     "hub-coverage-balanced": ("--balance-datasets",),
     "hub-coverage-balanced-long": ("--balance-datasets",),
+    # The same, with robust input scaling and a linear path (`asinh-inputs`): the coverage
+    # hubs widen the z-scores' scale 100-fold, so the typical nodes' states, at a few
+    # hundredths of it, are what the networks see with the least resolution; asinh of the
+    # robustly scaled states gives them back theirs.
+    "hub-coverage-balanced-asinh-inputs": ("--balance-datasets", "--input-scale", "asinh",
+                                           "--linear-path"),
     # Degree coverage with the source trained as long as the oracles may train: their
     # epoch cap, with no early stop, so that zero-shot and oracle get the same epochs.
     "hub-coverage-oracle-epochs": (),
@@ -247,7 +253,7 @@ COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse
                      "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs",
                      "hub-coverage-asinh-inputs-long", "hub-coverage-periodic-off",
                      "hub-coverage-balanced", "hub-coverage-balanced-long",
-                     "hub-coverage-oracle-epochs")
+                     "hub-coverage-balanced-asinh-inputs", "hub-coverage-oracle-epochs")
 LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long",
                  "hub-coverage-balanced-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
