@@ -33,7 +33,7 @@ import torch
 from scipy.integrate import solve_ivp
 
 from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data.generate import generate, resolve_config
+from mpnode_cli.data.generate import generate, resolve_generate_config
 from mpnode_cli.data.hdf5 import Dataset, read_dataset
 from mpnode_cli.data.presets import PRESETS, get_preset
 
@@ -100,7 +100,7 @@ def scipy_loop(ds: Dataset, subset: np.ndarray, rtol: float, atol: float):
 
 def bench_preset(name: str, folder: Path, n_scipy: int) -> dict:
     # float64 storage so that the stored initial states are exactly the solved ones.
-    config = resolve_config(
+    config = resolve_generate_config(
         GenerateConfig(**{**get_preset(name), "out": folder / f"{name}.h5", "dtype": "float64"})
     )
     # Each timed part starts from a collected heap. Otherwise the garbage of the previous

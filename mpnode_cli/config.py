@@ -6,8 +6,8 @@ so any dataset or run can be reproduced from its own files.
 
 This module checks what can be checked without knowing the system (types, ranges, `dt` vs
 `t_end`, the split). System-dependent defaults and checks (its topologies, node counts,
-parameters) are filled in by `mpnode_cli.data.generate.resolve_config`, which keeps this
-module free of imports from higher floors.
+parameters) are filled in by `mpnode_cli.data.generate.resolve_generate_config`, which
+keeps this module free of imports from higher floors.
 """
 
 from __future__ import annotations
@@ -117,7 +117,7 @@ _DIRECTED = "Read the edge list's 'i j' as one edge i → j."
 class GenerateConfig(BaseModel):
     """What `mpnode generate` makes: one system on G graphs, K trajectories, one HDF5 file.
 
-    Fields left `None` take the system's defaults in `resolve_config`. Each field's
+    Fields left `None` take the system's defaults in `resolve_generate_config`. Each field's
     description is its `mpnode generate` option's help (`mpnode_cli.cli.generate`).
     """
 
@@ -360,7 +360,7 @@ class TrainConfig(BaseModel):
         "Options of that model, by name (a [model_options] table in a TOML file); each "
         "model declares its own, with their defaults, in mpnode_cli.models.options. Options "
         "left out take the model's defaults; the training layer validates them against the "
-        "model (mpnode_cli.training.recipe.resolve_config), and the resolved config written "
+        "model (mpnode_cli.training.recipe.resolve_train_config), and the resolved config written "
         "to a run holds every option of the model that was built."))
     recipe: Literal["mpnode", "paper"] = Field("mpnode", description=(
         "Where the fields left out come from: mpnode (measured choices and the dataset "

@@ -15,12 +15,12 @@ import numpy as np
 from mpnode_cli.graphs import EdgeList
 from mpnode_cli.textfiles import text_lines
 
-# The largest graph read from a file (`read_edges`): ids 0..MAX_NODES − 1. Ids are checked
-# as they are read, so a stray number (a timestamp, a hash, a typo of 20 digits) is refused
-# before anything is sized by it. 2²⁴ nodes is far beyond the graphs mpnode simulates: one
-# float32 state per node is 64 MiB per sample, and at mean degree 10 one trajectory's
-# messages alone are 40 × `mpnode_cli.graphs.EDGE_ROWS`.
-MAX_NODES = 2**24
+# The largest graph read from a file (`read_edges`): ids 0..MAX_EDGE_FILE_NODES − 1. Ids are
+# checked as they are read, so a stray number (a timestamp, a hash, a typo of 20 digits) is
+# refused before anything is sized by it. 2²⁴ nodes is far beyond the graphs mpnode
+# simulates: one float32 state per node is 64 MiB per sample, and at mean degree 10 one
+# trajectory's messages alone are 40 × `mpnode_cli.graphs.EDGE_ROWS`.
+MAX_EDGE_FILE_NODES = 2**24
 # The longest line of an edge list: `i j w` lines are short, so a longer one (a binary file
 # without newlines) is refused without reading it whole.
 _LINE_CHARS = 4096
@@ -37,10 +37,10 @@ def read_edges(path: str | Path, *, directed: bool = False) -> EdgeList:
     Each line `i j` is an edge between nodes i and j: undirected by default (messages go
     both ways, `A[i, j] = A[j, i] = 1`), or with `directed` one edge from sender i to
     receiver j (`A[j, i] = 1`). A line holding one id `i` declares a node without edges.
-    Node ids are 0-based integers below `MAX_NODES` and must be contiguous: the graph has
-    `max id + 1` nodes, and every id below the largest must appear on some line (a gap is
-    refused, as it is more often a typo or a 1-based file than a wanted isolated node;
-    declare an isolated node on a line of its own). Blank lines and `#` comments are
+    Node ids are 0-based integers below `MAX_EDGE_FILE_NODES` and must be contiguous: the
+    graph has `max id + 1` nodes, and every id below the largest must appear on some line (a
+    gap is refused, as it is more often a typo or a 1-based file than a wanted isolated
+    node; declare an isolated node on a line of its own). Blank lines and `#` comments are
     skipped; duplicate edges are merged. Ids may be separated by spaces, tabs or a comma.
 
     A third column is the edge's weight, as networkx's `write_weighted_edgelist` writes
@@ -49,7 +49,7 @@ def read_edges(path: str | Path, *, directed: bool = False) -> EdgeList:
     count as nodes); any other weight is refused rather than silently rounded.
 
     Memory grows with the file's lines, never with the size of an id: ids are checked
-    against `MAX_NODES` as they are read, and gaps are found among the ids present.
+    against `MAX_EDGE_FILE_NODES` as they are read, and gaps are found among the ids present.
 
     Args:
         path: the text file (UTF-8).
@@ -60,8 +60,8 @@ def read_edges(path: str | Path, *, directed: bool = False) -> EdgeList:
 
     Raises:
         ValueError: a file that cannot be read or is not text, a malformed line, an id
-            that is negative or not below `MAX_NODES`, a self-loop, a gap in the ids, or
-            no edges at all (each names the file, and the line where there is one).
+            that is negative or not below `MAX_EDGE_FILE_NODES`, a self-loop, a gap in the
+            ids, or no edges at all (each names the file, and the line where there is one).
     """
     ends = array("q")  # i, j of each edge of weight 1, one after another
     ids = array("q")  # every id on any line
@@ -82,9 +82,10 @@ def read_edges(path: str | Path, *, directed: bool = False) -> EdgeList:
         if min(pair) < 0:
             raise ValueError(f"{where}: node ids are 0-based and non-negative, got "
                              f"{' '.join(fields)}")
-        if max(pair) >= MAX_NODES:
+        if max(pair) >= MAX_EDGE_FILE_NODES:
             raise ValueError(f"{where}: node id {max(pair)} is beyond the largest graph mpnode "
-                             f"reads ({MAX_NODES:,} nodes, ids 0..{MAX_NODES - 1})")
+                             f"reads ({MAX_EDGE_FILE_NODES:,} nodes, "
+                             f"ids 0..{MAX_EDGE_FILE_NODES - 1})")
         ids.extend(pair)
         if len(pair) == 1:
             continue

@@ -20,7 +20,7 @@ import pytest
 from conftest import invoke, one_line_error
 
 from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data.generate import estimate, generate, resolve_config
+from mpnode_cli.data.generate import estimate, generate, resolve_generate_config
 from mpnode_cli.edge_files import read_edge_list
 from mpnode_cli.report import plots
 from mpnode_cli.training import loop
@@ -242,8 +242,8 @@ def test_big_jobs_print_their_size_and_ask(tmp_path, monkeypatch):
     result = invoke(*args, "--yes")
     assert result.exit_code == 0, result.output
     assert "this job: 2000 trajectories" in result.output and out.exists()
-    config = resolve_config(GenerateConfig(system="lorenz", nodes=3, trajectories=2000,
-                                           t_end=1, dt=0.1), dry_run=False)
+    config = resolve_generate_config(GenerateConfig(system="lorenz", nodes=3, trajectories=2000,
+                                                    t_end=1, dt=0.1), dry_run=False)
     size = estimate(config)
     assert size.values == 2000 * 11 * 3 * 3
     assert size.file_bytes == size.values * 4 + 3 * 3  # float32 states and a uint8 graph

@@ -38,11 +38,11 @@ def step_lines(name: str, scale: str) -> list[str]:
     for step in experiment.steps:
         options = spec.resolve(step, scale, "mpnode", seeds=3)
         if step.verb == "generate":
-            lines.append(commands.generate(step, options, Path("data.h5")))
+            lines.append(commands.generate_line(step, options, Path("data.h5")))
         elif step.verb in spec.TRAINING:
             checkpoint = Path("parent/best.pt") if step.verb == "finetune" else None
-            lines.append(commands.train(step, options, Path("data.h5"), Path("run"),
-                                        checkpoint))
+            lines.append(commands.train_line(step, options, Path("data.h5"), Path("run"),
+                                             checkpoint))
     return lines
 
 
@@ -125,14 +125,14 @@ def test_the_model_options_help_gives_the_defaults_each_recipe_resolves_to(model
 
     from mpnode_cli.config import TrainConfig
     from mpnode_cli.data.dataset import TrajectoryData
-    from mpnode_cli.training.recipe import resolve_config
+    from mpnode_cli.training.recipe import resolve_train_config
 
     group = typer.main.get_command(app)
     with group.make_context("mpnode", ["train"], resilient_parsing=True) as parent:
         _, command, _ = group.resolve_command(parent, ["train"])
     data = TrajectoryData.load(user_files["data"])
-    resolved = {recipe: resolve_config(TrainConfig(dataset=user_files["data"], model=model,
-                                                   recipe=recipe), data).model_options
+    resolved = {recipe: resolve_train_config(TrainConfig(dataset=user_files["data"], model=model,
+                                                         recipe=recipe), data).model_options
                 for recipe in ("mpnode", "paper")}
     checked = 0
     for option in command.params:

@@ -94,7 +94,7 @@ def one_step(gene, rank: int | None, out: Path, batch: int, fail: str | None = N
     """
     world = distributed.world()
     data = TrajectoryData.load(gene)
-    config = loop.resolve_config(TrainConfig(dataset=gene, clip=5.0), data)
+    config = loop.resolve_train_config(TrainConfig(dataset=gene, clip=5.0), data)
     train_set = data.subset("train")
     normalizer = Normalizer.fit(train_set.states)
     torch.manual_seed(0)

@@ -19,7 +19,7 @@ from mpnode_cli.cli.app import app
 from mpnode_cli.experiments import claims, members, spec
 from mpnode_cli.experiments.index import rebuild_index
 from mpnode_cli.experiments.report import write_report
-from mpnode_cli.experiments.runner import plan, run_experiment
+from mpnode_cli.experiments.runner import plan_steps, run_experiment
 
 runner = CliRunner()
 
@@ -65,8 +65,8 @@ def test_seeds_are_in_the_fingerprint_of_every_step_that_reads_a_model(tmp_path)
     between runs of different S; the data is shared; one seed keeps the options (and
     folders) it had before seeds."""
     experiment = _load(tmp_path)
-    one = {e.step.id: e for e in plan(experiment, "small", "mpnode", tmp_path)}
-    two = {e.step.id: e for e in plan(experiment, "small", "mpnode", tmp_path, seeds=2)}
+    one = {e.step.id: e for e in plan_steps(experiment, "small", "mpnode", tmp_path)}
+    two = {e.step.id: e for e in plan_steps(experiment, "small", "mpnode", tmp_path, seeds=2)}
     assert one["data"].folder == two["data"].folder
     assert all(one[i].folder != two[i].folder for i in one if i != "data")
     assert "seeds" not in one["run"].options["config"]
@@ -126,7 +126,7 @@ def test_a_two_seed_run_trains_ensembles_and_reports_mean_and_std(tmp_path):
     assert "## `--scale small --recipe mpnode --seeds 2`" in report
     assert "ensemble of 2 members" in report
     tuned = members.values(steps["tuned"].result, "test.mse")
-    mean, std = members.mean_std(tuned)
+    mean, std = members.mean_and_std(tuned)
     assert f"| tuned | test | {mean:.4g} ± {std:.2g} |" in report
     row = next(line for line in report.splitlines() if line.startswith("| finetuning helps"))
     assert "; members: " in row and row.count(" < ") == 4
@@ -170,29 +170,29 @@ CLAIM = "a.test.mse < b.test.mse"
 ])
 def test_a_claim_is_decided_from_its_members(a, b, outcome, said):
     results = _run(a, b)
-    decision = claims.decide(CLAIM, results)
+    decision = claims.decide_claim(CLAIM, results)
     assert decision.outcome == outcome and decision.members == len(a)
     holds, shown, verdict = claims.verdict(CLAIM, results)
     assert verdict == said
     assert holds == {"holds": True, "fails": False, "undecided": None}[outcome]
-    mean_a, std_a = members.mean_std(a)
+    mean_a, std_a = members.mean_and_std(a)
     assert shown.startswith(f"{mean_a:.4g} ± {std_a:.2g} < ")
 
 
 def test_the_mean_and_std_rule():
     """Population stds, combined as sqrt(std_a² + std_b²), against the gap of the means,
     in the claimed direction (`>` too); a number side has no spread."""
-    assert members.mean_std([1.0, 3.0]) == (2.0, 1.0)
+    assert members.mean_and_std([1.0, 3.0]) == (2.0, 1.0)
     # Means 2 ± 1 and 4 ± 1: gap 2 > √2, so a split holds for `<` and fails for `>`.
     pairs = [(1.0, 5.0), (3.0, 3.0)]
-    assert members.decide(pairs, "<").outcome == "holds"
-    assert members.decide(pairs, ">").outcome == "fails"
+    assert members.decide_pairs(pairs, "<").outcome == "holds"
+    assert members.decide_pairs(pairs, ">").outcome == "fails"
     # Gap 2 < √5 (stds 1 and 2): undecided.
-    assert members.decide([(1.0, 6.0), (3.0, 2.0)], "<").outcome == "undecided"
+    assert members.decide_pairs([(1.0, 6.0), (3.0, 2.0)], "<").outcome == "undecided"
     assert math.hypot(1.0, 2.0) > 2.0
     # Against a number: 0.5 ± 0.5 < 0.9 is split and the gap 0.4 is within 0.5.
-    assert members.decide([(0.0, 0.9), (1.0, 0.9)], "<").outcome == "undecided"
-    assert members.decide([(0.5, None), (0.1, 0.2)], "<").outcome is None
+    assert members.decide_pairs([(0.0, 0.9), (1.0, 0.9)], "<").outcome == "undecided"
+    assert members.decide_pairs([(0.5, None), (0.1, 0.2)], "<").outcome is None
     assert claims.verdict("a.test.mse < 0.9", {"a": {"members": [
         {"test": {"mse": 0.0}}, {"test": {"mse": 1.0}}]}})[1] == "0.5 ± 0.5 < 0.9 ± 0"
 
@@ -201,7 +201,7 @@ def test_a_single_seed_verdict_reads_as_before():
     results = {"a": {"best_epoch": 5, "test": {"mse": 0.1, "time_mean": 1.0}},
                "b": {"best_epoch": 5, "test": {"mse": 0.3, "time_mean": 1.0}}}
     assert claims.verdict(CLAIM, results) == (True, "0.1 < 0.3", "yes")
-    assert claims.decide(CLAIM, results).members == 1
+    assert claims.decide_claim(CLAIM, results).members == 1
 
 
 def test_a_verdict_names_each_member_that_did_not_learn():

@@ -519,7 +519,7 @@ def test_a_step_another_process_holds_is_left_to_it_and_the_rest_goes_on(tmp_pat
     experiment = spec.load("messages-pendulum")
     work = tmp_path / "work"
     work.mkdir()
-    held = next(entry for entry in experiment_runner.plan(experiment, "tiny", "mpnode", work)
+    held = next(entry for entry in experiment_runner.plan_steps(experiment, "tiny", "mpnode", work)
                 if entry.step.id == "messages")
     other = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, f"{held.folder}.lock"],
                              text=True, stdin=subprocess.PIPE, stdout=subprocess.PIPE)
@@ -572,7 +572,7 @@ def test_a_worker_process_runs_steps_as_the_run_does(tmp_path, pendulum_alone):
     worker runs a whole experiment alone; its results equal a run in one process, the run
     that started it (the same token) counts its steps as run, any other run as done earlier."""
     experiment, alone = spec.load("messages-pendulum"), pendulum_alone
-    steps = experiment_runner.plan(experiment, "tiny", "mpnode", tmp_path / "two")
+    steps = experiment_runner.plan_steps(experiment, "tiny", "mpnode", tmp_path / "two")
     workers = scheduler.start_workers(steps, "this-run", 1)
     for worker in workers:
         worker.join(timeout=300)
@@ -650,7 +650,7 @@ def test_a_stopped_run_leaves_no_worker_and_both_trainings_can_resume(tmp_path, 
          "--jobs", "2", "--threads", "1", "--seeds", "1", "--work", str(work), "--out",
          str(tmp_path / "out")],
         env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    steps = experiment_runner.plan(spec.load(tmp_path / "pair.toml"), "small", "mpnode", work)
+    steps = experiment_runner.plan_steps(spec.load(tmp_path / "pair.toml"), "small", "mpnode", work)
     trainings = [entry for entry in steps if entry.step.verb == "train"]
     deadline = time.monotonic() + 180
     try:

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from mpnode_cli.cli.app import app
 from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data import hdf5, solve_rounds
-from mpnode_cli.data.generate import GenerateError, generate, resolve_config
+from mpnode_cli.data.generate import GenerateError, generate, resolve_generate_config
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.data.presets import PRESETS, get_preset
 from mpnode_cli.solver import Status
@@ -71,7 +71,7 @@ def test_file_contents(tmp_path):
     assert ds.scalar_params == pytest.approx({"sigma": 10, "rho": 28, "beta": 8 / 3})
     assert ds.state_names == ("x", "y", "z") and ds.seed == 0
     # The stored config is the resolved one, and builds the same config again.
-    assert GenerateConfig(**ds.config) == resolve_config(config)
+    assert GenerateConfig(**ds.config) == resolve_generate_config(config)
     # Initial states are the sampler's: U(-1, 1).
     assert np.abs(ds.states[:, 0]).max() <= 1.0
 
@@ -118,7 +118,7 @@ def test_edge_list_graph(tmp_path):
     assert ds.adjacency[0].sum() == 10 and ds.adjacency[0, 0, 4] == 1
     assert not np.array_equal(ds.params["omega"][0], ds.params["omega"][1])  # ω per graph
     with pytest.raises(ValueError, match="edge list has 5"):
-        resolve_config(_config(tmp_path, system="kuramoto", nodes=6, edge_list=edges))
+        resolve_generate_config(_config(tmp_path, system="kuramoto", nodes=6, edge_list=edges))
 
 
 def test_kuramoto_ba_and_er_share_omega_unless_omega_seed_is_given(tmp_path):
@@ -215,20 +215,20 @@ def test_endless_rejection_gives_up(tmp_path, monkeypatch):
 )
 def test_resolve_rejects_what_cannot_be_built(tmp_path, fields, message):
     with pytest.raises(ValueError, match=message):
-        resolve_config(_config(tmp_path, **fields))
+        resolve_generate_config(_config(tmp_path, **fields))
 
 
 def test_resolve_fills_system_defaults():
-    config = resolve_config(GenerateConfig(system="lorenz"))
+    config = resolve_generate_config(GenerateConfig(system="lorenz"))
     assert (config.nodes, config.topology, config.trajectories) == (3, "complete", 1000)
     assert (config.t_end, config.dt, config.num_steps) == (2.5, 0.05, 50)
     assert str(config.out) == "datasets/lorenz-n3-complete-s0.h5"
-    assert resolve_config(GenerateConfig(system="gene", grid=8)).nodes == 64
+    assert resolve_generate_config(GenerateConfig(system="gene", grid=8)).nodes == 64
 
 
 @pytest.mark.parametrize("name", sorted(PRESETS))
 def test_every_preset_resolves(name):
-    config = resolve_config(GenerateConfig(**get_preset(name)))
+    config = resolve_generate_config(GenerateConfig(**get_preset(name)))
     assert config.trajectories >= 200 and config.num_steps >= 50
 
 
@@ -238,7 +238,8 @@ def test_presets_match_the_paper():
         *(f"gene-{t}-{s}x{s}" for t in ("ba", "er", "ws") for s in (4, 8)),
         *(f"kuramoto10-{t}" for t in ("ba", "er", "ws")), "quad3", "quad6",
     }  # fmt: skip
-    resolved = {name: resolve_config(GenerateConfig(**get_preset(name))) for name in PRESETS}
+    resolved = {name: resolve_generate_config(GenerateConfig(**get_preset(name)))
+                for name in PRESETS}
     assert (resolved["pendulum"].trajectories, resolved["pendulum"].num_steps) == (500, 100)
     assert resolved["lorenz10-high"].params == {"coupling": 1.0}
     assert resolved["lorenz10-long"].num_steps == 200

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data.generate import generate, resolve_config
+from mpnode_cli.data.generate import generate, resolve_generate_config
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.options import SolverOptions
@@ -285,10 +285,10 @@ def test_presets_and_limits():
     for name, n in (("quad3", 3), ("quad6", 6)):
         from mpnode_cli.data.presets import get_preset
 
-        config = resolve_config(GenerateConfig(**get_preset(name)))
+        config = resolve_generate_config(GenerateConfig(**get_preset(name)))
         assert (config.nodes, config.trajectories, config.num_steps, config.dt) == (n, 463, 50, 0.2)
     with pytest.raises(ValueError, match="not 5"):
-        resolve_config(GenerateConfig(system="quadrotor", nodes=5))
+        resolve_generate_config(GenerateConfig(system="quadrotor", nodes=5))
     y0, inputs = SYSTEM.sample(SYSTEM.graph("complete", 3, 0), 1, np.random.default_rng(0))
     with pytest.raises(ValueError, match="t_end >= 8"):
         SYSTEM.simulate(None, {}, torch.from_numpy(y0), torch.tensor([0.0, 5.0]).double(),

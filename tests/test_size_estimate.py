@@ -9,7 +9,7 @@ import pytest
 from conftest import invoke, one_line_error
 
 from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data.generate import estimate, generate, resolve_config
+from mpnode_cli.data.generate import estimate, generate, resolve_generate_config
 from mpnode_cli.systems.lorenz import Lorenz
 
 TINY = ["lorenz", "--nodes", 3, "--trajectories", 2, "--t-end", 0.2, "--dt", 0.05]
@@ -32,7 +32,7 @@ def test_fixed_steps_are_counted_and_too_many_refused_before_any_solve(tmp_path)
     assert not out.exists()
     # The count, against its closed form: ⌈dt / fixed_dt⌉ equal steps per sample interval.
     for fixed_dt, steps in ((1e-3, 10 * 50), (0.03, 10 * 2), (0.05, 10)):
-        size = estimate(resolve_config(GenerateConfig(
+        size = estimate(resolve_generate_config(GenerateConfig(
             system="lorenz", nodes=3, trajectories=2, t_end=0.5, dt=0.05,
             solver={"fixed_dt": fixed_dt}), dry_run=False))
         assert (size.steps, size.fixed) == (steps, True)
@@ -41,8 +41,8 @@ def test_fixed_steps_are_counted_and_too_many_refused_before_any_solve(tmp_path)
 def test_a_graph_is_sized_by_its_topology_not_a_guessed_degree():
     # Gene's Barabási–Albert graphs take m = n/2 edges per node: 900 nodes hold about
     # 4·10⁵ messages, not the 32 per node once assumed; each is two int64 in memory.
-    config = resolve_config(GenerateConfig(system="gene", grid=30, trajectories=2,
-                                           t_end=0.1), dry_run=False)
+    config = resolve_generate_config(GenerateConfig(system="gene", grid=30, trajectories=2,
+                                                    t_end=0.1), dry_run=False)
     built = nx.barabasi_albert_graph(900, 450, seed=0)
     messages = 2 * built.number_of_edges()
     assert estimate(config).memory_bytes > 2 * messages * 16

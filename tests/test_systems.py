@@ -627,8 +627,8 @@ def test_generate_above_the_threshold_runs_on_edges(tmp_path):
 
 def test_systems_that_need_the_matrix_are_refused_above_the_threshold():
     from mpnode_cli.config import GenerateConfig
-    from mpnode_cli.data.generate import resolve_config
+    from mpnode_cli.data.generate import resolve_generate_config
 
     with pytest.raises(ValueError, match=r"lorenz.*N×N matrix.*at most 256"):
-        resolve_config(GenerateConfig(system="lorenz", nodes=300, trajectories=2, t_end=0.1,
-                                      dt=0.05))
+        resolve_generate_config(GenerateConfig(system="lorenz", nodes=300, trajectories=2,
+                                               t_end=0.1, dt=0.05))

@@ -111,7 +111,7 @@ def confirm_size(size: Any, job: str, yes: bool) -> None:
     without a terminal).
 
     Args:
-        size: the job's `mpnode_cli.data.size.Estimate`.
+        size: the job's `mpnode_cli.data.size.SizeEstimate`.
         job: what it makes, "K trajectories × T samples × N nodes".
         yes: go ahead without asking (`--yes`).
 

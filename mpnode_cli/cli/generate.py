@@ -277,13 +277,13 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool,
         generate,
         generate_inputs,
         output_path,
-        resolve_config,
+        resolve_generate_config,
     )
     from mpnode_cli.data.splits import split_counts, split_warning
     from mpnode_cli.paths import check_output_file
 
     try:  # generate itself builds the graphs before solving: no dry run here
-        config = resolve_config(config, dry_run=False)
+        config = resolve_generate_config(config, dry_run=False)
         _confirm_size(config, yes)
         check_output_file(output_path(config), overwrite=force,
                           inputs=(*generate_inputs(config), config_file))

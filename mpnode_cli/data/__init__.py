@@ -17,6 +17,6 @@ __getattr__, __all__ = lazy_exports(__name__, {
     "fingerprint": ["fingerprint"],
     "importers": ["ImportSummary", "import_arrays"],
     "validate": ["Report", "check_dataset", "require_valid"],
-    "generate": ["GenerateError", "GenerateSummary", "resolve_config"],
+    "generate": ["GenerateError", "GenerateSummary", "resolve_generate_config"],
     "presets": ["PRESETS", "get_preset"],
 }, globals())

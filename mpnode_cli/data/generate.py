@@ -41,7 +41,7 @@ from mpnode_cli.data.shards import (
     shard_path,
     shard_range,
 )
-from mpnode_cli.data.size import Estimate, check_job, generate_estimate
+from mpnode_cli.data.size import SizeEstimate, check_job, generate_estimate
 from mpnode_cli.data.solve_rounds import Draws, Solved, solve_and_redraw, solver_chunks
 from mpnode_cli.data.solve_rounds import GenerateError as GenerateError  # part of this API
 from mpnode_cli.data.splits import split_trajectories
@@ -89,7 +89,7 @@ class GenerateSummary:
     seconds: float
 
 
-def estimate(config: GenerateConfig) -> Estimate:
+def estimate(config: GenerateConfig) -> SizeEstimate:
     """The size of the file, the memory, the solver steps and the rough time a resolved
     config will take (`mpnode_cli.data.size.generate_estimate`); for a shard, its own
     trajectories'."""
@@ -115,7 +115,7 @@ def output_path(config: GenerateConfig) -> Path:
     return shard_path(config.out, *config.shard)
 
 
-def resolve_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateConfig:
+def resolve_generate_config(config: GenerateConfig, *, dry_run: bool = True) -> GenerateConfig:
     """Fill in every system-dependent default and check the system can be built as asked.
 
     A job too big for the memory available, or of more fixed steps than `max_steps`, is
@@ -193,7 +193,7 @@ def generate(
         A `GenerateSummary`.
 
     Raises:
-        ValueError: a config that does not resolve (see `resolve_config`).
+        ValueError: a config that does not resolve (see `resolve_generate_config`).
         FileExistsError: the output exists and `overwrite` is False (checked before solving).
         ValueError: an output path that cannot be written, or is an input (checked and
             reserved before solving, `mpnode_cli.paths.reserve_output`).
@@ -207,7 +207,7 @@ def generate(
     start = time.perf_counter()
     # No dry run: step 1 builds the graphs and step 2 draws the initial states before any
     # solve, and building a large graph twice would double the wait.
-    config = resolve_config(config, dry_run=False)
+    config = resolve_generate_config(config, dry_run=False)
     out = output_path(config)
     with reserve_output(out, overwrite=overwrite, inputs=generate_inputs(config)):
         return _generate(config, out, progress, _Stage(stage), start)

@@ -1,12 +1,13 @@
 """What a job will take before it runs: the one size estimate of `generate` and `simulate`.
 
 A job is K trajectories × T samples × N nodes of D states, solved in batches of B
-trajectories with some number of solver steps. `Estimate` holds what that costs: the file,
-the peak memory, the solver steps per trajectory and a rough time. `check_job` refuses,
-before anything is allocated, a job whose memory exceeds what this process may still take
-(`mpnode_cli.memory.available_memory`), or whose fixed steps (`--fixed-dt`) exceed the
-solver's `max_steps` (every trajectory would stop there, unfinished). The CLI prints the
-estimate of a big or slow job and asks before a very big one (`cli.common.confirm_size`).
+trajectories with some number of solver steps. `SizeEstimate` holds what that costs: the
+file, the peak memory, the solver steps per trajectory and a rough time. `check_job`
+refuses, before anything is allocated, a job whose memory exceeds what this process may
+still take (`mpnode_cli.memory.available_memory`), or whose fixed steps (`--fixed-dt`)
+exceed the solver's `max_steps` (every trajectory would stop there, unfinished). The CLI
+prints the estimate of a big or slow job and asks before a very big one
+(`cli.common.confirm_size`).
 
 The time is a rough guide, measured on a shared 2-core machine: a right-hand-side
 evaluation costs `_SECONDS_PER_EVAL` for the batch plus `_SECONDS_PER_VALUE` per node state
@@ -60,7 +61,7 @@ _ADAPTIVE_STEPS = 30
 
 
 @dataclass(frozen=True)
-class Estimate:
+class SizeEstimate:
     """What a job will take, before it runs.
 
     Attributes:
@@ -104,7 +105,7 @@ def solver_steps(solver: SolverOptions | None, dt: float, samples: int) -> tuple
     return intervals * per_interval, True
 
 
-def check_job(size: Estimate, what: str, advice: str, *,
+def check_job(size: SizeEstimate, what: str, advice: str, *,
               solver: SolverOptions | None = None) -> None:
     """Refuse a job that cannot finish: more memory than this process may take, or more
     fixed steps than the solver's `max_steps`.
@@ -139,7 +140,7 @@ def check_steps(steps: int, solver: SolverOptions) -> None:
         "adaptive steps")
 
 
-def check_memory(size: Estimate, what: str, advice: str) -> None:
+def check_memory(size: SizeEstimate, what: str, advice: str) -> None:
     """Refuse a job whose memory estimate exceeds what this process may still take.
 
     Raises:
@@ -171,7 +172,7 @@ def graph_messages(system: Any, config: GenerateConfig) -> int:
     return min(drawn + hubs, n * (n - 1) * w)
 
 
-def generate_estimate(config: GenerateConfig, system: Any, k: int) -> Estimate:
+def generate_estimate(config: GenerateConfig, system: Any, k: int) -> SizeEstimate:
     """The estimate of generating `k` trajectories of a resolved config with `system`
     (its `state_names`, `control_names`, `sparse` and `graph_kwargs`).
 
@@ -196,9 +197,9 @@ def generate_estimate(config: GenerateConfig, system: Any, k: int) -> Estimate:
     steps, fixed = solver_steps(config.solver, config.dt, t)
     seconds = (_solve_seconds(config.solver, steps, k, chunk, n * d, messages)
                + (g * messages * _SECONDS_PER_BUILT_MESSAGE if built else 0.0))
-    return Estimate(file_bytes=values * store + graph_file,
-                    memory_bytes=memory + built, values=k * t * n * d,
-                    steps=steps, seconds=seconds, fixed=fixed)
+    return SizeEstimate(file_bytes=values * store + graph_file,
+                        memory_bytes=memory + built, values=k * t * n * d,
+                        steps=steps, seconds=seconds, fixed=fixed)
 
 
 def _solve_seconds(solver: SolverOptions | None, steps: int, k: int, batch: int,
@@ -215,7 +216,7 @@ def _solve_seconds(solver: SolverOptions | None, steps: int, k: int, batch: int,
 
 def simulate_estimate(ckpt: Any, k: int, t: int, n: int, dtype: str = "float32", *,
                       batch_size: int = 128, solver: SolverOptions | None = None,
-                      dt: float | None = None) -> Estimate:
+                      dt: float | None = None) -> SizeEstimate:
     """What rolling a checkpoint's model out for `k` trajectories of `t` samples on `n`
     nodes will take (approximate, on the large side), before anything is allocated.
 
@@ -235,7 +236,7 @@ def simulate_estimate(ckpt: Any, k: int, t: int, n: int, dtype: str = "float32",
     batch = (s - 1) * min(k, batch_size) * t  # the other members' samples of one batch
     store = 4 if dtype == "float32" else 8
     steps, fixed = solver_steps(solver, dt or 0.0, t) if dt else (max(t - 1, 1), False)
-    return Estimate(file_bytes=values * store,
-                    memory_bytes=(values + batch * n * (d + m)) * _BYTES_PER_VALUE
-                    + (k * t + batch) * _BYTES_PER_SAMPLE,
-                    values=k * t * n * d, steps=steps, fixed=fixed)
+    return SizeEstimate(file_bytes=values * store,
+                        memory_bytes=(values + batch * n * (d + m)) * _BYTES_PER_VALUE
+                        + (k * t + batch) * _BYTES_PER_SAMPLE,
+                        values=k * t * n * d, steps=steps, fixed=fixed)

@@ -3,8 +3,8 @@ and the verdict as the reports write it.
 
 A claim (`spec.Claim`) compares two numbers of the steps' results, `LEFT OP RIGHT`
 (`spec.parse_claim`). Run with `--seeds S`, every training is an ensemble and a claim is
-judged member by member and on the members' means (`members.decide`). A verdict also says
-what it rests on: training runs that did not learn (their test error not below the
+judged member by member and on the members' means (`members.decide_pairs`). A verdict also
+says what it rests on: training runs that did not learn (their test error not below the
 time-mean predictor's) or barely learned, and an MP-NODE that is not the paper's model.
 """
 
@@ -216,14 +216,14 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     it compares beat the time mean, `nothing_learned`, or it holds against one that did
     not, `beaten_unlearned`) or — (a number missing),
     followed by what it rests on: for an ensemble, how many members it holds for and
-    whether the means differ by more than their combined std (`members.decide`); the
+    whether the means differ by more than their combined std (`members.decide_pairs`); the
     runs (members) that did not beat the time mean or barely did, and Table-2 figures
     that are 0 or still improving at the budget's end (`run_notes`); and a model that is not
     the paper's (with `experiment`, to find the runs behind an evaluation).
 
     One model's results show their two numbers (`0.025 < 0.62`), an ensemble's their means
     ± std over the members."""
-    decision = decide(text, results)
+    decision = decide_claim(text, results)
     holds = {"holds": True, "fails": False}.get(decision.outcome or "")
     said = {"holds": "yes", "fails": "**no**", "undecided": "undecided"}.get(
         decision.outcome or "", "—")
@@ -239,12 +239,12 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     return holds, decision.shown(), said
 
 
-def decide(text: str, results: dict[str, dict[str, Any]]) -> members.Decision:
+def decide_claim(text: str, results: dict[str, dict[str, Any]]) -> members.Decision:
     """A claim judged on each member alone (member k of every step it names) and on the
-    members' means (`members.decide`); results without members are one member."""
+    members' means (`members.decide_pairs`); results without members are one member."""
     named = _named(text, results)
-    return members.decide([_sides(text, members.view(named, k))
-                           for k in range(members.count(named))], parse_claim(text)[1])
+    return members.decide_pairs([_sides(text, members.view(named, k))
+                                 for k in range(members.count(named))], parse_claim(text)[1])
 
 
 def judge(text: str, results: dict[str, dict[str, Any]]) -> tuple[bool | None, str]:
@@ -336,7 +336,7 @@ def _claimed_sides(text: str, draws: list[dict[str, dict[str, Any]]]) -> list | 
     with a number missing."""
     import numpy as np
 
-    per_draw = [decide(text, results).pairs for results in draws]
+    per_draw = [decide_claim(text, results).pairs for results in draws]
     if not per_draw or any(not pairs or None in (v for p in pairs for v in p)
                            for pairs in per_draw):
         return None

@@ -47,11 +47,11 @@ def from_work(line: str, work: Path) -> str:
     return line
 
 
-def generate(step, options: dict[str, Any], out: Path) -> str:
+def generate_line(step, options: dict[str, Any], out: Path) -> str:
     """`mpnode generate --preset P` and the fields where the resolved config differs from
     the preset's (the scale's sizes included)."""
     from mpnode_cli.config import GenerateConfig
-    from mpnode_cli.data.generate import resolve_config
+    from mpnode_cli.data.generate import resolve_generate_config
     from mpnode_cli.data.presets import get_preset
 
     config = options["config"]
@@ -59,7 +59,7 @@ def generate(step, options: dict[str, Any], out: Path) -> str:
     args: list[Any] = ["mpnode", "generate"]
     if step.preset:
         args += ["--preset", step.preset]
-        start = resolve_config(GenerateConfig(**get_preset(step.preset))).model_dump(
+        start = resolve_generate_config(GenerateConfig(**get_preset(step.preset))).model_dump(
             mode="json", exclude={"out"})
     else:
         args.append(config["system"])
@@ -73,8 +73,8 @@ def generate(step, options: dict[str, Any], out: Path) -> str:
     return _line([*args, *_options(changed), "--out", out])
 
 
-def train(step, options: dict[str, Any], data: Path, run_dir: Path,
-          checkpoint: Path | None) -> str:
+def train_line(step, options: dict[str, Any], data: Path, run_dir: Path,
+               checkpoint: Path | None) -> str:
     """`mpnode train DATA` (or `mpnode finetune CKPT DATA`) with the step's options."""
     head = (["mpnode", "finetune", checkpoint, data] if checkpoint is not None
             else ["mpnode", "train", data])
@@ -82,11 +82,11 @@ def train(step, options: dict[str, Any], data: Path, run_dir: Path,
     return _line([*head, *_options(fields), "--run-dir", run_dir])
 
 
-def zeroshot(checkpoint: Path, datasets: list[Path], split: str) -> str:
+def zeroshot_line(checkpoint: Path, datasets: list[Path], split: str) -> str:
     return _line(["mpnode", "zeroshot", checkpoint, *datasets, "--split", split])
 
 
-def evaluate(checkpoint: Path, data: Path, step) -> str:
+def evaluate_line(checkpoint: Path, data: Path, step) -> str:
     line = _line(["mpnode", "evaluate", checkpoint, data, "--split", step.split])
     notes = []
     if step.zero_messages:
@@ -98,5 +98,5 @@ def evaluate(checkpoint: Path, data: Path, step) -> str:
     return line + "".join(f"  # {n}" for n in notes)
 
 
-def compare(runs: list[Path]) -> str:
+def compare_line(runs: list[Path]) -> str:
     return _line(["mpnode", "compare", *runs])

@@ -35,7 +35,7 @@ HOW = ("Σ over the training steps of the paper's epochs × the seconds per epoc
 
 
 @dataclass
-class Estimate:
+class CoreHourEstimate:
     """An experiment's training at the paper's scale.
 
     Attributes:
@@ -62,11 +62,11 @@ class Estimate:
         return text + ("*" if self.resized else "")
 
 
-def paper_cost(experiment: spec.Experiment, reports: Path) -> Estimate:
+def paper_cost(experiment: spec.Experiment, reports: Path) -> CoreHourEstimate:
     """The estimate for `experiment` from its runs' records under `reports`."""
     records = _records(Path(reports) / experiment.name)
     by_id = {step.id: step for step in experiment.steps}
-    out = Estimate()
+    out = CoreHourEstimate()
     for step in experiment.steps:
         if step.verb not in spec.TRAINING:
             continue

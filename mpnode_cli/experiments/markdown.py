@@ -192,7 +192,7 @@ def _table2(steps: list[dict[str, Any]]) -> list[str]:
             # An ensemble's bar is its members' mean; "× the best" is of the means.
             values = [members.values(by_id[m]["result"], "table2") for m in runs]
             means = [None if stats is None else stats[0]
-                     for stats in map(members.mean_std, values)]
+                     for stats in map(members.mean_and_std, values)]
             best = min((v for v in means if v is not None), default=None)
             for m, value, mean in zip(runs, values, means, strict=True):
                 r, cost = by_id[m]["result"], curves.cost(by_id[m]["result"])
@@ -266,8 +266,8 @@ def _ratios(bases: list[Any], values: list[Any]) -> str:
     """Each member's `base ÷ value`, as mean ± std over the members (one: as `_ratio`)."""
     if len(values) == 1:
         return _ratio(bases[0], values[0])
-    stats = members.mean_std([None if b is None or v is None or not v > 0 else b / v
-                              for b, v in zip(bases, values, strict=True)])
+    stats = members.mean_and_std([None if b is None or v is None or not v > 0 else b / v
+                                  for b, v in zip(bases, values, strict=True)])
     return "—" if stats is None else f"{stats[0]:.3g} ± {stats[1]:.2g}"
 
 
@@ -276,7 +276,7 @@ def _pm(values: list[Any], digits: int = 4) -> str:
     one is missing."""
     if len(values) == 1:
         return _f(values[0], digits)
-    stats = members.mean_std(values)
+    stats = members.mean_and_std(values)
     if stats is None:
         return "—"
     return f"{_f(stats[0], digits)} ± {_f(stats[1], 2)}"

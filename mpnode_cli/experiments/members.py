@@ -8,7 +8,8 @@ result, each member's alone (a training's best epoch, minimum validation loss, T
 figure and test MSE; an evaluation's errors; a comparison's runs, member k of each). Member
 k of one step goes with member k of every other.
 
-A claim `LEFT OP RIGHT` is judged on each member alone and on the members' means (`decide`):
+A claim `LEFT OP RIGHT` is judged on each member alone and on the members' means
+(`decide_pairs`):
 
 - it **holds** when it holds for every member, or when the means differ by more than the
   combined std, sqrt(std_left² + std_right²), the claimed way;
@@ -73,7 +74,7 @@ def _number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-def mean_std(numbers: Sequence[Any]) -> tuple[float, float] | None:
+def mean_and_std(numbers: Sequence[Any]) -> tuple[float, float] | None:
     """Mean and population std of `numbers`; None if one is missing (not a number)."""
     if not numbers or not all(_number(x) for x in numbers):
         return None
@@ -83,7 +84,7 @@ def mean_std(numbers: Sequence[Any]) -> tuple[float, float] | None:
 
 def shown(numbers: Sequence[Any], digits: int = 4) -> str:
     """`0.1234 ± 0.012` over several members, `0.1234` for one, `—` with one missing."""
-    stats = mean_std(numbers)
+    stats = mean_and_std(numbers)
     if stats is None:
         return "—"
     mean, std = stats
@@ -137,13 +138,13 @@ class Decision:
                        0: "; the means differ by less than their combined std"}[self.apart]
 
 
-def decide(pairs: Sequence[tuple[float | None, float | None]], op: str) -> Decision:
+def decide_pairs(pairs: Sequence[tuple[float | None, float | None]], op: str) -> Decision:
     """The verdict of `LEFT op RIGHT` from each member's two sides (the module's rule)."""
     pairs = list(pairs)
     if not pairs or any(v is None for pair in pairs for v in pair):
         return Decision(None, pairs, op, 0, 0)
     held = sum(OPS[op](float(a), float(b)) for a, b in pairs)
-    left, right = mean_std([a for a, _ in pairs]), mean_std([b for _, b in pairs])
+    left, right = mean_and_std([a for a, _ in pairs]), mean_and_std([b for _, b in pairs])
     assert left is not None and right is not None  # every value is a number
     gap = right[0] - left[0] if op in ("<", "<=") else left[0] - right[0]
     combined = math.hypot(left[1], right[1])

@@ -111,7 +111,7 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
 def _claim(claim: spec.Claim, results: dict[str, Any],
            experiment: spec.Experiment) -> dict[str, Any]:
     holds, shown, said = claims.verdict(claim.holds, results, experiment)
-    decision = claims.decide(claim.holds, results)
+    decision = claims.decide_claim(claim.holds, results)
     out = {**claim.model_dump(), "holds_now": holds, "ours": shown, "verdict": said}
     if decision.members > 1:
         out |= {"outcome": decision.outcome, "held": decision.held,

@@ -1,7 +1,7 @@
 """Run an experiment's steps through the library, each in its own folder, resuming.
 
-`run_experiment` plans every step (`scheduler.plan`: its options, fingerprint and folder),
-takes them in order with any workers (`schedule`: a finished step is reused, an
+`run_experiment` plans every step (`scheduler.plan_steps`: its options, fingerprint and
+folder), takes them in order with any workers (`schedule`: a finished step is reused, an
 interrupted training resumed, a step another process holds left to it), runs each through
 its verb (`steps`) and returns the run's record for `report.write_report`.
 
@@ -27,15 +27,15 @@ from mpnode_cli import __version__
 from mpnode_cli.experiments.scheduler import (
     PENDING_JSON,
     STEP_JSON,
-    plan,
+    plan_steps,
     start_workers,
     stop_workers,
     take_steps,
 )
 from mpnode_cli.experiments.spec import Experiment, Scale
-from mpnode_cli.experiments.steps import Progress, StepFailed, StepRecord
+from mpnode_cli.experiments.steps import OnEvent, StepFailed, StepRecord
 
-__all__ = ["PENDING_JSON", "STEP_JSON", "RunRecord", "StepFailed", "StepRecord", "plan",
+__all__ = ["PENDING_JSON", "STEP_JSON", "RunRecord", "StepFailed", "StepRecord", "plan_steps",
            "run_experiment"]
 
 
@@ -61,7 +61,7 @@ class RunRecord:
 
 
 def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: Path,
-                   command: str = "", progress: Progress | None = None,
+                   command: str = "", progress: OnEvent | None = None,
                    jobs: int = 1, seeds: int = 1, draw: int = 0) -> RunRecord:
     """Run (or resume) every step of `experiment` at `scale` with `recipe`.
 
@@ -105,7 +105,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         machine["jobs"] = jobs
     start = time.perf_counter()
     started = datetime.now().isoformat(timespec="seconds")
-    steps = plan(experiment, scale, recipe, work, seeds, draw)
+    steps = plan_steps(experiment, scale, recipe, work, seeds, draw)
     token = uuid.uuid4().hex  # marks in step.json the steps this run's processes ran
     workers = start_workers(steps, token, jobs - 1)
     try:

@@ -43,7 +43,7 @@ from mpnode_cli.experiments.spec import Experiment, Scale, resolve
 from mpnode_cli.experiments.steps import (
     RUN_DIR,
     VERBS,
-    Progress,
+    OnEvent,
     StepFailed,
     StepRecord,
     line,
@@ -65,8 +65,8 @@ class Planned:
     folder: Path
 
 
-def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path,
-         seeds: int = 1, draw: int = 0) -> list[Planned]:
+def plan_steps(experiment: Experiment, scale: Scale, recipe: str, work: Path,
+               seeds: int = 1, draw: int = 0) -> list[Planned]:
     """Every step's options, fingerprint and folder, in the spec's order (a fingerprint
     depends on its inputs' fingerprints, not on their results, so nothing has to run);
     every training an ensemble of `seeds` members when that is over 1; the data of draw
@@ -88,7 +88,7 @@ def plan(experiment: Experiment, scale: Scale, recipe: str, work: Path,
     return list(planned.values())
 
 
-def take_steps(steps: list[Planned], token: str, emit: Progress) -> dict[str, StepRecord]:
+def take_steps(steps: list[Planned], token: str, emit: OnEvent) -> dict[str, StepRecord]:
     """Run or collect every step: repeatedly the first step, in order, that is not done,
     whose inputs are done and whose lock is free. When none is, other processes hold the
     steps that are ready: say so once (a `waiting` event for the first of them) and look
@@ -312,7 +312,7 @@ def resumable(folder: Path, fingerprint: str) -> bool:
 
 
 def run_step(step, options: dict[str, Any], fingerprint: str, folder: Path,
-             records: dict[str, StepRecord], status: str, emit: Progress,
+             records: dict[str, StepRecord], status: str, emit: OnEvent,
              token: str = "") -> StepRecord:
     """Run `step`'s verb in `folder` (cleared first unless `status` is "resumed") and
     record it in `step.json`, with the run's `token`.

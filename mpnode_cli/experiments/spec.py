@@ -345,7 +345,7 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
     options = step.options("small" if scale == "tiny" else scale)
     if step.verb == "generate":
         from mpnode_cli.config import GenerateConfig
-        from mpnode_cli.data.generate import resolve_config
+        from mpnode_cli.data.generate import resolve_generate_config
         from mpnode_cli.data.presets import get_preset, merge_layers
 
         preset = options.pop("preset", None)
@@ -359,7 +359,7 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
                                    for key in ("seed", "graph_seed")}}
         if scale == "tiny":
             fields = shrink_generate(fields)
-        config = resolve_config(_validated(GenerateConfig, {**fields, "out": "data.h5"}))
+        config = resolve_generate_config(_validated(GenerateConfig, {**fields, "out": "data.h5"}))
         return {"config": config.model_dump(mode="json", exclude={"out"})}
     if step.verb in TRAINING:
         from mpnode_cli.config import TrainConfig

@@ -24,7 +24,7 @@ from mpnode_cli.experiments import commands, curves, members
 from mpnode_cli.experiments.spec import TRAINING
 from mpnode_cli.jsonable import jsonable
 
-Progress = Callable[[dict[str, Any]], None]
+OnEvent = Callable[[dict[str, Any]], None]
 DATA_FILE, RUN_DIR = "data.h5", "run"
 FIGURE_DPI = 80
 
@@ -66,7 +66,7 @@ def _generate(step, options, folder: Path, inputs, status, emit):
               "samples": config.num_steps + 1, "dt": config.dt, "t_end": config.t_end,
               "seed": config.seed, "graph_seed": config.graph_seed,
               "seconds": summary.seconds}
-    return result, [DATA_FILE], [commands.generate(step, options, folder / DATA_FILE)], []
+    return result, [DATA_FILE], [commands.generate_line(step, options, folder / DATA_FILE)], []
 
 
 def _train(step, options, folder: Path, inputs, status, emit):
@@ -92,10 +92,10 @@ def _train(step, options, folder: Path, inputs, status, emit):
         raise ValueError(f"training diverged: {exc}") from None
     result = training_result(run_dir, data)
     return (result, [f"{RUN_DIR}/summary.json", f"{RUN_DIR}/checkpoints/best.pt"],
-            [commands.train(step, options, data, run_dir, fields.get("init_checkpoint"))], [])
+            [commands.train_line(step, options, data, run_dir, fields.get("init_checkpoint"))], [])
 
 
-def _forward(emit: Progress) -> Callable[[dict[str, Any]], None]:
+def _forward(emit: OnEvent) -> Callable[[dict[str, Any]], None]:
     return lambda event: emit({"event": "train", "event_data": event})
 
 
@@ -190,7 +190,7 @@ def _zeroshot(step, options, folder: Path, inputs, status, emit):
     if by_member:
         result[members.MEMBERS] = by_member
     return (result, [Path(f).name for f in figures],
-            [commands.zeroshot(_best(inputs[step.checkpoint]), paths, step.split)], figures)
+            [commands.zeroshot_line(_best(inputs[step.checkpoint]), paths, step.split)], figures)
 
 
 def _evaluate(step, options, folder: Path, inputs, status, emit):
@@ -231,7 +231,7 @@ def _evaluate(step, options, folder: Path, inputs, status, emit):
     if by_member:
         result[members.MEMBERS] = by_member
     return (result, [Path(f).name for f in figures],
-            [commands.evaluate(best, path, step)], figures)
+            [commands.evaluate_line(best, path, step)], figures)
 
 
 def _pca(ckpt, data, step, path: Path | None) -> dict[str, Any]:
@@ -264,7 +264,7 @@ def _compare(step, options, folder: Path, inputs, status, emit):
         figures.append(str(bars))
         result["groups"] = step.groups
     runs = [Path(inputs[i].folder) / RUN_DIR for i in step.runs]
-    return result, [Path(f).name for f in figures], [commands.compare(runs)], figures
+    return result, [Path(f).name for f in figures], [commands.compare_line(runs)], figures
 
 
 def _compared(results: dict[str, dict[str, Any]]) -> dict[str, Any]:
@@ -303,7 +303,7 @@ def plot_table2(step, labels: dict[str, str], table2: dict[str, list[float | Non
 
     first = next(iter(step.groups.values()))
     series = step.series or [labels[i] for i in first]
-    stats = {i: members.mean_std(values) for i, values in table2.items()}
+    stats = {i: members.mean_and_std(values) for i, values in table2.items()}
 
     def bars(pick: int) -> dict[str, dict[str, float | None]]:
         return {group: {series[j] if j < len(series) else labels[i]:

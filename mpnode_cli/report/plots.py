@@ -17,7 +17,7 @@ matplotlib.use("Agg")  # before pyplot: servers and CI have no display
 import matplotlib.pyplot as plt
 import numpy as np
 
-MAX_NODES = 6  # columns of a rollout figure; larger graphs show their first nodes
+MAX_FIGURE_NODES = 6  # columns of a rollout figure; larger graphs show their first nodes
 DPI = 110
 # The naive predictors an error plot draws beside the model, as its tables name them
 # (`mpnode_cli.training.baselines`).
@@ -51,7 +51,7 @@ def plot_rollout(time, true, pred, messages, state_names: Sequence[str], path: s
     if pred is not None:
         curves.append((_np(pred), labels[1], {"color": "tab:red", "ls": "--"}))
     band = None if pred is None or spread is None else (_np(pred), 2 * _np(spread))
-    nodes, dims = min(true.shape[1], MAX_NODES), true.shape[2]
+    nodes, dims = min(true.shape[1], MAX_FIGURE_NODES), true.shape[2]
     shown = (f"all {nodes} nodes" if nodes == true.shape[1]
              else f"nodes 0–{nodes - 1} of {true.shape[1]}")
     title = f"{title} · {shown}" if title else shown

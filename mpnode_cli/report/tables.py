@@ -82,7 +82,7 @@ def versus(baseline: Any, mse: Any) -> str:
     return f"{fmt(baseline)} (×{fmt(baseline / mse, 3)})"
 
 
-def mean_std(mean: Any, std: Any) -> str:
+def format_mean_std(mean: Any, std: Any) -> str:
     """`1.234 ± 0.05`; '—' when the mean is missing."""
     if fmt(mean) == "—":
         return "—"
@@ -94,8 +94,8 @@ def members_mse(result: dict[str, Any] | None) -> str:
     model's."""
     if not (result or {}).get("members"):
         return "—"
-    return mean_std((result.get("members_mean") or {}).get("mse"),
-                    (result.get("members_std") or {}).get("mse"))
+    return format_mean_std((result.get("members_mean") or {}).get("mse"),
+                           (result.get("members_std") or {}).get("mse"))
 
 
 def _ensemble_rows(result: dict[str, Any], prefix: str = "") -> list[tuple[str, str]]:

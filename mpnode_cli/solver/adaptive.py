@@ -114,7 +114,7 @@ class Attempt(NamedTuple):
     y: torch.Tensor  # [B, F] state at the step start
     hk: torch.Tensor | None = None  # [s, B, F] the stages h·k_i (recorded steps)
     f_new: torch.Tensor | None = None  # [B, *S] f at the new state (fused steps)
-    rec: object = None  # the fused step's `StepRecord`, which `end_step` finishes
+    rec: object = None  # the fused step's `TapeRecord`, which `end_step` finishes
 
 
 def _rms(x: torch.Tensor) -> torch.Tensor:

@@ -19,7 +19,7 @@ sample (accepted or not) and writes the dense outputs; `_Outputs` hands the resu
 gradient to the `_End` nodes. f stays on autograd's tape between them, so gradients with
 respect to its parameters are autograd's own.
 
-The nodes of one step share a `StepRecord` (and those of one solve a `StepTape`): a
+The nodes of one step share a `TapeRecord` (and those of one solve a `StepTape`): a
 node's backward adds to the buffer that an earlier-stage node's backward reads. That
 order is autograd's own: the input of stage i + 1 depends on k_i = f(Y_i), so its node's
 backward always runs before that of stage i. The backward is not itself differentiable:
@@ -74,7 +74,7 @@ class StepTape:
 
 
 @dataclass
-class StepRecord:
+class TapeRecord:
     """One step's share of the tape: its per-sample step size, its end's selection and
     dense-output lanes, and the adjoint buffer its backward builds.
 
@@ -121,7 +121,7 @@ def _first_order_only() -> None:
                            "derivatives (create_graph=True) pass fused=False")
 
 
-def _store(rec: StepRecord, i: int, k: torch.Tensor) -> None:
+def _store(rec: TapeRecord, i: int, k: torch.Tensor) -> None:
     """`hk[i] = h·k`, from f's `[B, *S]` values or k₁'s `[B, F]`."""
     row = rec.tape.rows[i]
     if k.shape == row.shape:
@@ -130,7 +130,7 @@ def _store(rec: StepRecord, i: int, k: torch.Tensor) -> None:
         torch.mul(k.reshape(rec.hc.shape[0], -1), rec.hc, out=rec.tape.hk[i])
 
 
-def _stage_input(rec: StepRecord, i: int, k_prev: torch.Tensor) -> torch.Tensor:
+def _stage_input(rec: TapeRecord, i: int, k_prev: torch.Tensor) -> torch.Tensor:
     """Store h·k_{i−1} and return stage i's input y + Σ_{j<i} a_ij·h·k_j, `[B, *S]`."""
     tape = rec.tape
     _store(rec, i - 1, k_prev)
@@ -148,7 +148,7 @@ class _Stage(torch.autograd.Function):
     that ignores the state), and a None gradient costs autograd nothing."""
 
     @staticmethod
-    def forward(ctx, rec: StepRecord, i: int, k_prev: torch.Tensor, prev: torch.Tensor):
+    def forward(ctx, rec: TapeRecord, i: int, k_prev: torch.Tensor, prev: torch.Tensor):
         ctx.set_materialize_grads(False)
         ctx.rec, ctx.i, ctx.k_shape = rec, i, k_prev.shape
         return _stage_input(rec, i, k_prev)
@@ -181,7 +181,7 @@ def fused_stages(fun: RHS, tab: StageTableau, tape: StepTape, t: torch.Tensor,
     """
     hc = h.to(y.dtype)[:, None]  # (B, 1)
     with torch.no_grad():
-        rec = StepRecord(tape, hc, hc.view(tape.shape[:1] + (1,) * (len(tape.shape) - 1)), y,
+        rec = TapeRecord(tape, hc, hc.view(tape.shape[:1] + (1,) * (len(tape.shape) - 1)), y,
                          k1, y.view(-1))
     t_left = torch.nextafter(t_end, tab.neg_inf)
     tcs = (*torch.addcmul(t[:, None], h[:, None], tab.c_inner).unbind(1),
@@ -202,7 +202,7 @@ def fused_stages(fun: RHS, tab: StageTableau, tape: StepTape, t: torch.Tensor,
     return rec, rec.y_new, err, fi
 
 
-def _end(rec: StepRecord, k_last: torch.Tensor):
+def _end(rec: TapeRecord, k_last: torch.Tensor):
     """The next `(y, k₁)`, each `[B, F]`: the step's end where accepted, its start where not;
     and the dense outputs the step crossed, written into `tape.out`."""
     tape = rec.tape
@@ -220,7 +220,7 @@ class _End(torch.autograd.Function):
     `_Stage`): y_new's adjoint goes into the step's buffer."""
 
     @staticmethod
-    def forward(ctx, rec: StepRecord, k_last: torch.Tensor, last: torch.Tensor):
+    def forward(ctx, rec: TapeRecord, k_last: torch.Tensor, last: torch.Tensor):
         ctx.set_materialize_grads(False)
         ctx.rec, ctx.k_shape = rec, k_last.shape
         return _end(rec, k_last)
@@ -252,7 +252,7 @@ class _End(torch.autograd.Function):
         return None, gk_last.view(ctx.k_shape), None
 
 
-def end_step(rec: StepRecord, f_new: torch.Tensor, accept: torch.Tensor,
+def end_step(rec: TapeRecord, f_new: torch.Tensor, accept: torch.Tensor,
              rows: torch.Tensor | None = None, coef: torch.Tensor | None = None):
     """Finish a step of `fused_stages`: the next `(y, k₁)`, each `[B, F]`.
 

@@ -106,7 +106,7 @@ class Quadrotor(System):
         Returns:
             `(y0 [k, N, 13], inputs)` with inputs `start [k, 3]`, `goal [k, 3]` (load
             positions), `phase [k]` (rad), `timing [k, 8]` (uniform draws in [0, 1) that
-            `quadrotor_flight.plan` turns into seconds).
+            `quadrotor_flight.plan_reference` turns into seconds).
         """
         import torch
 

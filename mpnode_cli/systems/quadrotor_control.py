@@ -124,11 +124,11 @@ class Reference:
     """The planned flight of B swarms: load path and formation, with derivatives.
 
     A quad's polar angle and azimuth each blend between circle and fan by minimum jerk, on
-    their own schedules (`timing`); `quadrotor_flight.plan` chooses them. With an even
-    number of quads the fold runs in two phases so that no two quads meet: first each quad
-    moves along its meridian to its slot's polar angle (keeping its circle azimuth, 360°/N
-    from its neighbours), then it turns about the vertical to its fan side (the quads now
-    sit at polar angles a slot spacing apart, and the two at the same angle are opposite
+    their own schedules (`timing`); `quadrotor_flight.plan_reference` chooses them. With an
+    even number of quads the fold runs in two phases so that no two quads meet: first each
+    quad moves along its meridian to its slot's polar angle (keeping its circle azimuth,
+    360°/N from its neighbours), then it turns about the vertical to its fan side (the quads
+    now sit at polar angles a slot spacing apart, and the two at the same angle are opposite
     each other and turn the same way). Each phase keeps opposite quads opposite, so the
     cables can always hold the load with positive tensions. With an odd number there are no
     opposite pairs, and the two blends run together (for three quads this is close to

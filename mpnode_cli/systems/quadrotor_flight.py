@@ -1,8 +1,8 @@
 """A batch of quadrotor-swarm flights: plan, fly closed-loop, check.
 
-`plan` turns a flight's random draws into a collision-free `Reference`; `fly` runs the
-digital controller every `CONTROL_DT` with the rotor forces held in between, integrates the
-physics with our Tsit5 over each hold (so no step crosses a control update), samples the
+`plan_reference` turns a flight's random draws into a collision-free `Reference`; `fly` runs
+the digital controller every `CONTROL_DT` with the rotor forces held in between, integrates
+the physics with our Tsit5 over each hold (so no step crosses a control update), samples the
 dataset at the output times and checks every control update (`clearances`).
 """
 
@@ -53,7 +53,8 @@ PLAN_ROUNDS = 40
 MIN_HORIZON = 8.0  # s
 
 
-def plan(inputs: dict[str, torch.Tensor], horizon: float, n: int, cable: float) -> Reference:
+def plan_reference(inputs: dict[str, torch.Tensor], horizon: float, n: int, cable: float
+                   ) -> Reference:
     """The reference of each flight, timed so that it clears the doorway by `PLAN_MARGIN`.
 
     Timing, from the uniform draws u₀..u₇ (seconds for a 10 s horizon, scaled with it). Each
@@ -182,7 +183,7 @@ def fly(params: dict[str, float], y0: torch.Tensor, ts: torch.Tensor,
         )
     p = QuadParams(params)
     batch, n = y0.shape[:2]
-    ref = plan(inputs, float(ts[-1]), n, p.cable)
+    ref = plan_reference(inputs, float(ts[-1]), n, p.cable)
     pilot = _Pilot(Controller(ref, p), p, n, batch, y0.dtype)
     load0 = torch.cat((inputs["start"], torch.zeros_like(inputs["start"])), dim=1)
     y = torch.cat((y0.reshape(batch, -1), load0, torch.zeros(batch, n, dtype=y0.dtype)), 1)

@@ -74,13 +74,13 @@ from mpnode_cli.training.evaluate import evaluate
 from mpnode_cli.training.finish import count_parameters, finish
 from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.lr_schedule import LRSchedule
-from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_config
+from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_train_config
 from mpnode_cli.training.run_folder import RunFolder
-from mpnode_cli.training.setup import Progress, Run, load_data, member_state, set_up
+from mpnode_cli.training.setup import OnEvent, Run, load_data, member_state, set_up
 
-# What other modules use; `resolve_config` lives in the recipe module and is named here
-# too (the recipe also holds `resolve_compile`: the two steps that settle a config).
-__all__ = ["TrainingDiverged", "TrainingInterrupted", "resolve_config", "train"]
+# What other modules use; `resolve_train_config` lives in the recipe module and is named
+# here too (the recipe also holds `resolve_compile`: the two steps that settle a config).
+__all__ = ["TrainingDiverged", "TrainingInterrupted", "resolve_train_config", "train"]
 
 
 class TrainingInterrupted(Exception):
@@ -112,7 +112,7 @@ class StepResult(NamedTuple):
 
 
 def train(config: TrainConfig, *, resume: bool = False,
-          progress: Progress | None = None,
+          progress: OnEvent | None = None,
           finished_ok: bool = False) -> runs.TrainSummary | None:
     """Train (or finetune, or resume) as `config` says; write the run folder.
 
@@ -134,7 +134,7 @@ def train(config: TrainConfig, *, resume: bool = False,
         return _train(config, resume, progress, folder, finished_ok)
 
 
-def _train(config: TrainConfig, resume: bool, progress: Progress | None, folder: RunFolder,
+def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: RunFolder,
            finished_ok: bool = False) -> runs.TrainSummary | None:
     """`train`'s body; `folder` holds the run folder (rank 0's) while it lasts."""
     world = distributed.world()

@@ -44,7 +44,7 @@ from mpnode_cli.config import train_solver
 from mpnode_cli.config_upgrade import stored_solver
 from mpnode_cli.data.fingerprint import fingerprint
 from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, write_dataset
-from mpnode_cli.data.size import Estimate, check_job, simulate_estimate
+from mpnode_cli.data.size import SizeEstimate, check_job, simulate_estimate
 from mpnode_cli.graphs import Graphs
 from mpnode_cli.memory import naming_memory
 from mpnode_cli.models.base import model_dtype
@@ -306,7 +306,7 @@ class SimulateSummary:
 
 
 def simulate(config, *, overwrite: bool = False,
-             confirm: Callable[[Estimate, str], None] | None = None,
+             confirm: Callable[[SizeEstimate, str], None] | None = None,
              progress: Progress | None = None) -> SimulateSummary:
     """Roll a checkpoint's model out from a user's initial states on a user's graph, and
     write the predictions (`mpnode simulate`). No ground truth is needed.

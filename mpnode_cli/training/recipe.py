@@ -14,7 +14,8 @@ A run's config is resolved in this order (later wins):
 3. a `--config` file; 4. command-line options.
 Fields given at steps 3–4 are those in `TrainConfig.model_fields_set`; the resolved config
 (every field explicit) is what a run folder's `config.json` keeps, so a resume never
-re-applies a recipe. `resolve_config` applies the recipe and checks the model's options.
+re-applies a recipe. `resolve_train_config` applies the recipe and checks the model's
+options.
 """
 
 from __future__ import annotations
@@ -122,7 +123,7 @@ def resolve_recipe(config: TrainConfig, system: str, stored: dict[str, Any] | No
     return config.model_copy(update=update)
 
 
-def resolve_config(config: TrainConfig, data: TrajectoryData) -> TrainConfig:
+def resolve_train_config(config: TrainConfig, data: TrajectoryData) -> TrainConfig:
     """Fill what `config` was not given from its recipe (for `data`), then check the model
     and its options and fill in the options' defaults.
 

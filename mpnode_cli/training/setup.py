@@ -49,11 +49,11 @@ from mpnode_cli.training.compat import check_compatible
 from mpnode_cli.training.extrapolation import training_range
 from mpnode_cli.training.losses import dataset_loss_scale
 from mpnode_cli.training.optim import Adam
-from mpnode_cli.training.recipe import resolve_config
+from mpnode_cli.training.recipe import resolve_train_config
 from mpnode_cli.training.resume import check_resumable
 from mpnode_cli.training.run_folder import RunFolder
 
-Progress = Callable[[dict[str, Any]], None]
+OnEvent = Callable[[dict[str, Any]], None]
 
 
 @dataclass
@@ -139,7 +139,7 @@ class Run:
     config: TrainConfig
     run_dir: Path
     world: distributed.World
-    emit: Progress
+    emit: OnEvent
     datas: list[TrajectoryData | StreamedTrajectories]
     names: list[str]
     train_sets: list[TrajectoryData | StreamedTrajectories]
@@ -182,7 +182,7 @@ class RunData:
 
     config: TrainConfig
     world: distributed.World
-    emit: Progress
+    emit: OnEvent
     datas: list[TrajectoryData | StreamedTrajectories]
     train_sets: list[TrajectoryData | StreamedTrajectories]
     val_sets: list[TrajectoryData | StreamedTrajectories]
@@ -190,7 +190,7 @@ class RunData:
 
 
 def load_data(config: TrainConfig, resume: bool, world: distributed.World,
-              emit: Progress) -> RunData:
+              emit: OnEvent) -> RunData:
     """The datasets and their splits, and the config with their absolute paths (so that a
     run can be resumed and evaluated from any folder), resolved for the first (a resumed
     run's config.json is resolved already).
@@ -210,7 +210,7 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
         {"init_checkpoint": Path(config.init_checkpoint).resolve()}
         if config.init_checkpoint is not None else {}))
     if not resume:
-        config = resolve_config(config, datas[0])
+        config = resolve_train_config(config, datas[0])
     longest = max(d.time.numel() for d in datas)  # fixed steps a rollout of them all takes
     check_steps(solver_steps(config.solver, float(datas[0].time[1] - datas[0].time[0]),
                              longest)[0], config.solver)
