@@ -82,6 +82,9 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # robustly scaled states gives them back theirs.
     "hub-coverage-balanced-asinh-inputs": ("--balance-datasets", "--input-scale", "asinh",
                                            "--linear-path"),
+    # The same without the linear path (which, seeing the z-scores of hubs, made the
+    # learned field stiff and its gradients blow up within 30 epochs: docs/transfer.md).
+    "hub-coverage-balanced-asinh-scale": ("--balance-datasets", "--input-scale", "asinh"),
     # Degree coverage with the source trained as long as the oracles may train: their
     # epoch cap, with no early stop, so that zero-shot and oracle get the same epochs.
     "hub-coverage-oracle-epochs": (),
@@ -253,7 +256,8 @@ COVERAGE_VARIANTS = ("hub-coverage", "hub-coverage-long", "hub-coverage-node-mse
                      "hub-coverage-periodic", "hub-coverage-asinh", "hub-coverage-asinh-inputs",
                      "hub-coverage-asinh-inputs-long", "hub-coverage-periodic-off",
                      "hub-coverage-balanced", "hub-coverage-balanced-long",
-                     "hub-coverage-balanced-asinh-inputs", "hub-coverage-oracle-epochs")
+                     "hub-coverage-balanced-asinh-inputs", "hub-coverage-balanced-asinh-scale",
+                     "hub-coverage-oracle-epochs")
 LONG_VARIANTS = ("default-long", "hub-coverage-long", "hub-coverage-asinh-inputs-long",
                  "hub-coverage-balanced-long")
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
