@@ -124,7 +124,7 @@ def run_command(
                                "file of one.", autocompletion=_complete_name,
                                show_default=False),
     scale: str = typer.Option(
-        "small", help="small (18-80 minutes each on one core: experiment list), paper "
+        "small", help="small (18-136 minutes each on one core: experiment list), paper "
         "(the paper's sizes and epochs) or tiny (a smoke test: a few trajectories, two "
         "epochs)."),
     recipe: str = typer.Option(
