@@ -389,7 +389,9 @@ class TrainConfig(BaseModel):
     wrap_angles: bool = Field(False, description=(
         "Take the training loss and every error (validation, evaluate, zeroshot, the "
         "baselines) of the states the dataset declares periodic mod 2π, as the wrapped "
-        "difference atan2(sin Δ, cos Δ); off: plain differences, comparable with before."))
+        "difference atan2(sin Δ, cos Δ): for angles defined only mod 2π, such as "
+        "Kuramoto's phases, where a whole turn is no error. Off: plain differences, as "
+        "runs made without this option report."))
     balance_datasets: bool = Field(False, description=(
         "Several datasets: weigh each one's loss (training, and the validation that picks "
         "the best epoch) by 1 / its normalized states' variance; off: all values alike."))
