@@ -47,6 +47,13 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # The same, with the loss and every error of those angles taken mod 2π
     # (`--wrap-angles`): a phase slip of 2π costs nothing, as the physics says.
     "periodic-wrapped": ("--periodic", "embed", "--wrap-angles"),
+    # The same, with the gains linear in the node's own inputs and a linear path beside
+    # each network (`--gain linear --linear-path`): the swing equation's and Kuramoto's
+    # coupling, K (cos θ_i sin θ_j − sin θ_i cos θ_j), is then expressed exactly by a gain
+    # linear in (sin θ_i, cos θ_i) times senders' (sin θ_j, cos θ_j), and the grid's drift
+    # ω̇ = P − γω by the linear path: what the tanh networks must otherwise approximate.
+    "periodic-wrapped-linear": ("--periodic", "embed", "--wrap-angles", "--gain", "linear",
+                                "--linear-path"),
     # The angles fed as they are: the recipe before its `--periodic auto` (rows of angle
     # systems labelled `default` before that change are kept under these two names).
     "periodic-off": ("--periodic", "off"),
