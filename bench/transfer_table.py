@@ -200,10 +200,16 @@ HEAD = ("| set | system | protocol | variant | target | N: source → target (da
 
 
 def bins_of(record: dict[str, Any]) -> list[dict[str, Any]]:
-    """A score's in-degree bins: from its per-node arrays where the record has them (local
-    records), else as stored (the committed copy)."""
+    """A score's in-degree bins as stored, computed when it was scored from the full-precision
+    per-node values; from its packed per-node arrays only where a record has no stored bins.
+    The packed arrays are rounded (`PER_NODE`'s dtypes: the share outside as float16), so
+    bins taken from them would differ in the third or fourth digit from the committed copy's,
+    and a table rebuilt on a fresh clone would not be the table the bench wrote."""
+    stored = record["score"].get("by_degree")
+    if stored is not None:
+        return stored
     nodes = unpack_nodes(record["score"])
-    return by_degree(nodes) if nodes is not None else record["score"]["by_degree"]
+    return by_degree(nodes) if nodes is not None else []
 
 
 def degree_table(key: tuple, kinds: dict[str, dict[int, dict]]) -> list[str]:
