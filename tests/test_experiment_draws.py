@@ -45,6 +45,9 @@ def test_the_interval_of_identical_draws_is_their_margin_the_claimed_way():
     assert claims.interval("off.test.mse > on.test.mse", draws) == pytest.approx((3, 3, 3))
     assert claims.interval("on.test.mse < 0.2", draws) == pytest.approx((2, 2, 2))
     assert claims.interval("on.test.mse < other.test.mse", draws) is None  # missing
+    # A draw that lacks a step (added after it ran) is left out, not the whole claim.
+    partial = [{"on": {"test": {"mse": 0.1}}}, *draws]
+    assert claims.interval("on.test.mse < off.test.mse", partial) == pytest.approx((3, 3, 3))
 
 
 def test_two_draws_of_one_model_each_bound_the_interval_by_their_own_margins():
@@ -54,6 +57,24 @@ def test_two_draws_of_one_model_each_bound_the_interval_by_their_own_margins():
     margin, lower, upper = claims.interval("on.test.mse < off.test.mse", draws)
     assert margin == pytest.approx(0.7 / 0.3)
     assert (lower, upper) == pytest.approx((1.5, 4.0))
+
+
+def test_a_side_of_mean_zero_leaves_the_interval_unbounded_not_undefined():
+    """A finetune whose best epoch is 0 has a Table-2 figure of 0: a resample of only such
+    draws has an infinite ratio. Two draws: a quarter of the resamples take the zero draw
+    twice (ratio ∞), a half one of each ((0.3 + 0.4) / 0.1 = 7), a quarter the other twice
+    (4), so the 97.5th percentile lies between two infinite ratios: ∞, where
+    interpolating gave NaN."""
+    draws = [_results(0.0, 0.3), _results(0.1, 0.4)]
+    margin, lower, upper = claims.interval("on.test.mse < off.test.mse", draws)
+    assert margin == pytest.approx(7.0)
+    assert lower == pytest.approx(4.0)
+    assert upper == float("inf")
+    lines = draws_sections([{"scale": "small", "recipe": "mpnode", "draw": d,
+                             "steps": [{"id": k, "result": v} for k, v in r.items()]}
+                            for d, r in enumerate(draws)],
+                           [("on beats off", "on.test.mse < off.test.mse")])
+    assert "| on beats off | —, 4 | 7 | 4–∞ |" in lines
 
 
 def test_members_are_resampled_within_their_draw():

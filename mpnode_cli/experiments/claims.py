@@ -296,11 +296,14 @@ def interval(text: str, draws: list[dict[str, dict[str, Any]]]
     `BOOTSTRAP_RESAMPLES`, seeded).
 
     Args:
-        draws: each data draw's results (step id → results), one draw's run each.
+        draws: each data draw's results (step id → results), one draw's run each; a draw
+            without the claim's numbers is left out.
 
     Returns:
         (ratio on all pairs, lower, upper), or None with a number missing or a side's mean
-        not positive.
+        not positive. A resample whose side claimed lower has mean 0 (a Table-2 figure
+        of a best epoch 0) has an infinite ratio, so a bound may be `inf`: the data do not
+        bound the margin from that side.
     """
     import numpy as np
 
@@ -315,8 +318,22 @@ def interval(text: str, draws: list[dict[str, dict[str, Any]]]
                  for d in rng.integers(0, len(sides), len(sides))]
         low, high = np.concatenate(taken).mean(axis=0)
         ratios[b] = high / low if low > 0 else np.inf
-    lower, upper = np.percentile(ratios, [2.5, 97.5])
+    # Interpolating between two infinite ratios gives NaN (∞ − ∞); the bound there is ∞.
+    with np.errstate(invalid="ignore"):
+        bounds = np.percentile(ratios, [2.5, 97.5])
+    lower, upper = np.nan_to_num(bounds, nan=np.inf, posinf=np.inf)
     return found, float(lower), float(upper)
+
+
+def draws_with_numbers(text: str, draws: list[dict[str, dict[str, Any]]]) -> int:
+    """How many of `draws` have every number the claim names (`interval` uses those)."""
+    sides = _claimed_sides(text, draws)
+    return 0 if sides is None else len(sides)
+
+
+def format_bound(value: float) -> str:
+    """A margin or an interval's bound: 3 significant digits, ∞ where it is unbounded."""
+    return "∞" if value == float("inf") else f"{value:.3g}"
 
 
 def margin(text: str, draws: list[dict[str, dict[str, Any]]]) -> float | None:
@@ -332,13 +349,14 @@ def margin(text: str, draws: list[dict[str, dict[str, Any]]]) -> float | None:
 
 
 def _claimed_sides(text: str, draws: list[dict[str, dict[str, Any]]]) -> list | None:
-    """Each draw's pairs as an array `[S, 2]`: (the side claimed lower, the other); None
-    with a number missing."""
+    """Each draw's pairs as an array `[S, 2]`: (the side claimed lower, the other), of the
+    draws that have every number (a step added after a draw ran has none there); None
+    where no draw has them all."""
     import numpy as np
 
-    per_draw = [decide_claim(text, results).pairs for results in draws]
-    if not per_draw or any(not pairs or None in (v for p in pairs for v in p)
-                           for pairs in per_draw):
+    per_draw = [pairs for pairs in (decide_claim(text, results).pairs for results in draws)
+                if pairs and None not in (v for p in pairs for v in p)]
+    if not per_draw:
         return None
     flip = parse_claim(text)[1] in (">", ">=")
     return [np.array(pairs, dtype=float)[:, ::-1] if flip else np.array(pairs, dtype=float)

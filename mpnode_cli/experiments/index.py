@@ -139,11 +139,14 @@ def _over_draws(text: str, runs: list[dict[str, Any]], run: dict[str, Any]) -> s
     group = [r for r in runs if (r["scale"], r["recipe"]) == (run["scale"], run["recipe"])]
     if len(group) < 2:
         return ""
-    found = claims.interval(text, [step_results(r) for r in group])
+    draws = [step_results(r) for r in group]
+    counted = claims.draws_with_numbers(text, draws)
+    found = claims.interval(text, draws) if counted > 1 else None
     if found is None:
         return f"; over {len(group)} data draws: —"
-    return (f"; over {len(group)} data draws, margin {found[0]:.3g} (95%: "
-            f"{found[1]:.3g}–{found[2]:.3g})")
+    low, high = (claims.format_bound(v) for v in found[1:])
+    return (f"; over {counted} data draws, margin {claims.format_bound(found[0])} (95%: "
+            f"{low}–{high})")
 
 
 def _shown_runs(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -12,7 +12,7 @@ import math
 from typing import Any
 
 from mpnode_cli.experiments import curves, members
-from mpnode_cli.experiments.claims import interval, margin
+from mpnode_cli.experiments.claims import draws_with_numbers, format_bound, interval, margin
 from mpnode_cli.experiments.saved import run_folder, step_results
 from mpnode_cli.experiments.spec import TRAINING
 
@@ -300,15 +300,19 @@ def draws_sections(runs: list[dict[str, Any]], claims: list[tuple[str, str]]) ->
                   f"Draws {numbers} (each its own graphs, initial states and split; "
                   "`--draw`). The margin is the ratio of a claim's two sides' means, the "
                   "claimed way (above 1 holds); the interval is a 95% bootstrap over the "
-                  "draws and, within each, the seeds.", "",
+                  "draws that have the claim's numbers and, within each, the seeds. — on a "
+                  "draw: no margin there (the claim's steps did not run on it, or a side's "
+                  "mean is 0, as a Table-2 figure of best epoch 0 is); ∞: the resamples "
+                  "that take only such zeros leave the margin unbounded.", "",
                   "| claim | margin per draw | margin over draws and seeds | 95% interval |",
                   "|---|---|---|---|"]
         for claim, text in claims:
             each = [margin(text, [d]) for d in draws]
-            whole = interval(text, draws)
-            per = ", ".join("—" if e is None else f"{e:.3g}" for e in each)
+            # Over draws only where two or more have the claim's numbers.
+            whole = interval(text, draws) if draws_with_numbers(text, draws) > 1 else None
+            per = ", ".join("—" if e is None else format_bound(e) for e in each)
             shown = ("—", "—") if whole is None else (
-                f"{whole[0]:.3g}", f"{whole[1]:.3g}–{whole[2]:.3g}")
+                format_bound(whole[0]), f"{format_bound(whole[1])}–{format_bound(whole[2])}")
             lines.append(f"| {claim} | {per} | {shown[0]} | {shown[1]} |")
         lines.append("")
     return lines
