@@ -12,7 +12,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from transfer_score import by_degree, unpack_nodes
 from transfer_specs import SETS, SYSTEMS, per_degree, set_of
 
 LABELS = ("own", "x2", "x4", "other", "n256", "n512", "n1024", "n2048", "n4096", "n8192")
@@ -200,16 +199,11 @@ HEAD = ("| set | system | protocol | variant | target | N: source → target (da
 
 
 def bins_of(record: dict[str, Any]) -> list[dict[str, Any]]:
-    """A score's in-degree bins as stored, computed when it was scored from the full-precision
-    per-node values; from its packed per-node arrays only where a record has no stored bins.
-    The packed arrays are rounded (`PER_NODE`'s dtypes: the share outside as float16), so
-    bins taken from them would differ in the third or fourth digit from the committed copy's,
-    and a table rebuilt on a fresh clone would not be the table the bench wrote."""
-    stored = record["score"].get("by_degree")
-    if stored is not None:
-        return stored
-    nodes = unpack_nodes(record["score"])
-    return by_degree(nodes) if nodes is not None else []
+    """A score's in-degree bins as stored when it was scored, from the full-precision
+    per-node values. Not from the record's packed per-node arrays: those are rounded
+    (`PER_NODE`'s dtypes: the share outside as float16), and a table taken from them
+    would differ in the third or fourth digit from the one a fresh clone rebuilds."""
+    return record["score"]["by_degree"]
 
 
 def degree_table(key: tuple, kinds: dict[str, dict[int, dict]]) -> list[str]:

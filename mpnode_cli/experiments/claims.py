@@ -325,10 +325,13 @@ def interval(text: str, draws: list[dict[str, dict[str, Any]]]
     return found, float(lower), float(upper)
 
 
-def draws_with_numbers(text: str, draws: list[dict[str, dict[str, Any]]]) -> int:
-    """How many of `draws` have every number the claim names (`interval` uses those)."""
+def over_draws(text: str, draws: list[dict[str, dict[str, Any]]]
+               ) -> tuple[int, tuple[float, float, float] | None]:
+    """How many of `draws` have every number the claim names, and its `interval` over
+    them where two or more do (None otherwise: one draw is no spread of draws)."""
     sides = _claimed_sides(text, draws)
-    return 0 if sides is None else len(sides)
+    counted = 0 if sides is None else len(sides)
+    return counted, interval(text, draws) if counted > 1 else None
 
 
 def format_bound(value: float) -> str:

@@ -139,9 +139,7 @@ def _over_draws(text: str, runs: list[dict[str, Any]], run: dict[str, Any]) -> s
     group = [r for r in runs if (r["scale"], r["recipe"]) == (run["scale"], run["recipe"])]
     if len(group) < 2:
         return ""
-    draws = [step_results(r) for r in group]
-    counted = claims.draws_with_numbers(text, draws)
-    found = claims.interval(text, draws) if counted > 1 else None
+    counted, found = claims.over_draws(text, [step_results(r) for r in group])
     if found is None:
         return f"; over {len(group)} data draws: —"
     low, high = (claims.format_bound(v) for v in found[1:])

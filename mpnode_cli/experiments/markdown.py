@@ -12,7 +12,7 @@ import math
 from typing import Any
 
 from mpnode_cli.experiments import curves, members
-from mpnode_cli.experiments.claims import draws_with_numbers, format_bound, interval, margin
+from mpnode_cli.experiments.claims import format_bound, margin, over_draws
 from mpnode_cli.experiments.saved import run_folder, step_results
 from mpnode_cli.experiments.spec import TRAINING
 
@@ -308,8 +308,7 @@ def draws_sections(runs: list[dict[str, Any]], claims: list[tuple[str, str]]) ->
                   "|---|---|---|---|"]
         for claim, text in claims:
             each = [margin(text, [d]) for d in draws]
-            # Over draws only where two or more have the claim's numbers.
-            whole = interval(text, draws) if draws_with_numbers(text, draws) > 1 else None
+            whole = over_draws(text, draws)[1]
             per = ", ".join("—" if e is None else format_bound(e) for e in each)
             shown = ("—", "—") if whole is None else (
                 format_bound(whole[0]), f"{format_bound(whole[1])}–{format_bound(whole[2])}")
