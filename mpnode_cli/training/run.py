@@ -8,7 +8,8 @@
                         the paper's Table-2 figure, wall time, parameter count, processes
                         (and, from the CLI, the CPU threads torch used by each); a run
                         stopped by Ctrl-C or SIGTERM writes one with `finished: false` and
-                        `interrupted`
+                        `interrupted` (the signal; "memory" where the memory guard
+                        stopped it, `mpnode_cli.training.memory_guard`)
     checkpoints/        best.pt (lowest validation loss) and last.pt (latest epoch)
     (no file)           the folder itself is locked while a training writes it
                         (`mpnode_cli.training.runlock`); a resume checks it whole first

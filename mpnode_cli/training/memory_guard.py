@@ -1,0 +1,118 @@
+"""Stopping a run cleanly, after an epoch, when its training step is outgrowing memory.
+
+The start-of-run estimate (`mpnode_cli.training.step_memory`) measures the untrained
+model's step. A step's memory is what autograd keeps at each right-hand-side evaluation,
+so it grows as training goes on: with the horizon curriculum (longer rollouts) and as the
+learned field stiffens (more solver steps). On a CPU the operating system's out-of-memory
+killer then ends the process with exit 137, mid-epoch, with no line saying why.
+
+`EpochPeaks` measures each epoch's peak resident memory (Linux's `VmHWM`, reset at the
+start of the epoch through `/proc/self/clear_refs`) and, after the epoch is saved, stops
+the run when two more epochs of the recent growth would not fit in what the process can
+still reach: its resident memory now plus what the OS calls available
+(`mpnode_cli.memory.available_memory`). A run whose peak does not grow is never stopped,
+however close to the limit it runs: it already fits. The rule looks two epochs ahead
+because one epoch's rise is noisy (batches differ in how many solver steps they take) and
+a run killed mid-epoch loses that epoch; a run stopped one epoch early loses nothing, as
+`last.pt` holds it and `--resume` continues on a machine with more memory.
+
+On CUDA an allocation that fails raises an exception that `mpnode_cli.memory.naming_memory`
+names, so no guard is needed there, and none runs. Where `/proc/self/clear_refs` cannot be
+written (not Linux), the guard is off.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import re
+from collections.abc import Sequence
+
+from mpnode_cli.memory import available_memory, format_bytes
+
+# How many epoch-to-epoch rises the projection looks back over, and ahead.
+LOOKBACK = 3
+AHEAD = 2
+
+_STATUS = "/proc/self/status"
+_CLEAR_REFS = "/proc/self/clear_refs"
+
+
+def _status_bytes(field: str) -> int | None:
+    """A `kB` field of `/proc/self/status` (`VmHWM`, `VmRSS`) in bytes; None if unreadable."""
+    try:
+        with open(_STATUS, encoding="ascii") as f:
+            text = f.read()
+    except OSError:
+        return None
+    match = re.search(rf"^{field}:\s+(\d+)\s+kB", text, re.MULTILINE)
+    return int(match.group(1)) * 1024 if match else None
+
+
+def reset_peak() -> bool:
+    """Reset this process's peak resident memory to what it holds now; False where the OS
+    has no such reset (it is Linux's "5" to `/proc/self/clear_refs`)."""
+    try:
+        with open(_CLEAR_REFS, "w", encoding="ascii") as f:
+            f.write("5")
+    except OSError:
+        return False
+    return True
+
+
+def peak_bytes() -> int | None:
+    """This process's peak resident memory since the last `reset_peak` (or its start)."""
+    return _status_bytes("VmHWM")
+
+
+def resident_bytes() -> int | None:
+    """This process's resident memory now."""
+    return _status_bytes("VmRSS")
+
+
+def projected_overrun(peaks: Sequence[int], resident: int, available: int) -> int | None:
+    """The peak the run is projected to reach, if it will not fit; None if it will.
+
+    `peaks` are the epochs' peak resident bytes, oldest first; `resident` what the process
+    holds now and `available` what it may still take, so it can reach `resident +
+    available`. The projection is the last peak plus `AHEAD` times the largest rise over
+    the last `LOOKBACK` epochs; a run whose peaks did not rise is never projected over.
+    """
+    if len(peaks) < 2:
+        return None
+    recent = list(peaks[-(LOOKBACK + 1):])
+    rise = max(b - a for a, b in itertools.pairwise(recent))
+    if rise <= 0:
+        return None
+    projected = peaks[-1] + AHEAD * rise
+    return projected if projected > resident + available else None
+
+
+class EpochPeaks:
+    """Each epoch's peak resident memory, and whether the next epochs will still fit."""
+
+    def __init__(self, device_type: str):
+        self.on = device_type == "cpu" and os.path.exists(_CLEAR_REFS)
+        self.peaks: list[int] = []
+
+    def begin(self) -> None:
+        """Call as an epoch starts."""
+        if self.on:
+            self.on = reset_peak()
+
+    def end(self) -> str | None:
+        """Call once the epoch is saved: None to go on, or why the run should stop."""
+        if not self.on or (peak := peak_bytes()) is None:
+            return None
+        self.peaks.append(peak)
+        resident, available = resident_bytes(), available_memory()
+        if resident is None or available is None:
+            return None
+        projected = projected_overrun(self.peaks, resident, available)
+        if projected is None:
+            return None
+        first = self.peaks[-(LOOKBACK + 1):][0]
+        return (f"the training step's peak memory grew from {format_bytes(first)} to "
+                f"{format_bytes(peak)} over the last epochs, and two more epochs at that "
+                f"rate would need about {format_bytes(projected)}, more than the "
+                f"{format_bytes(resident + available)} this process can reach")
