@@ -57,6 +57,7 @@ from transfer_specs import (  # noqa: E402
     PROCESS_SECONDS,
     SETS,
     SYSTEMS,
+    TIMED_SOURCES,
     VARIANTS,
     Bench,
     Data,
@@ -221,6 +222,9 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
         budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit", LONG_SOURCE_SECONDS)
     if args.variant in ORACLE_EPOCH_VARIANTS:
         budget += ("--stop-patience", NEVER)
+    if args.variant in TIMED_SOURCES and args.scale == "full":
+        budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit",
+                   TIMED_SOURCES[args.variant])
     if resume:
         if run_state(run)[0] < budget[1]:
             mpnode("train", "--resume", run, *budget[:2], "--no-plots",
@@ -242,7 +246,7 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
 def source_epochs(args, bench: Bench) -> int:
     """The epochs a source trains for (at most, for a variant that stops early): the
     system's, the long variants' cap, or the oracles' cap."""
-    if args.variant in LONG_VARIANTS and args.scale == "full":
+    if args.variant in (*LONG_VARIANTS, *TIMED_SOURCES) and args.scale == "full":
         return LONG_SOURCE_EPOCHS
     if args.variant in ORACLE_EPOCH_VARIANTS:
         return ORACLE_EPOCHS[args.scale]
@@ -331,6 +335,8 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
     src = bench.source
     per_epoch, epochs = epoch_seconds(bench.system, src, src), source_epochs(args, bench)
     train_s = epochs * per_epoch * curriculum_share(bench.system, epochs)
+    if args.variant in TIMED_SOURCES and args.scale == "full":
+        train_s = min(train_s, TIMED_SOURCES[args.variant])
     source = job_name(args, bench, seed, "source")
     jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
                 lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())
