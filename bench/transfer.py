@@ -224,7 +224,7 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
         budget += ("--stop-patience", NEVER)
     if args.variant in TIMED_SOURCES and args.scale == "full":
         budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit",
-                   TIMED_SOURCES[args.variant])
+                   TIMED_SOURCES[args.variant][1])
     if resume:
         if run_state(run)[0] < budget[1]:
             mpnode("train", "--resume", run, *budget[:2], "--no-plots",
@@ -246,11 +246,20 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
 def source_epochs(args, bench: Bench) -> int:
     """The epochs a source trains for (at most, for a variant that stops early): the
     system's, the long variants' cap, or the oracles' cap."""
-    if args.variant in (*LONG_VARIANTS, *TIMED_SOURCES) and args.scale == "full":
+    if args.variant in LONG_VARIANTS and args.scale == "full":
         return LONG_SOURCE_EPOCHS
+    if args.variant in TIMED_SOURCES and args.scale == "full":
+        return TIMED_SOURCES[args.variant][0]
     if args.variant in ORACLE_EPOCH_VARIANTS:
         return ORACLE_EPOCHS[args.scale]
     return bench.epochs
+
+
+def oracle_epochs(args) -> int:
+    """An oracle's epoch cap: the recipe's, or twice a timed source's schedule."""
+    if args.variant in TIMED_SOURCES and args.scale == "full":
+        return 2 * TIMED_SOURCES[args.variant][0]
+    return ORACLE_EPOCHS[args.scale]
 
 
 def max_in_degree(path: Path) -> int:
@@ -273,15 +282,19 @@ def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
     It trains for at least the source's wall time, then in chunks of a quarter of the
     patience, until its best validation is `--oracle-patience` epochs old or a cap is hit
     (`stop_reason`); `mpnode train --stop-patience` cannot say "not before", so the run
-    itself gets a patience it never reaches."""
+    itself gets a patience it never reaches. The oracle of a timed source (`TIMED_SOURCES`)
+    trains its schedule in one run, to its epoch cap or its time cap: resuming it with
+    fewer epochs would shorten a cosine schedule."""
     d, name = bench.targets[label], job_name(args, bench, seed, f"oracle-{label}")
     floor = read_record(args, job_name(args, bench, seed, "source"))["train_seconds"]
     run, log = args.runs / name, args.runs / name.rsplit("/", 1)[0] / "log.txt"
-    cap_s, cap_e = args.oracle_cap * floor, ORACLE_EPOCHS[args.scale]
+    cap_s, cap_e = args.oracle_cap * floor, oracle_epochs(args)
     chunk, clock = oracle_chunk(args.oracle_patience), {}
+    whole = args.variant in TIMED_SOURCES and args.scale == "full"
+    first_limit = cap_s if whole else floor
     if not (run / "checkpoints" / "last.pt").is_file():
         shutil.rmtree(run, ignore_errors=True)
-        mpnode("train", data_path(args, d), "--epochs", cap_e, "--time-limit", floor,
+        mpnode("train", data_path(args, d), "--epochs", cap_e, "--time-limit", first_limit,
                "--stop-patience", NEVER, "--seed", seed, "--run-dir", run, "--no-plots",
                "--threads", 1, *VARIANTS[args.variant], log=log, clock=clock)
     reason = None
@@ -290,9 +303,10 @@ def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
         reason = stop_reason(epochs, best, seconds, floor, args.oracle_patience, cap_s, cap_e)
         if reason:
             break
-        target = cap_e if seconds < floor else min(epochs + chunk, cap_e)
+        target = cap_e if seconds < floor or whole else min(epochs + chunk, cap_e)
         mpnode("train", "--resume", run, "--epochs", target, "--time-limit",
-               floor if seconds < floor else cap_s, "--no-plots", log=log, clock=clock)
+               floor if seconds < floor and not whole else cap_s, "--no-plots", log=log,
+               clock=clock)
         if run_state(run)[0] == epochs:
             reason = "stalled"
             break
@@ -336,7 +350,7 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
     per_epoch, epochs = epoch_seconds(bench.system, src, src), source_epochs(args, bench)
     train_s = epochs * per_epoch * curriculum_share(bench.system, epochs)
     if args.variant in TIMED_SOURCES and args.scale == "full":
-        train_s = min(train_s, TIMED_SOURCES[args.variant])
+        train_s = min(train_s, TIMED_SOURCES[args.variant][1])
     source = job_name(args, bench, seed, "source")
     jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
                 lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())
