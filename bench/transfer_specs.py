@@ -64,6 +64,10 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # norms up to 33, clipped only at 500). Found on the grid itself (docs/transfer.md).
     "periodic-wrapped-cosine-clip": ("--periodic", "embed", "--wrap-angles", "--schedule",
                                      "cosine", "--clip", "5"),
+    # The recipe's rates annealed and its steps clipped (`--schedule cosine --clip 5`) over
+    # the system's fixed epochs: what the grid's 10-minute budget needed, tried on the
+    # selection systems before it could become a default.
+    "cosine-clip": ("--schedule", "cosine", "--clip", "5"),
     # The angles fed as they are: the recipe before its `--periodic auto` (rows of angle
     # systems labelled `default` before that change are kept under these two names).
     "periodic-off": ("--periodic", "off"),
