@@ -109,6 +109,10 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # Degree coverage with the source trained as long as the oracles may train: their
     # epoch cap, with no early stop, so that zero-shot and oracle get the same epochs.
     "hub-coverage-oracle-epochs": (),
+    # The same, with the lr annealed over those epochs and the steps clipped
+    # (`cosine-clip`): the default's plateau schedule left both the source and the oracles
+    # still improving at the cap.
+    "hub-coverage-oracle-epochs-cosine-clip": ("--schedule", "cosine", "--clip", "5"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
@@ -280,7 +284,7 @@ LONG_VARIANTS = tuple(v for v in VARIANTS if v.endswith("-long"))
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000
 LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
-ORACLE_EPOCH_VARIANTS = ("hub-coverage-oracle-epochs",)
+ORACLE_EPOCH_VARIANTS = ("hub-coverage-oracle-epochs", "hub-coverage-oracle-epochs-cosine-clip")
 # Sources trained for a wall-time budget: (epochs, seconds of one thread), stopped earlier
 # by `LONG_SOURCE_PATIENCE`. Their oracles train twice those epochs (the same schedule,
 # stretched), within the usual time cap.
