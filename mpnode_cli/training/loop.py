@@ -63,10 +63,8 @@ import torch
 
 from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.pooled import epoch_batches, taken
-from mpnode_cli.memory import OutOfMemory
 from mpnode_cli.signals import raise_if_interrupted
 from mpnode_cli.solver import Status
-from mpnode_cli.terminal import suggested
 from mpnode_cli.training import distributed
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint
@@ -76,7 +74,7 @@ from mpnode_cli.training.evaluate import evaluate
 from mpnode_cli.training.finish import count_parameters, finish
 from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.lr_schedule import LRSchedule
-from mpnode_cli.training.memory_guard import EpochPeaks
+from mpnode_cli.training.memory_guard import EpochPeaks, stop_if_outgrowing
 from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_train_config
 from mpnode_cli.training.run_folder import RunFolder
 from mpnode_cli.training.setup import OnEvent, Run, load_data, member_state, set_up
@@ -187,7 +185,7 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
             row = _record(run, schedules, epoch, val, each, steps, time.perf_counter() - start)
             saver.save_epoch(row, best=row["improved"], improved=row.get("improved_members"))
             emit({"event": "epoch", **row})
-            _stop_if_outgrowing(run, saver, peaks.end())
+            stop_if_outgrowing(run, saver.snapshot.epoch, peaks.end())
     except KeyboardInterrupt as exc:
         saver.save_interrupted(exc)
         raise TrainingInterrupted(run.run_dir, saver.snapshot.epoch, exc) from None
@@ -196,31 +194,6 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
 
     # 5. The best weights on the test split, plots, summary.json.
     return finish(run)
-
-
-_OTHER_RANK = "another training process's step is outgrowing its memory"
-
-
-def _stop_if_outgrowing(run: Run, saver: Checkpointer, why: str | None) -> None:
-    """Stop the run, its epoch saved, when any process's step is outgrowing its memory
-    (`why`, from `mpnode_cli.training.memory_guard.EpochPeaks`): an interrupted
-    `summary.json` that says so, and one line.
-
-    Raises:
-        OutOfMemory: the line, with how to continue.
-    """
-    stop = run.world.max(torch.tensor([float(why is not None)], dtype=torch.float64))
-    if not stop[0]:
-        return
-    epoch = saver.snapshot.epoch
-    if run.world.main:
-        runs.write_interrupted(run.run_dir, epoch, "memory")
-    raise OutOfMemory(
-        f"training stopped after epoch {epoch} of {run.config.epochs}: "
-        f"{why or _OTHER_RANK}. "
-        f"last.pt keeps epoch {epoch} and best.pt the best so far; continue on a machine "
-        f"with more memory with: {suggested('train', '--resume', Path(run.run_dir))}, "
-        f"or train again with a lower --batch-size")
 
 
 def train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,

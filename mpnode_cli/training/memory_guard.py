@@ -27,8 +27,14 @@ import itertools
 import os
 import re
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
-from mpnode_cli.memory import available_memory, format_bytes
+import torch
+
+from mpnode_cli.memory import OutOfMemory, available_memory, format_bytes
+from mpnode_cli.terminal import suggested
+from mpnode_cli.training import run as runs
 
 # How many epoch-to-epoch rises the projection looks back over, and ahead.
 LOOKBACK = 3
@@ -116,3 +122,28 @@ class EpochPeaks:
                 f"{format_bytes(peak)} over the last epochs, and two more epochs at that "
                 f"rate would need about {format_bytes(projected)}, more than the "
                 f"{format_bytes(resident + available)} this process can reach")
+
+
+# What a process whose own step fits says when another's does not.
+OTHER_RANK = "another training process's step is outgrowing its memory"
+
+
+def stop_if_outgrowing(run: Any, epoch: int, why: str | None) -> None:
+    """Stop the run, its epoch saved, when any process's step is outgrowing its memory
+    (`why`, from `EpochPeaks.end`; `run` the loop's `Run`, `epoch` its last saved one):
+    an interrupted `summary.json` that says so, and one line.
+
+    Raises:
+        OutOfMemory: the line, with how to continue.
+    """
+    stop = run.world.max(torch.tensor([float(why is not None)], dtype=torch.float64))
+    if not stop[0]:
+        return
+    if run.world.main:
+        runs.write_interrupted(run.run_dir, epoch, "memory")
+    raise OutOfMemory(
+        f"training stopped after epoch {epoch} of {run.config.epochs}: "
+        f"{why or OTHER_RANK}. "
+        f"last.pt keeps epoch {epoch} and best.pt the best so far; continue on a machine "
+        f"with more memory with: {suggested('train', '--resume', Path(run.run_dir))}, "
+        f"or train again with a lower --batch-size")
