@@ -283,14 +283,15 @@ def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
     patience, until its best validation is `--oracle-patience` epochs old or a cap is hit
     (`stop_reason`); `mpnode train --stop-patience` cannot say "not before", so the run
     itself gets a patience it never reaches. The oracle of a timed source (`TIMED_SOURCES`)
-    trains its schedule in one run, to its epoch cap or its time cap: resuming it with
-    fewer epochs would shorten a cosine schedule."""
+    or of a cosine schedule trains in one run, to its epoch cap or its time cap: resuming
+    it with fewer epochs would shorten the schedule."""
     d, name = bench.targets[label], job_name(args, bench, seed, f"oracle-{label}")
     floor = read_record(args, job_name(args, bench, seed, "source"))["train_seconds"]
     run, log = args.runs / name, args.runs / name.rsplit("/", 1)[0] / "log.txt"
     cap_s, cap_e = args.oracle_cap * floor, oracle_epochs(args)
     chunk, clock = oracle_chunk(args.oracle_patience), {}
-    whole = args.variant in TIMED_SOURCES and args.scale == "full"
+    whole = ((args.variant in TIMED_SOURCES and args.scale == "full")
+             or "cosine" in VARIANTS[args.variant])
     first_limit = cap_s if whole else floor
     if not (run / "checkpoints" / "last.pt").is_file():
         shutil.rmtree(run, ignore_errors=True)
