@@ -222,9 +222,8 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
         budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit", LONG_SOURCE_SECONDS)
     if args.variant in ORACLE_EPOCH_VARIANTS:
         budget += ("--stop-patience", NEVER)
-    if args.variant in TIMED_SOURCES and args.scale == "full":
-        budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit",
-                   TIMED_SOURCES[args.variant][1])
+    if timed := timed_source(args):
+        budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit", timed[1])
     if resume:
         if run_state(run)[0] < budget[1]:
             mpnode("train", "--resume", run, *budget[:2], "--no-plots",
@@ -248,18 +247,22 @@ def source_epochs(args, bench: Bench) -> int:
     system's, the long variants' cap, or the oracles' cap."""
     if args.variant in LONG_VARIANTS and args.scale == "full":
         return LONG_SOURCE_EPOCHS
-    if args.variant in TIMED_SOURCES and args.scale == "full":
-        return TIMED_SOURCES[args.variant][0]
+    if timed := timed_source(args):
+        return timed[0]
     if args.variant in ORACLE_EPOCH_VARIANTS:
         return ORACLE_EPOCHS[args.scale]
     return bench.epochs
 
 
+def timed_source(args) -> tuple[int, float] | None:
+    """A timed source's (epochs, seconds) budget (`TIMED_SOURCES`), at the full scale."""
+    return TIMED_SOURCES.get(args.variant) if args.scale == "full" else None
+
+
 def oracle_epochs(args) -> int:
     """An oracle's epoch cap: the recipe's, or twice a timed source's schedule."""
-    if args.variant in TIMED_SOURCES and args.scale == "full":
-        return 2 * TIMED_SOURCES[args.variant][0]
-    return ORACLE_EPOCHS[args.scale]
+    timed = timed_source(args)
+    return 2 * timed[0] if timed else ORACLE_EPOCHS[args.scale]
 
 
 def max_in_degree(path: Path) -> int:
@@ -290,8 +293,7 @@ def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
     run, log = args.runs / name, args.runs / name.rsplit("/", 1)[0] / "log.txt"
     cap_s, cap_e = args.oracle_cap * floor, oracle_epochs(args)
     chunk, clock = oracle_chunk(args.oracle_patience), {}
-    whole = ((args.variant in TIMED_SOURCES and args.scale == "full")
-             or "cosine" in VARIANTS[args.variant])
+    whole = timed_source(args) is not None or "cosine" in VARIANTS[args.variant]
     first_limit = cap_s if whole else floor
     if not (run / "checkpoints" / "last.pt").is_file():
         shutil.rmtree(run, ignore_errors=True)
@@ -350,8 +352,8 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
     src = bench.source
     per_epoch, epochs = epoch_seconds(bench.system, src, src), source_epochs(args, bench)
     train_s = epochs * per_epoch * curriculum_share(bench.system, epochs)
-    if args.variant in TIMED_SOURCES and args.scale == "full":
-        train_s = min(train_s, TIMED_SOURCES[args.variant][1])
+    if timed := timed_source(args):
+        train_s = min(train_s, timed[1])
     source = job_name(args, bench, seed, "source")
     jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
                 lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())

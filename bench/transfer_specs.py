@@ -278,13 +278,14 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
 
 
 # A variant's name says its data and its budget: "hub-coverage…" trains on degree
-# coverage (`coverage`), "…-long" until its patience (`LONG_SOURCE_*`).
+# coverage (`coverage`), "…-long" until its patience (`LONG_SOURCE_*`), "…-oracle-epochs"
+# for the oracles' epoch cap.
 COVERAGE_VARIANTS = tuple(v for v in VARIANTS if v.startswith("hub-coverage"))
 LONG_VARIANTS = tuple(v for v in VARIANTS if v.endswith("-long"))
 LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
 LONG_SOURCE_EPOCHS = 1000
 LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
-ORACLE_EPOCH_VARIANTS = ("hub-coverage-oracle-epochs", "hub-coverage-oracle-epochs-cosine-clip")
+ORACLE_EPOCH_VARIANTS = tuple(v for v in VARIANTS if "-oracle-epochs" in v)
 # Sources trained for a wall-time budget: (epochs, seconds of one thread), stopped earlier
 # by `LONG_SOURCE_PATIENCE`. Their oracles train twice those epochs (the same schedule,
 # stretched), within the usual time cap.
