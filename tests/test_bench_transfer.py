@@ -260,3 +260,21 @@ def test_max_in_degree_counts_a_multigraphs_edges(tmp_path):
                   "--trajectories", 2, "--hubs", 1, "--hub-multiplicity", 3, "--t-end", 1,
                   "--dt", 0.5, "-o", out).exit_code == 0
     assert transfer.max_in_degree(out) == 3 * 8
+
+
+def test_a_timed_source_keeps_its_schedule_and_its_oracle_twice_it():
+    """A 10-minute grid source trains its 260-epoch cosine schedule against a 600 s limit;
+    its oracle gets twice the epochs; smoke runs and other variants keep theirs."""
+    from argparse import Namespace
+
+    full = Namespace(variant="periodic-wrapped-cosine-clip", scale="full")
+    bench = spec.size_bench("grid", smoke=False)
+    assert transfer.timed_source(full) == (260, 600.0)
+    assert transfer.source_epochs(full, bench) == 260
+    assert transfer.oracle_epochs(full) == 520
+    smoke = Namespace(variant="periodic-wrapped-cosine-clip", scale="smoke")
+    assert transfer.timed_source(smoke) is None
+    assert transfer.oracle_epochs(smoke) == transfer.ORACLE_EPOCHS["smoke"]
+    plain = Namespace(variant="periodic-wrapped", scale="full")
+    assert transfer.timed_source(plain) is None
+    assert transfer.source_epochs(plain, bench) == bench.epochs == 100
