@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 from mpnode_cli.cli.app import app
 from mpnode_cli.experiments import claims, members, spec
 from mpnode_cli.experiments.index import rebuild_index
-from mpnode_cli.experiments.report import write_report
+from mpnode_cli.experiments.report import rebuild_report, write_report
 from mpnode_cli.experiments.runner import plan_steps, run_experiment
 
 runner = CliRunner()
@@ -134,7 +134,19 @@ def test_a_two_seed_run_trains_ensembles_and_reports_mean_and_std(tmp_path):
                                         "| undecided (holds for 1 of 2"))
     assert "run seeds 0–1" in report
     assert "| epochs to 3× | seconds to it | area ÷ time mean |" in report
-    saved = json.loads((out / "two" / "small-mpnode" / "results.json").read_text())
+    assert "curves not kept" not in report
+    saved_path = out / "two" / "small-mpnode" / "results.json"
+    saved = json.loads(saved_path.read_text())
+    # A report saved before curves were kept: its cost columns read — and say why.
+    old = json.loads(saved_path.read_text())
+    for step in old["steps"]:
+        for member in (step.get("result") or {}).get("members") or []:
+            member.pop("curve", None)
+    saved_path.write_text(json.dumps(old))
+    rebuild_report(experiment, out)
+    stale = (out / "two" / "report.md").read_text()
+    assert "curves not kept" in stale and "| — | — | — |" in stale
+    saved_path.write_text(json.dumps(saved))
     assert saved["seeds"] == 2 and saved["claims"][0]["seeds"] == 2
     assert saved["claims"][0]["outcome"] in ("holds", "fails", "undecided")
 

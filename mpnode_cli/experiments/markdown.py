@@ -188,6 +188,7 @@ def _table2(steps: list[dict[str, Any]]) -> list[str]:
                   f"of the group | the paper | epochs to {curves.TARGET_FACTOR:g}× | "
                   "seconds to it | area ÷ time mean |",
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        unkept = False
         for group, runs in groups.items():
             # An ensemble's bar is its members' mean; "× the best" is of the means.
             values = [members.values(by_id[m]["result"], "table2") for m in runs]
@@ -202,6 +203,11 @@ def _table2(steps: list[dict[str, Any]]) -> list[str]:
                              f"{_reached(cost['epochs'], cost['kept'])} | "
                              f"{_reached(cost['seconds'], cost['kept'])} | "
                              f"{_pm(cost['area'], 3)} |")
+                unkept = unkept or not all(cost["kept"])
+        if unkept:
+            lines += ["", "— in the last three columns: curves not kept. These runs predate "
+                      "the per-epoch curves that reports keep, so their cost cannot be "
+                      "rebuilt; the same command run again fills them."]
         if s.get("reported_in"):
             lines += ["", f"The paper's numbers: {s['reported_in']}."]
         lines.append("")
