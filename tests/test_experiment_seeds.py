@@ -7,6 +7,7 @@ hand-made results, and old single-seed records still render without ±.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -138,7 +139,7 @@ def test_a_two_seed_run_trains_ensembles_and_reports_mean_and_std(tmp_path):
     saved_path = out / "two" / "small-mpnode" / "results.json"
     saved = json.loads(saved_path.read_text())
     # A report saved before curves were kept: its cost columns read — and say why.
-    old = json.loads(saved_path.read_text())
+    old = copy.deepcopy(saved)
     for step in old["steps"]:
         for member in (step.get("result") or {}).get("members") or []:
             member.pop("curve", None)

@@ -28,13 +28,16 @@ import os
 import re
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import torch
 
 from mpnode_cli.memory import OutOfMemory, available_memory, format_bytes
 from mpnode_cli.terminal import suggested
 from mpnode_cli.training import run as runs
+
+if TYPE_CHECKING:
+    from mpnode_cli.training.setup import Run
 
 # How many epoch-to-epoch rises the projection looks back over, and ahead.
 LOOKBACK = 3
@@ -128,7 +131,7 @@ class EpochPeaks:
 OTHER_RANK = "another training process's step is outgrowing its memory"
 
 
-def stop_if_outgrowing(run: Any, epoch: int, why: str | None) -> None:
+def stop_if_outgrowing(run: Run, epoch: int, why: str | None) -> None:
     """Stop the run, its epoch saved, when any process's step is outgrowing its memory
     (`why`, from `EpochPeaks.end`; `run` the loop's `Run`, `epoch` its last saved one):
     an interrupted `summary.json` that says so, and one line.
