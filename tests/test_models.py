@@ -302,3 +302,25 @@ def test_models_run_from_edge_lists_as_from_matrices(kind, aggregate):
     torch.manual_seed(1)
     loss_e = nets[1].training_loss(x, ts, edges, None, mse_loss, solver=solver).loss
     torch.testing.assert_close(loss_e, loss_m)
+
+
+def test_l2s_processor_is_its_definition_edge_by_edge():
+    """L2S's Δ̂ against its definition written out node by node: every step, each node's
+    edges e_ij = f_e([h_i, h_j]) over its in-neighbours j (an edge of multiplicity 2 twice),
+    h_i ← h_i + f_n([h_i, Σ_j e_ij]); the model applies f_e's first layer per node."""
+    adj = random_graph(2, 6, 0.5, seed=3)
+    adj[1, 2, 4] = 2.0  # a double edge 4 → 2
+    torch.manual_seed(0)
+    net = build_model("l2s", {"node_dim": 2, "latent": 8, "hidden": 8, "steps": 3})
+    x = torch.randn(2, 1, 6, 2)
+    got = net.delta(x, net.edge_index(adj), None)
+    for b in range(2):
+        h = net.encoder(x[b, 0])
+        for edge_fn, node_fn in zip(net.edge_fns, net.node_fns, strict=True):
+            summed = torch.zeros_like(h)
+            for i in range(6):
+                for j in range(6):
+                    for _ in range(int(adj[b, i, j])):
+                        summed[i] += edge_fn(torch.cat([h[i], h[j]]))
+            h = h + node_fn(torch.cat([h, summed], dim=-1))
+        torch.testing.assert_close(got[b], net.decoder(h), rtol=1e-10, atol=1e-12)

@@ -50,6 +50,20 @@ def _per_window(adjacency: Graph, batch: int, starts: int) -> Graph:
     return adjacency.take(repeat) if isinstance(adjacency, EdgeBatch) else adjacency[repeat]
 
 
+def _edge_messages(edge_fn: nn.Sequential, h: torch.Tensor, edges: EdgeIndex) -> torch.Tensor:
+    """`edge_fn([h_receiver, h_sender])` on every edge `[E, L]`, from node latents `h` `[M, L]`.
+
+    The MLP's first layer is linear: W·[h_r, h_s] + b = W_r·h_r + W_s·h_s + b. So each half
+    is applied to every node once and gathered per edge, rather than the whole layer to
+    every edge's concatenation: M rows instead of E (E / M is the mean in-degree, 32 on the
+    paper's 8×8 gene graphs). The same function, up to round-off.
+    """
+    first, latent = edge_fn[0], h.shape[-1]
+    to_receiver = nn.functional.linear(h, first.weight[:, :latent])
+    to_sender = nn.functional.linear(h, first.weight[:, latent:], first.bias)
+    return edge_fn[1:](to_receiver[edges.receivers] + to_sender[edges.senders])
+
+
 class L2S(NeuralModel):
     """Encode–process–decode GNN simulator, one step of the dataset's dt at a time.
 
@@ -116,7 +130,7 @@ class L2S(NeuralModel):
         flat_size = h.shape[0] * h.shape[1]
         for edge_fn, node_fn in zip(self.edge_fns, self.node_fns, strict=True):
             hf = h.reshape(flat_size, -1)
-            e = edge_fn(torch.cat([hf[edges.receivers], hf[edges.senders]], dim=-1))  # (E, L)
+            e = _edge_messages(edge_fn, hf, edges)  # (E, L)
             summed = torch.zeros_like(hf).index_add_(0, edges.receivers, e).view_as(h)
             h = h + node_fn(torch.cat([h, summed], dim=-1))
         return self.decoder(h)
