@@ -41,6 +41,7 @@ bench: $(STAMP)
 	$(PY) bench/solver.py
 	$(PY) bench/generate.py
 	$(PY) bench/train.py
+	$(PY) bench/l2s_step.py
 
 # The paper's experiments at fixed epoch budgets beside naive baselines; writes
 # bench/results/quality.md (about an hour on 2 cores: `$(PY) bench/quality.py --plan`).
