@@ -324,3 +324,37 @@ def test_l2s_processor_is_its_definition_edge_by_edge():
                         summed[i] += edge_fn(torch.cat([h[i], h[j]]))
             h = h + node_fn(torch.cat([h, summed], dim=-1))
         torch.testing.assert_close(got[b], net.decoder(h), rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("unroll", [1, 2])
+def test_l2s_windows_train_on_k_random_steps_of_each_trajectory(unroll):
+    """With `windows` k, L2S's training loss is the mean of the losses of k distinct windows
+    of each trajectory, each window's as if it were a trajectory of its own: one of the
+    subsets' means, another from draw to draw; k at least the windows is all of them."""
+    from itertools import combinations
+
+    torch.manual_seed(0)
+    net = build_model("l2s", {"node_dim": 2, "latent": 8, "hidden": 8, "steps": 2})
+    adj = random_graph(2, 4, 0.6, seed=1)
+    x = torch.randn(2, 4 + unroll, 4, 2)  # 4 windows per trajectory
+
+    @torch.no_grad()
+    def loss(states, graph, k=0):
+        if unroll == 1:
+            return float(net.one_step_loss(states, graph, noise_std=0, windows=k))
+        return float(net.unrolled_loss(states, graph, steps=unroll, noise_std=0, windows=k))
+
+    each = [[loss(x[b:b + 1, s:s + 1 + unroll], adj[b:b + 1]) for s in range(4)]
+            for b in range(2)]
+    means = [(sum(each[0][i] for i in p) + sum(each[1][j] for j in q)) / 4
+             for p in combinations(range(4), 2) for q in combinations(range(4), 2)]
+    seen = set()
+    for _ in range(20):
+        got = loss(x, adj, k=2)
+        hits = [i for i, m in enumerate(means) if abs(m - got) <= 1e-12 * abs(m)]
+        assert len(hits) == 1, got
+        seen.add(hits[0])
+    assert len(seen) > 5
+    everything = sum(sum(e) for e in each) / 8
+    assert loss(x, adj, k=4) == pytest.approx(everything, rel=1e-12)
+    assert loss(x, adj, k=9) == loss(x, adj)

@@ -10,8 +10,10 @@ The paper's Fig. 1 (right): encode → process → decode, one step ahead.
 - Decoder: MLP (no LayerNorm) → the normalized next-step state difference Δ.
 Trained one step ahead with random-walk input noise (`one_step_loss`), or, with `unroll` > 1,
 on short rollouts of its own predictions from noisy data states (`unrolled_loss`, a mpnode
-option, not in the paper); evaluated by autoregressive rollout over the whole horizon,
-x_{t+1} = x_t + Δ̂. Departures from DeepMind's
+option, not in the paper), from every step of each trajectory in a batch or, with `windows`
+k > 0, from k of them drawn at random (DeepMind's samples its training windows at random;
+an epoch then costs about k / T of a full one); evaluated by autoregressive rollout over
+the whole horizon, x_{t+1} = x_t + Δ̂. Departures from DeepMind's
 simulator (deepmind-research `learning_to_simulate/`; docs/authors-code.md): no positions, so
 no edge features and no connectivity radius; a first-order Δ instead of an acceleration with
 semi-implicit Euler.
@@ -44,6 +46,18 @@ def _windows(x: torch.Tensor, span: int, starts: int) -> torch.Tensor:
     return out.reshape(x.shape[0] * starts, span, *x.shape[2:])
 
 
+def _draw(starts: int, batch: int, k: int, generator: torch.Generator | None,
+          device: torch.device) -> torch.Tensor | None:
+    """`k` of each trajectory's `starts` windows at random, without repeats, as rows of
+    `_windows`' output (trajectory-major, in the order drawn); None: all of them (`k` 0 or
+    at least `starts`)."""
+    if k <= 0 or k >= starts:
+        return None
+    pick = torch.rand(batch, starts, generator=generator, device=device).argsort(dim=1)
+    first = torch.arange(batch, device=device).unsqueeze(1) * starts
+    return (pick[:, :k] + first).reshape(-1)
+
+
 def _per_window(adjacency: Graph, batch: int, starts: int) -> Graph:
     """Each trajectory's graph repeated for its `starts` windows (as `_windows` orders them)."""
     repeat = torch.arange(batch, device=adjacency.device).repeat_interleave(starts)
@@ -73,7 +87,8 @@ class L2S(NeuralModel):
             MLPs (128, 2); steps, message-passing steps (unshared weights); history, C
             states in the input window (C − 1 differences are fed); graph ("sys" or
             "full", complete with self-loops); step_noise, the training input noise;
-            unroll, the steps of each training rollout (1: one step ahead).
+            unroll, the steps of each training rollout (1: one step ahead); windows,
+            the training windows drawn from each trajectory per batch (0: all).
     """
 
     kind: ClassVar[str] = "l2s"
@@ -152,7 +167,8 @@ class L2S(NeuralModel):
 
     def one_step_loss(self, states: torch.Tensor, adjacency: torch.Tensor,
                       controls: torch.Tensor | None = None, *, noise_std: float = 3e-3,
-                      generator: torch.Generator | None = None) -> torch.Tensor:
+                      generator: torch.Generator | None = None, windows: int = 0
+                      ) -> torch.Tensor:
         """MSE of the normalized Δ over every step of every trajectory, with input noise.
 
         A random walk of total std `noise_std` (in normalized state units) is added along
@@ -161,15 +177,23 @@ class L2S(NeuralModel):
 
         Args:
             states: `[B, T, N, D]` normalized; adjacency: `[B, N, N]`; controls `[B, T, N, U]`.
+            windows: > 0, only that many of each trajectory's steps, drawn at random
+                (`generator`), as L2S samples its training windows; 0 every step.
         """
         c = self.history
         batch, steps = states.shape[0], states.shape[1] - c
-        windows = self._noisy(_windows(states, c, steps), noise_std, generator)
-        target = states[:, c:].reshape(batch * steps, *states.shape[2:]) - windows[:, -1]
+        inputs = _windows(states, c, steps)
+        nexts = states[:, c:].reshape(batch * steps, *states.shape[2:])
         u = None
         if self.control_dim:
             u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
-        pred = self.delta(windows, self.edge_index(_per_window(adjacency, batch, steps)), u)
+        rows = _draw(steps, batch, windows, generator, states.device)
+        if rows is not None:
+            inputs, nexts, u = inputs[rows], nexts[rows], None if u is None else u[rows]
+        inputs = self._noisy(inputs, noise_std, generator)
+        target = nexts - inputs[:, -1]
+        graph = _per_window(adjacency, batch, inputs.shape[0] // batch)
+        pred = self.delta(inputs, self.edge_index(graph), u)
         return ((pred - (target - self.delta_mean) / self.delta_std) ** 2).mean()
 
     def _noisy(self, windows: torch.Tensor, noise_std: float,
@@ -190,7 +214,7 @@ class L2S(NeuralModel):
 
     def unrolled_loss(self, states: torch.Tensor, adjacency: torch.Tensor,
                       controls: torch.Tensor | None = None, *, steps: int,
-                      noise_std: float = 3e-3) -> torch.Tensor:
+                      noise_std: float = 3e-3, windows: int = 0) -> torch.Tensor:
         """MSE of `steps`-step rollouts from every start of every trajectory, in the units
         of the fitted Δ statistics (so that `steps` = 1 is `one_step_loss` with its
         target and units).
@@ -203,7 +227,7 @@ class L2S(NeuralModel):
 
         Args:
             states: `[B, T, N, D]` normalized, T > C + `steps` − 1; adjacency: `[B, N, N]`;
-                controls `[B, T, N, U]`.
+                controls `[B, T, N, U]`. windows: as `one_step_loss`'s, of the starts.
         """
         c = self.history
         batch, starts = states.shape[0], states.shape[1] - c - steps + 1
@@ -211,9 +235,12 @@ class L2S(NeuralModel):
             raise ValueError(f"an unrolled L2S loss of {steps} steps needs more than "
                              f"{c + steps - 1} samples per trajectory, not {states.shape[1]}")
         runs = _windows(states, c + steps, starts)  # (B·starts, C + steps, N, D)
-        window = self._noisy(runs[:, :c], noise_std)
-        edges = self.edge_index(_per_window(adjacency, batch, starts))
         u_all = _windows(controls, c + steps, starts) if self.control_dim else None
+        rows = _draw(starts, batch, windows, None, states.device)
+        if rows is not None:
+            runs, u_all = runs[rows], None if u_all is None else u_all[rows]
+        window = self._noisy(runs[:, :c], noise_std)
+        edges = self.edge_index(_per_window(adjacency, batch, runs.shape[0] // batch))
         loss = states.new_zeros(())
         for k in range(steps):
             nxt = self._advance(window, edges, u_all[:, c - 1 + k] if self.control_dim else None)
@@ -227,15 +254,16 @@ class L2S(NeuralModel):
                       **solver: Any) -> BatchLoss:
         """One step ahead: `one_step_loss` with `step_noise`, or with `unroll` > 1 the
         rollouts of `unrolled_loss` (at most the batch's samples allow, so a horizon
-        curriculum's first short prefixes train fewer steps); `loss_fn` and the solver
-        options are unused."""
+        curriculum's first short prefixes train fewer steps), on `windows` random windows
+        of each trajectory (0: all); `loss_fn` and the solver options are unused."""
         o = self.options
         steps = min(o.unroll, x.shape[1] - self.history)
         if steps > 1:
             loss = self.unrolled_loss(x, adjacency, controls, steps=steps,
-                                      noise_std=o.step_noise)
+                                      noise_std=o.step_noise, windows=o.windows)
         else:
-            loss = self.one_step_loss(x, adjacency, controls, noise_std=o.step_noise)
+            loss = self.one_step_loss(x, adjacency, controls, noise_std=o.step_noise,
+                                      windows=o.windows)
         return BatchLoss(loss, torch.zeros(x.shape[0], dtype=torch.long, device=x.device), 0)
 
     # -------------------------------------------------------------- rollout

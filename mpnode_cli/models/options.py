@@ -131,6 +131,10 @@ class L2SOptions(ModelOptions):
         1, ge=1, le=DEPTH_MAX,
         description="Steps each training rollout takes from a noisy data state: 1 is L2S's "
                     "one step ahead; more backpropagates through the model's own predictions.")
+    windows: int = Field(
+        0, ge=0, le=1_000_000,
+        description="Training windows drawn at random from each trajectory of a batch (0: "
+                    "every one, each step of the horizon); fewer makes an epoch cheaper.")
 
 
 class GNODEOptions(ModelOptions):
