@@ -41,7 +41,6 @@ from mpnode_cli.systems.registry import get_system
 CASES = [
     ("gene 8×8, BA (m = 32), CI size", "gene", "ba", 64, 1, 8, 51,
      {"latent": 32, "hidden": 32, "steps": 5}),
-    ("gene 8×8, BA (m = 32), paper size", "gene", "ba", 64, 1, 2, 51, {}),
     ("Kuramoto10, BA, paper size", "kuramoto", "ba", 10, 2, 32, 51, {}),
     ("quadrotor swarm of 6, complete, paper size", "quadrotor", "complete", 6, 12, 32, 51, {}),
 ]
