@@ -11,12 +11,12 @@ The paper's Fig. 1 (right): encode → process → decode, one step ahead.
 Trained one step ahead with random-walk input noise (`one_step_loss`), or, with `unroll` > 1,
 on short rollouts of its own predictions from noisy data states (`unrolled_loss`, a mpnode
 option, not in the paper), from every step of each trajectory in a batch or, with `windows`
-k > 0, from k of them drawn at random (DeepMind's samples its training windows at random;
-an epoch then costs about k / T of a full one); evaluated by autoregressive rollout over
-the whole horizon, x_{t+1} = x_t + Δ̂. Departures from DeepMind's
-simulator (deepmind-research `learning_to_simulate/`; docs/authors-code.md): no positions, so
-no edge features and no connectivity radius; a first-order Δ instead of an acceleration with
-semi-implicit Euler.
+k > 0, from k of them drawn at random (DeepMind's simulator draws its training windows at
+random; an epoch's training then costs about k / T of a full one); evaluated by
+autoregressive rollout over the whole horizon, x_{t+1} = x_t + Δ̂. Departures from
+DeepMind's simulator (deepmind-research `learning_to_simulate/`; docs/authors-code.md): no
+positions, so no edge features and no connectivity radius; a first-order Δ instead of an
+acceleration with semi-implicit Euler.
 """
 
 from __future__ import annotations
