@@ -33,6 +33,7 @@ from pathlib import Path
 
 import torch
 
+from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.models import l2s
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.systems.registry import get_system
@@ -60,7 +61,7 @@ def _step(net, x, adjacency, seed: int) -> tuple[float, torch.Tensor, float]:
     loss.backward()
     seconds = time.perf_counter() - start
     grad = torch.cat([p.grad.reshape(-1) for p in net.parameters()])
-    return seconds, grad, float(loss)
+    return seconds, grad, loss.item()
 
 
 def run_case(case, rounds: int) -> dict:
@@ -143,9 +144,7 @@ def main(argv: list[str] | None = None) -> int:
               "load_after": "/".join(f"{v:.2f}" for v in os.getloadavg())}
     text = report(rows, header)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".md.tmp")
-    tmp.write_text(text)
-    tmp.replace(args.out)
+    atomic_text(args.out, text)
     print(text)
     return 0
 

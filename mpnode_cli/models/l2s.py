@@ -58,6 +58,14 @@ def _draw(starts: int, batch: int, k: int, generator: torch.Generator | None,
     return (pick[:, :k] + first).reshape(-1)
 
 
+def _take(rows: torch.Tensor | None, *tensors: torch.Tensor | None) -> tuple:
+    """Each of `tensors` (None stays None) at `rows` of its leading axis; all of it when
+    `rows` is None (`_draw`'s "every window")."""
+    if rows is None:
+        return tensors
+    return tuple(None if t is None else t[rows] for t in tensors)
+
+
 def _per_window(adjacency: Graph, batch: int, starts: int) -> Graph:
     """Each trajectory's graph repeated for its `starts` windows (as `_windows` orders them)."""
     repeat = torch.arange(batch, device=adjacency.device).repeat_interleave(starts)
@@ -188,8 +196,7 @@ class L2S(NeuralModel):
         if self.control_dim:
             u = controls[:, c - 1 : c - 1 + steps].reshape(batch * steps, *controls.shape[2:])
         rows = _draw(steps, batch, windows, generator, states.device)
-        if rows is not None:
-            inputs, nexts, u = inputs[rows], nexts[rows], None if u is None else u[rows]
+        inputs, nexts, u = _take(rows, inputs, nexts, u)
         inputs = self._noisy(inputs, noise_std, generator)
         target = nexts - inputs[:, -1]
         graph = _per_window(adjacency, batch, inputs.shape[0] // batch)
@@ -236,9 +243,7 @@ class L2S(NeuralModel):
                              f"{c + steps - 1} samples per trajectory, not {states.shape[1]}")
         runs = _windows(states, c + steps, starts)  # (B·starts, C + steps, N, D)
         u_all = _windows(controls, c + steps, starts) if self.control_dim else None
-        rows = _draw(starts, batch, windows, None, states.device)
-        if rows is not None:
-            runs, u_all = runs[rows], None if u_all is None else u_all[rows]
+        runs, u_all = _take(_draw(starts, batch, windows, None, states.device), runs, u_all)
         window = self._noisy(runs[:, :c], noise_std)
         edges = self.edge_index(_per_window(adjacency, batch, runs.shape[0] // batch))
         loss = states.new_zeros(())
