@@ -396,6 +396,27 @@ def test_the_index_flags_table2_figures_of_best_epoch_0_or_the_budgets_end(tmp_p
                                 if c.claim in line) for line in flagged)
 
 
+def test_a_claim_on_a_step_not_run_is_not_listed_as_resting_on_unlearned_runs(tmp_path):
+    """finetune-gene's record without its L2S step: the L2S claims compared nothing, so
+    they read — alone and are not listed under the table, though the finetune they name
+    barely learned; its claim against scratch, which was judged, is listed."""
+    def run(mse):
+        return {"best_epoch": 100, "epochs": 250, "table2": 100 * mse, "model": "mpnode",
+                "val": {"mse": mse, "time_mean": 1.0}, "test": {"mse": mse, "time_mean": 1.0},
+                "table2_per_mean": 100 * mse}
+
+    results = {"finetune-8x8": run(0.9), "scratch-8x8": run(0.01),
+               "finetune-8x8-renorm": run(0.01)}
+    index = _index_of(tmp_path, "finetune-gene", results)
+    rows = [line for line in index.splitlines() if "beats L2S" in line and "46.64" in line]
+    assert len(rows) == 3 and all(row.endswith("| — / — |") for row in rows)
+    weak = index.split("## Verdicts that rest on runs")[1]
+    assert "L2S" not in weak
+    assert ("Finetuned beats scratch on the Table-2 figure, gene 4×4 → 8×8: finetune-8x8 "
+            "(barely learned, 1.11× below the time mean)") in weak
+    assert claims.verdict("finetune-8x8.table2 < l2s-8x8.table2", results)[2] == "—"
+
+
 def test_the_absolute_path_check_tells_paths_from_urls():
     for text in ("--work /work/x/y", "`/tmp/qruns`", '"/home/me/a"', "(/Users/me/b)"):
         assert ABSOLUTE_PATH.search(text), text

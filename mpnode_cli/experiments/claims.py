@@ -219,7 +219,8 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
     whether the means differ by more than their combined std (`members.decide_pairs`); the
     runs (members) that did not beat the time mean or barely did, and Table-2 figures
     that are 0 or still improving at the budget's end (`run_notes`); and a model that is not
-    the paper's (with `experiment`, to find the runs behind an evaluation).
+    the paper's (with `experiment`, to find the runs behind an evaluation). A claim with a
+    number missing (a step not run) is — alone: it compared nothing.
 
     One model's results show their two numbers (`0.025 < 0.62`), an ensemble's their means
     ± std over the members."""
@@ -231,7 +232,9 @@ def verdict(text: str, results: dict[str, dict[str, Any]],
         holds, said = None, "not tested (no run it compares learned)"
     elif decision.outcome == "holds" and (beaten := beaten_unlearned(text, results)):
         holds, said = None, f"not tested ({beaten[0]}, the side it beats, did not learn)"
-    notes = [decision.reason()] if _ensemble(_named(text, results)) and decision.outcome else []
+    if decision.outcome is None:  # a number missing: nothing was compared, nothing to note
+        return holds, decision.shown(), said
+    notes = [decision.reason()] if _ensemble(_named(text, results)) else []
     notes += [f"{step}: {note}" for step, note in run_notes(text, results).items()]
     notes += departures(text, results, experiment)
     if notes:

@@ -75,7 +75,8 @@ def rebuild_index(out: Path) -> Path:
                     cell.append(f"{shown} ({where}){_over_draws(claim.holds, runs, run)}")
                     said_all.append(said if len(shown_runs[recipe]) == 1
                                     else f"{run['scale']}: {said}")
-                    weak += _weak(name, claim, recipe, results, run["scale"])
+                    if said != "—":  # judged: it compared something (no step missing)
+                        weak += _weak(name, claim, recipe, results, run["scale"])
                 cells.append("<br>".join(cell))
                 verdicts.append("; ".join(said_all))
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
