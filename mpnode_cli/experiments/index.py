@@ -75,8 +75,7 @@ def rebuild_index(out: Path) -> Path:
                     cell.append(f"{shown} ({where}){_over_draws(claim.holds, runs, run)}")
                     said_all.append(said if len(shown_runs[recipe]) == 1
                                     else f"{run['scale']}: {said}")
-                    if said != "—":  # judged: it compared something (no step missing)
-                        weak += _weak(name, claim, recipe, results, run["scale"])
+                    weak += _weak(name, claim, recipe, results, run["scale"])
                 cells.append("<br>".join(cell))
                 verdicts.append("; ".join(said_all))
             lines.append(f"| {link if i == 0 else ''} | {claim.claim} | {claim.paper} | "
@@ -170,7 +169,10 @@ def _shown_runs(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 def _weak(name: str, claim: spec.Claim, recipe: str, results: dict[str, Any],
           scale: str) -> list[str]:
     """A line for the index if `claim`'s verdict under `recipe` at `scale` rests on runs
-    that did not learn or barely learned."""
+    that did not learn or barely learned; none for a claim with a number missing (a step not
+    run), which compared nothing."""
+    if claims.decide_claim(claim.holds, results).outcome is None:
+        return []
     notes = claims.run_notes(claim.holds, results)
     if not notes:
         return []
