@@ -64,10 +64,15 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # norms up to 33, clipped only at 500). Found on the grid itself (docs/transfer.md).
     "periodic-wrapped-cosine-clip": ("--periodic", "embed", "--wrap-angles", "--schedule",
                                      "cosine", "--clip", "5"),
+    # Each of those two changes alone, in the same budget: which one the grid needed.
+    "periodic-wrapped-cosine": ("--periodic", "embed", "--wrap-angles", "--schedule", "cosine"),
+    "periodic-wrapped-clip": ("--periodic", "embed", "--wrap-angles", "--clip", "5"),
     # The recipe's rates annealed and its steps clipped (`--schedule cosine --clip 5`) over
     # the system's fixed epochs: what the grid's 10-minute budget needed, tried on the
     # selection systems before it could become a default.
     "cosine-clip": ("--schedule", "cosine", "--clip", "5"),
+    # The clipping alone (`--clip 5`), which the grid's ablation found to be what it needed.
+    "clip": ("--clip", "5"),
     # The angles fed as they are: the recipe before its `--periodic auto` (rows of angle
     # systems labelled `default` before that change are kept under these two names).
     "periodic-off": ("--periodic", "off"),
@@ -290,7 +295,9 @@ ORACLE_EPOCH_VARIANTS = tuple(v for v in VARIANTS if "-oracle-epochs" in v)
 # by `LONG_SOURCE_PATIENCE`. Their oracles train twice those epochs (the same schedule,
 # stretched), within the usual time cap.
 TIMED_SOURCES = {"periodic-wrapped-10min": (LONG_SOURCE_EPOCHS, 600.0),
-                 "periodic-wrapped-cosine-clip": (260, 600.0)}
+                 "periodic-wrapped-cosine-clip": (260, 600.0),
+                 "periodic-wrapped-cosine": (260, 600.0),
+                 "periodic-wrapped-clip": (LONG_SOURCE_EPOCHS, 600.0)}
 COVERAGE_HUBS = 2  # hubs per coverage graph
 COVERAGE_SEED = 500  # the coverage data's graph and data seeds are the source's + this
 
