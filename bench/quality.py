@@ -48,6 +48,7 @@ import argparse
 import json
 import math
 import os
+import shlex
 import shutil
 import subprocess
 import sys
@@ -235,11 +236,12 @@ def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[st
     clock: dict[str, float] = {}
     if budget is None:
         mpnode("train", data, "--epochs", epochs_for(case, args.scale), *common, *case.options,
-               log=log, clock=clock)
+               *args.extra, log=log, clock=clock)
     else:
         # Equal wall time: time a few epochs, then resume towards the budget in stages.
         timing = TIMING_EPOCHS if args.scale >= 1 else 1
-        mpnode("train", data, "--epochs", timing, *common, *case.options, log=log, clock=clock)
+        mpnode("train", data, "--epochs", timing, *common, *case.options, *args.extra, log=log,
+               clock=clock)
         for _ in range(BUDGET_STAGES):
             more = epochs_to_budget(run, budget)
             if more < 1:
@@ -268,7 +270,7 @@ def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[st
         zeroed = command([sys.executable, __file__, "--zeroed-eval", str(best), str(data)], log)
         rows.append(_row("test, messages zeroed", case.preset, "test", json.loads(zeroed)))
     result = {
-        "case": case.name, "options": list(case.options), "scale": args.scale,
+        "case": case.name, "options": [*case.options, *args.extra], "scale": args.scale,
         "epochs": summary["epochs"], "best_epoch": summary["best_epoch"],
         "wall_seconds": summary["wall_seconds"], "process_seconds":
             time.perf_counter() - started,
@@ -416,7 +418,8 @@ def plan(args, cases: list[Case], presets: list[str], aggregate: str) -> tuple[l
         deps = (*gen_deps, *((ref,) if ref else ()))
         jobs[case.name] = (seconds, deps)
         lines.append(f"{case.name:22s} {epochs:>7s} {speed:8.3f} {seconds:8.0f}  {source}; "
-                     f"{' '.join(case.options)}" + (f" (= {ref}'s wall time)" if ref else ""))
+                     f"{' '.join([*case.options, *args.extra])}"
+                     + (f" (= {ref}'s wall time)" if ref else ""))
     return lines, schedule(jobs, args.workers)
 
 
@@ -604,7 +607,7 @@ def write_report(args, header: dict[str, Any]) -> None:
         if result.get("budget_seconds"):
             extra += (f" Budget {result['budget_seconds']:.0f} s ({result.get('reference')}); "
                       f"{result['seconds_per_epoch']:.3g} s/epoch.")
-        options = " ".join(case.options) or "(CLI defaults)"
+        options = " ".join(result.get("options", case.options)) or "(CLI defaults)"
         cpu, wall = result["train_cpu_seconds"], result["train_process_seconds"]
         lines.append(f"- {name}: `mpnode train {case.preset}.h5 {options}`, "
                      f"{result['model']} ({result['parameters']:,} parameters), best epoch "
@@ -631,6 +634,9 @@ def main(argv=None) -> int:
     parser.add_argument("--runs", type=Path, default=HERE / ".runs", help="case folders")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--plan", action="store_true", help="print the estimate and stop")
+    parser.add_argument("--extra", default="", help="options added to every case's `mpnode "
+                        "train`, e.g. \"--clip 5\": the same cases under a variant of the "
+                        "recipe (give it its own --runs and --out)")
     parser.add_argument("--zeroed-eval", nargs=2, metavar=("CKPT", "DATA"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -638,6 +644,7 @@ def main(argv=None) -> int:
         zeroed_eval(*args.zeroed_eval)
         return 0
     args.data, args.runs = args.data.resolve(), args.runs.resolve()
+    args.extra = shlex.split(args.extra)
     names = args.only.split(",") if args.only else list(CASES)
     unknown = [n for n in names if n not in CASES]
     if unknown:
@@ -663,7 +670,8 @@ def main(argv=None) -> int:
     # Absolute paths are shown relative to the current folder, or as <option>: the
     # results are committed, and the folders of the machine that ran them mean nothing.
     shown = shown_argv(list(argv or sys.argv[1:]))
-    header = {"command": " ".join(["bench/quality.py", *shown]),
+    header = {"command": " ".join(shlex.quote(a) if " " in a else a
+                                  for a in ["bench/quality.py", *shown]),
               "cores": os.cpu_count(), "threads": threads[0], "torch": threads[1],
               "commit": git_commit(), "date": datetime.now().isoformat(timespec="minutes"),
               "load_before": "/".join(f"{x:.2f}" for x in os.getloadavg()),
