@@ -118,6 +118,8 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # (`cosine-clip`): the default's plateau schedule left both the source and the oracles
     # still improving at the cap.
     "hub-coverage-oracle-epochs-cosine-clip": ("--schedule", "cosine", "--clip", "5"),
+    # The clipping alone: whether gene's win needed the annealing too.
+    "hub-coverage-oracle-epochs-clip": ("--clip", "5"),
 }
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
