@@ -233,15 +233,15 @@ def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[st
     data = dataset(args, case.preset)
     started = time.perf_counter()
     common = ("--seed", 0, "--run-dir", run)
+    options = [*case.options, *args.extra]
     clock: dict[str, float] = {}
     if budget is None:
-        mpnode("train", data, "--epochs", epochs_for(case, args.scale), *common, *case.options,
-               *args.extra, log=log, clock=clock)
+        mpnode("train", data, "--epochs", epochs_for(case, args.scale), *common, *options,
+               log=log, clock=clock)
     else:
         # Equal wall time: time a few epochs, then resume towards the budget in stages.
         timing = TIMING_EPOCHS if args.scale >= 1 else 1
-        mpnode("train", data, "--epochs", timing, *common, *case.options, *args.extra, log=log,
-               clock=clock)
+        mpnode("train", data, "--epochs", timing, *common, *options, log=log, clock=clock)
         for _ in range(BUDGET_STAGES):
             more = epochs_to_budget(run, budget)
             if more < 1:
@@ -270,7 +270,7 @@ def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[st
         zeroed = command([sys.executable, __file__, "--zeroed-eval", str(best), str(data)], log)
         rows.append(_row("test, messages zeroed", case.preset, "test", json.loads(zeroed)))
     result = {
-        "case": case.name, "options": [*case.options, *args.extra], "scale": args.scale,
+        "case": case.name, "options": options, "scale": args.scale,
         "epochs": summary["epochs"], "best_epoch": summary["best_epoch"],
         "wall_seconds": summary["wall_seconds"], "process_seconds":
             time.perf_counter() - started,
@@ -607,7 +607,7 @@ def write_report(args, header: dict[str, Any]) -> None:
         if result.get("budget_seconds"):
             extra += (f" Budget {result['budget_seconds']:.0f} s ({result.get('reference')}); "
                       f"{result['seconds_per_epoch']:.3g} s/epoch.")
-        options = " ".join(result.get("options", case.options)) or "(CLI defaults)"
+        options = " ".join(result["options"]) or "(CLI defaults)"
         cpu, wall = result["train_cpu_seconds"], result["train_process_seconds"]
         lines.append(f"- {name}: `mpnode train {case.preset}.h5 {options}`, "
                      f"{result['model']} ({result['parameters']:,} parameters), best epoch "
