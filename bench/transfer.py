@@ -48,6 +48,7 @@ from transfer_specs import (  # noqa: E402
     BB,
     COVERAGE_VARIANTS,
     EVAL_SECONDS,
+    FOR_GRAPHS_VARIANTS,
     GAMMAS,
     LONG_SOURCE_EPOCHS,
     LONG_SOURCE_PATIENCE,
@@ -71,7 +72,8 @@ from transfer_specs import (  # noqa: E402
 )
 from transfer_table import rebuild, write_json  # noqa: E402
 
-FHN_FILE = ROOT / "examples" / "fitzhugh_nagumo.py"
+PLUGINS = {"fhn": ROOT / "examples" / "fitzhugh_nagumo.py",  # systems of a plug-in file
+           "mutualistic": ROOT / "examples" / "mutualistic.py"}
 NEVER = 10**9  # `--stop-patience` of an oracle run: the bench applies the patience itself
 MAX_STAGES = 400  # resumes of one oracle at most
 ORACLE_EPOCHS = {"full": 4000, "smoke": 40}  # an oracle's epoch cap (the recipe's epochs)
@@ -129,7 +131,8 @@ def _generate(args, d: Data) -> None:
         make_dataset(tmp, nodes=d.nodes, trajectories=d.k, seed=d.seed,
                      graph_seed=d.graph_seed, graphs=d.graphs, split=d.fractions())
     else:
-        head = (("--system-file", FHN_FILE) if d.system == "fhn" else (d.system,))
+        head = (("--system-file", PLUGINS[d.system]) if d.system in PLUGINS
+                else (d.system,))
         extra = [x for key, v in d.params for x in ("-p", f"{key}={v:g}")]
         split = ("--split", d.fractions()) if d.counts else ()
         hubs = ("--hubs", d.hubs, "--hub-multiplicity", d.multiplicity) if d.hubs else ()
@@ -210,7 +213,11 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
     clock: dict[str, float] = {}
     extra: dict[str, Any] = {}
     datasets = [data_path(args, bench.source)]
-    if args.variant in COVERAGE_VARIANTS:
+    options: tuple[Any, ...] = VARIANTS[args.variant]
+    if args.variant in FOR_GRAPHS_VARIANTS:  # the CLI makes the coverage data itself
+        options = tuple(x for d in bench.targets.values()
+                        for x in ("--for-graphs", data_path(args, d)))
+    elif args.variant in COVERAGE_VARIANTS:
         reach = max(max_in_degree(data_path(args, d)) for d in bench.targets.values())
         cov = coverage(bench.source, reach)
         generate(args, cov)
@@ -230,9 +237,13 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
                    log=run.parent / "log.txt", clock=clock)
     else:
         mpnode("train", *datasets, *budget, "--seed", seed,
-               "--run-dir", run, "--no-plots", "--threads", 1, *VARIANTS[args.variant],
+               "--run-dir", run, "--no-plots", "--threads", 1, *options,
                log=run.parent / "log.txt", clock=clock)
     summary = json.loads((run / "summary.json").read_text())
+    if args.variant in FOR_GRAPHS_VARIANTS:
+        made = json.loads((run / "config.json").read_text())["coverage"]
+        extra = {"coverage": made["dataset"], "coverage_multiplicity": made["multiplicity"],
+                 "targets_max_in_degree": made["max_in_degree"]}
     epochs, best, seconds = run_state(run)
     record = {**base_record(args, bench, seed, "source", "own", bench.source),
               "epochs": epochs, "best_epoch": best, "train_seconds": seconds,
@@ -249,8 +260,8 @@ def source_epochs(args, bench: Bench) -> int:
         return LONG_SOURCE_EPOCHS
     if timed := timed_source(args):
         return timed[0]
-    if args.variant in ORACLE_EPOCH_VARIANTS:
-        return ORACLE_EPOCHS[args.scale]
+    if args.variant in ORACLE_EPOCH_VARIANTS or args.variant in FOR_GRAPHS_VARIANTS:
+        return ORACLE_EPOCHS[args.scale]  # for-graphs: the recipe's, its patience kept
     return bench.epochs
 
 
@@ -363,7 +374,8 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
         return lambda: record_path(args, name).is_file()
 
     needs = (f"gen:{src.name}",) + (tuple(f"gen:{d.name}" for d in bench.targets.values())
-                                     if args.variant in COVERAGE_VARIANTS else ())
+                                     if args.variant in COVERAGE_VARIANTS
+                                     or args.variant in FOR_GRAPHS_VARIANTS else ())
     jobs.append(Job(source, bench.system, train_s + PROCESS_SECONDS, needs,
                     lambda: train_source(args, bench, seed), recorded(source)))
     for label, d in {"own": src, **bench.targets}.items():
@@ -512,6 +524,8 @@ def parse(argv) -> argparse.Namespace:
     p.add_argument("--out", type=Path, help="the table (default bench/results/transfer.md)")
     p.add_argument("--records", type=Path, help="the committed copy of the records")
     p.add_argument("--plan", action="store_true", help="print the estimate and stop")
+    p.add_argument("--allow-dirty", action="store_true", help="run from a tree with "
+                   "uncommitted changes (its records say +dirty; refused by default)")
     p.add_argument("--table-only", action="store_true", help="rebuild the table and stop")
     p.add_argument("--note", default="", help="a sentence for the table's header")
     p.add_argument("--in-range", nargs=2, type=Path, metavar=("CHECKPOINT", "DATASET"),
@@ -560,6 +574,11 @@ def main(argv=None) -> int:
     print(plan(args, jobs), flush=True)
     if args.plan:
         return 0
+    if git_commit().endswith("+dirty") and not args.allow_dirty and args.scale == "full":
+        print("the working tree has uncommitted changes: records must come from committed "
+              "code (commit, or run from a clean worktree; --allow-dirty marks its records "
+              "and keeps them out of the README)", file=sys.stderr)
+        return 2
 
     def report(line: str) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {line}", flush=True)

@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 
 BB = ("sis", "mak", "mm", "bd", "nd")  # Barzel & Barabási 2013, as Laber et al. 2026 train them
 SETS = {"selection": ("gene", "kuramoto", "sis", "mm"),
-        "confirmation": ("mak", "bd", "nd", "fhn", "grid", "pendulum")}
+        "confirmation": ("mak", "bd", "nd", "fhn", "grid", "pendulum", "mutualistic")}
 SYSTEMS = (*SETS["selection"], *SETS["confirmation"])
 GAMMAS = (2.1, 2.5, 3.5)
 S1_SOURCE_NODES, S1_TARGETS, S1_LARGEST = 64, (1024, 4096), 8192
@@ -19,23 +19,18 @@ SMOKE_S1_TARGETS, SMOKE_S1_LARGEST = (256, 512), 1024
 SPLIT = (0.7, 0.15, 0.15)  # `mpnode generate`'s default fractions
 MIN_TRAIN, MIN_VAL, MIN_TEST = 1, 1, 2  # a target's splits hold at least these
 SMOKE_TRAJECTORIES, SMOKE_GRAPHS, SMOKE_EPOCHS = 24, 3, 3
+# Variants built on options since retired (`linear-path`, `linear-gain`, `asinh`,
+# `asinh-inputs`, ...) are gone from here; their records, each with the options it ran,
+# stay in results/transfer.json, and docs/transfer.md lists what they measured.
 VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and oracle alike)
     "default": (),
     "pna": ("--aggregate", "pna", "--update", "mlp", "--message-init", "zero"),
     "mean": ("--aggregate", "mean", "--update", "mlp", "--message-init", "zero"),
     "mlp-sum": ("--aggregate", "sum", "--update", "mlp", "--message-init", "zero"),
-    "linear-path": ("--linear-path",),  # the default beside a linear path per node network
     # Candidates for node networks that extrapolate (docs/transfer.md, "Variants"): an
-    # unbounded activation (Xu et al. 2021: ReLU MLPs extrapolate linearly, tanh saturates),
-    # and both.
+    # unbounded activation (Xu et al. 2021: ReLU MLPs extrapolate linearly, tanh saturates).
     "relu": ("--activation", "relu"),
-    "relu-linear-path": ("--activation", "relu", "--linear-path"),
     "softplus": ("--activation", "softplus"),
-    # The gain of the affine update as an affine map of the node's own inputs, the form of
-    # every Barzel-Barabasi coupling (mpnode_cli/models/mpnode.py), alone and with a linear
-    # path beside the drift's MLP.
-    "linear-gain": ("--gain", "linear"),
-    "linear-gain-path": ("--gain", "linear", "--linear-path"),
     "l2s": ("--model", "l2s"),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
     # Each node's error over its own variance (`--loss node-mse`): hubs whose states are
     # 100× a typical node's no longer swamp the loss.
@@ -47,13 +42,6 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # The same, with the loss and every error of those angles taken mod 2π
     # (`--wrap-angles`): a phase slip of 2π costs nothing, as the physics says.
     "periodic-wrapped": ("--periodic", "embed", "--wrap-angles"),
-    # The same, with the gains linear in the node's own inputs and a linear path beside
-    # each network (`--gain linear --linear-path`): the swing equation's and Kuramoto's
-    # coupling, K (cos θ_i sin θ_j − sin θ_i cos θ_j), is then expressed exactly by a gain
-    # linear in (sin θ_i, cos θ_i) times senders' (sin θ_j, cos θ_j), and the grid's drift
-    # ω̇ = P − γω by the linear path: what the tanh networks must otherwise approximate.
-    "periodic-wrapped-linear": ("--periodic", "embed", "--wrap-angles", "--gain", "linear",
-                                "--linear-path"),
     # `periodic-wrapped` trained for what "10 minutes of one core" allows (`TIMED_SOURCES`)
     # instead of the system's fixed epochs: the grid's 100 reach the whole horizon only at
     # their last (the recipe's horizon curriculum takes 100 epochs).
@@ -77,12 +65,6 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # systems labelled `default` before that change are kept under these two names).
     "periodic-off": ("--periodic", "off"),
     "hub-coverage-periodic-off": ("--periodic", "off"),
-    # The states z-scored as asinh(x / s), s their median |x| (`--normalize asinh`): a
-    # hub's state 10× any in training lies a few units outside the range, not hundreds.
-    "asinh": ("--normalize", "asinh"),
-    # Robust input scaling: the node networks see asinh((z − c)/r) of the states (median
-    # c, median absolute deviation r), and a linear path beside each sees z itself.
-    "asinh-inputs": ("--input-scale", "asinh", "--linear-path"),
     # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
     # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
     "hub-coverage": (),
@@ -94,23 +76,11 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     # that swamp a plain MSE (docs/transfer.md).
     "hub-coverage-node-mse": ("--loss", "node-mse"),
     "hub-coverage-periodic": ("--periodic", "embed"),
-    "hub-coverage-asinh": ("--normalize", "asinh"),
-    "hub-coverage-asinh-inputs": ("--input-scale", "asinh", "--linear-path"),
-    "hub-coverage-asinh-inputs-long": ("--input-scale", "asinh", "--linear-path"),
     # Degree coverage with each dataset's loss over its own variance (`--balance-datasets`):
     # the coverage graphs' hubs no longer swamp the source's typical nodes, and within
     # the coverage data the hubs still count in full.
     "hub-coverage-balanced": ("--balance-datasets",),
     "hub-coverage-balanced-long": ("--balance-datasets",),
-    # The same, with robust input scaling and a linear path (`asinh-inputs`): the coverage
-    # hubs widen the z-scores' scale 100-fold, so the typical nodes' states, at a few
-    # hundredths of it, are what the networks see with the least resolution; asinh of the
-    # robustly scaled states gives them back theirs.
-    "hub-coverage-balanced-asinh-inputs": ("--balance-datasets", "--input-scale", "asinh",
-                                           "--linear-path"),
-    # The same without the linear path (which, seeing the z-scores of hubs, made the
-    # learned field stiff and its gradients blow up within 30 epochs: docs/transfer.md).
-    "hub-coverage-balanced-asinh-scale": ("--balance-datasets", "--input-scale", "asinh"),
     # Degree coverage with the source trained as long as the oracles may train: their
     # epoch cap, with no early stop, so that zero-shot and oracle get the same epochs.
     "hub-coverage-oracle-epochs": (),
@@ -120,7 +90,12 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
     "hub-coverage-oracle-epochs-cosine-clip": ("--schedule", "cosine", "--clip", "5"),
     # The clipping alone: whether gene's win needed the annealing too.
     "hub-coverage-oracle-epochs-clip": ("--clip", "5"),
+    # The product path: the source trained by `mpnode train SOURCE --for-graphs TARGET...`
+    # and no other option (the CLI makes the coverage data and applies the transfer
+    # recipe); these are its oracles' options, the same transfer recipe on the target.
+    "for-graphs": ("--schedule", "cosine", "--clip", "5"),
 }
+FOR_GRAPHS_VARIANTS = ("for-graphs",)
 
 # Planning: seconds per epoch of each system's *source* training (one torch thread, the
 # whole horizon, validation included). gene, kuramoto, pendulum, fhn, grid: the mean over
@@ -134,7 +109,8 @@ VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and
 # validation trajectories, same day): mm 1.2–2.7 s per epoch (predicted 5.0), bd 2.7–4.7 s
 # (predicted 2.5).
 S_PER_EPOCH = {"gene": 0.71, "kuramoto": 1.38, "pendulum": 2.56, "fhn": 1.08, "grid": 9.97,
-               "sis": 1.6, "mak": 3.1, "mm": 2.2, "bd": 1.1, "nd": 0.9}
+               "sis": 1.6, "mak": 3.1, "mm": 2.2, "bd": 1.1, "nd": 0.9,
+               "mutualistic": 0.33}  # 2026-12-07, epochs 1-30 of one run, quiet core
 STIFFENING = 1.5  # BB systems only (above)
 CURRICULUM = {"sis", "mak", "mm", "bd", "nd"}  # measured without the horizon curriculum
 CURRICULUM_EPOCHS, CURRICULUM_START, SAMPLES = 100, 5, 101
@@ -143,7 +119,7 @@ GEN_PER_NODE_TRAJECTORY = 2e-3  # sis, 6 × 4096 nodes: 47 s wall (2026-11-28, l
 EVAL_SECONDS = 15.0  # one scoring: a process start, a rollout of the test split
 PROCESS_SECONDS = 6.0  # one `mpnode train` start (imports, data, the epoch-0 validation)
 SOURCE_EPOCHS = {"gene": 100, "kuramoto": 150, "pendulum": 150, "fhn": 100, "grid": 100,
-                 **{s: 300 for s in BB}}
+                 "mutualistic": 150, **{s: 300 for s in BB}}
 
 
 @dataclass(frozen=True)
@@ -246,6 +222,10 @@ def _size_sources() -> dict[str, tuple[Data, dict[str, tuple]]]:
         "pendulum": (Data("pendulum", 3, "chain", 500),
                      {"x2": (6, "chain", 1, 0, 1), "x4": (12, "chain", 1, 0, 2)}),
         "fhn": (Data("fhn", 10, "ba", 400, graphs=8), ba),
+        # A Barzel–Barabási-form plug-in that nothing here was tuned on: BA 20 → BA 160
+        # (in-degree up to 12 → 45), its hubs' states above the source's range.
+        "mutualistic": (Data("mutualistic", 20, "ba", 60, graphs=5),
+                        {"x8": (160, "ba", 2, 400, 4)}),
         "grid": (Data("grid", 10, "ba", 400, graphs=8), ba),
         **bb}
 
@@ -325,7 +305,7 @@ def set_of(system: str) -> str:
 
 def per_degree(label: str) -> bool:
     """Whether a target gets the in-degree breakdown: every ×4 and every S¹ target."""
-    return label == "x4" or label.startswith("n")
+    return label in ("x4", "x8") or label.startswith("n")
 
 
 # ------------------------------------------------------------------------------ planning

@@ -443,11 +443,6 @@ class TrainConfig(BaseModel):
     trajectories: int | None = Field(None, ge=1, description=(
         "Use only the first K train trajectories of each dataset (all of them, with a "
         "warning, where a dataset has fewer)."))
-    normalize: Literal["z", "asinh"] = Field("z", description=(
-        "How the states are scaled for the model: z, the z-score per component; or asinh, "
-        "the z-score of asinh(x / s), s the median |x| (linear near 0, logarithmic far "
-        "out), for states that span decades, as hubs' do on heterogeneous graphs. Not "
-        "with --stream."))
     renormalize: bool = Field(False, description=(
         "Finetune: fit the normalization on the new train split instead of reusing the "
         "checkpoint's; better when the new graphs' states have another scale "
@@ -462,6 +457,17 @@ class TrainConfig(BaseModel):
         "Read the batches from the dataset file as they are needed (a thread reads two "
         "ahead), for data larger than memory; the losses are those of the data in "
         "memory."))
+    for_graphs: list[Path] = Field(default_factory=list, description=(
+        "Train for deployment to these graphs (mpnode datasets, adjacency .npy or edge "
+        "lists; only their graphs are read): degree-coverage data reaching their largest "
+        "in-degree are simulated into the run folder and trained on beside the datasets, "
+        "with the transfer recipe (docs/transfer.md)."))
+    for_in_degree: int | None = Field(None, ge=1, description=(
+        "As --for-graphs, for nodes of in-degree up to this."))
+    system_file: Path | None = Field(None, description=(
+        "With --for-graphs: the plug-in system's file, where the dataset's has moved."))
+    coverage: dict[str, Any] | None = Field(None, description=(
+        "Set by the run: the coverage data --for-graphs made (file, W, seeds, reach)."))
 
     @field_validator("solver", mode="before")
     @classmethod
@@ -485,9 +491,6 @@ class TrainConfig(BaseModel):
             # would hold batches of different graph sizes, which one solve cannot stack.
             raise ValueError("seeds: an ensemble trains on one dataset; train one run per "
                              "seed on several datasets, or give one dataset")
-        if self.normalize == "asinh" and self.stream:
-            raise ValueError("normalize asinh needs the states in memory for its median "
-                             "scale; leave out --stream")
         return self
 
     @property

@@ -68,6 +68,21 @@ def _canonical(n: int, senders: np.ndarray, receivers: np.ndarray, repeats: bool
     return key % n, key // n
 
 
+def degree_range(degree: np.ndarray) -> dict[str, int | float]:
+    """`{"min", "median", "max"}` of in-degrees `degree` (e.g. `[G, N]` from
+    `Graphs.in_degree`), each entry counted once: every node of every graph, whatever number
+    of trajectories runs on it. The median is read off the degrees' histogram, which holds
+    max + 1 counts, so no sorted copy of the G·N entries is made."""
+    counts = np.bincount(np.asarray(degree, np.int64).reshape(-1))  # [max + 1]
+    if not counts.sum():
+        raise ValueError("no in-degrees: the graphs hold no node")
+    below = np.cumsum(counts)  # below[d]: entries with degree ≤ d
+    m = int(below[-1])
+    middle = np.searchsorted(below, [(m - 1) // 2, m // 2], side="right")  # sorted positions
+    return {"min": int(np.flatnonzero(counts)[0]), "median": float(middle.mean()),
+            "max": len(counts) - 1}
+
+
 @dataclass(frozen=True, eq=False)
 class EdgeList:
     """One graph on N nodes as its messages `senders[e] → receivers[e]`.

@@ -26,8 +26,7 @@ def test_options_left_out_take_the_models_defaults():
     assert resolve_options("mpnode", {}).model_dump() == {
         "message_dim": 3, "hidden": 32, "layers": 2, "activation": "tanh", "graph": "sys",
         "messages": True, "aggregate": "mean", "update": "mlp", "message_init": "zero",
-        "gain": "mlp", "linear_path": False, "input_scale": "z", "periodic": "off",
-        "backend": "auto"}
+        "periodic": "off", "backend": "auto"}
     assert resolve_options("gnode", {"hidden": 8}).model_dump() == {
         "hidden": 8, "depth": 1, "graph": "sys", "aggregate": "sum"}
 

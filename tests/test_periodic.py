@@ -152,7 +152,7 @@ def _periodic_model(dims=(0,), members: int = 1, **options):
 
 
 @pytest.mark.parametrize("options", [{}, {"update": "affine", "message_init": "learned"},
-                                     {"linear_path": True, "aggregate": "sum"}])
+                                     {"aggregate": "sum"}])
 def test_a_periodic_models_field_is_invariant_to_a_turn(options):
     import torch
 

@@ -294,12 +294,12 @@ def test_a_checkpoint_from_before_a_model_option_resumes_as_its_default(runs, tm
     exactly as the never-stopped run; another value of an option is still refused."""
     run = _copy(runs["base"], tmp_path / "run")
     for which in ("best", "last"):
-        _as_written_before(checkpoint_path(run, which), "input_scale")
+        _as_written_before(checkpoint_path(run, which), "backend")
     result = invoke("train", "--resume", run, "--epochs", EPOCHS)
     assert result.exit_code == 0, result.output
     _assert_same_run(run, runs["whole"])
     other = _copy(runs["base"], tmp_path / "other")
-    _as_written_before(checkpoint_path(other, "best"), "input_scale", "asinh")
+    _as_written_before(checkpoint_path(other, "best"), "backend", "scatter")
     before = _hashes(other)
     result = invoke("train", "--resume", other, "--epochs", EPOCHS)
     assert "best.pt is not this run's checkpoint" in one_line_error(result)

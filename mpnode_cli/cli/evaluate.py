@@ -63,12 +63,15 @@ def evaluate_command(
         False, "--force", help="Overwrite an existing --save-predictions file."),
     member: int | None = MEMBER,
     threads: str | None = THREADS,
+    by_degree: bool = typer.Option(
+        False, "--by-degree", help="Also the errors by in-degree bin ([0,1), [1,2), [2,4), "
+        "...; physical units) beside the naive predictors'."),
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
     from contextlib import nullcontext
 
     from mpnode_cli.paths import check_output_folder, reserve_output
-    from mpnode_cli.report.tables import baselines_note, metrics_table
+    from mpnode_cli.report.tables import baselines_note, degree_table, metrics_table
 
     _check_batch_size(batch_size)
     ckpt = _load_checkpoint(checkpoint, member)
@@ -88,7 +91,8 @@ def evaluate_command(
             fail(f"--save-predictions: {exc}")
     with reserved:  # the predictions replace the reservation: written with overwrite
         row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
-                        allow_other_system, save_predictions, force=True, quiet=json_out)
+                        allow_other_system, save_predictions, force=True, quiet=json_out,
+                        by_degree=by_degree)
     if json_out:
         typer.echo(json.dumps({"checkpoint": str(checkpoint), **_member(member), **row},
                               indent=2))
@@ -103,6 +107,8 @@ def evaluate_command(
     extrapolated_nodes(row)
     for path in [*row["plots"], *([row["predictions"]] if row["predictions"] else [])]:
         typer.echo(f"wrote {path}")
+    if by_degree:
+        console().print(degree_table(row["by_degree"], f"by in-degree: {_degree_caption(row)}"))
 
 
 def zeroshot_command(
@@ -201,7 +207,7 @@ def _check_batch_size(batch_size: int) -> None:
 def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, device: str,
               plot_dir: Path | None, allow_other_system: bool = False,
               save_predictions: Path | None = None, force: bool = False,
-              quiet: bool = False) -> dict[str, Any]:
+              quiet: bool = False, by_degree: bool = False) -> dict[str, Any]:
     """`evaluate_checkpoint` of one dataset behind a progress bar, its errors as the
     user's one line and exit code."""
     from mpnode_cli.cli.common import task_bar
@@ -218,7 +224,7 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
                                        batch_size=batch_size, device=device,
                                        plot_dir=plot_dir, allow_other_system=allow_other_system,
                                        save_predictions=save_predictions, overwrite=force,
-                                       progress=progress)
+                                       by_degree=by_degree, progress=progress)
     except (FileNotFoundError, FileExistsError, ValueError) as exc:
         fail(error_message(exc))
     except PredictionFailed as exc:
@@ -230,6 +236,14 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
 
         typer.echo("Interrupted", err=True)
         raise typer.Exit(code=exit_code(exc)) from None
+
+
+def _degree_caption(row: dict[str, Any]) -> str:
+    """What `evaluate --by-degree`'s table is of: units, and the in-degrees of training."""
+    trained = (row.get("extrapolation") or {}).get("train_in_degree")
+    span = f"; in-degree {trained[0]}–{trained[1]} in training" if trained else ""
+    return (f"MSE in physical units beside the naive predictors', skill = MSE / time-mean "
+            f"MSE, outside: share of node-trajectories leaving the training states{span}")
 
 
 def _default_plot_dir(checkpoint: Path) -> Path:

@@ -23,7 +23,10 @@ def info_command(
         None, help="Where the plot goes (default plots/ beside FILE).",
         parser=output_parser("--plot-dir", folder=True)),
 ) -> None:
-    """Print a dataset's summary (after checking the file, as `mpnode check` does)."""
+    """Print a dataset's summary (after checking the file, as `mpnode check` does).
+
+    The in-degree range is over every node of every graph, not weighted by trajectories.
+    """
     import json
 
     from mpnode_cli.cli.common import console, fail
@@ -82,6 +85,7 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
 
     from mpnode_cli.config import generate_solver
     from mpnode_cli.config_upgrade import stored_solver
+    from mpnode_cli.graphs import degree_range
 
     attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
     (k, t, n, d), states_dtype = shapes["states"]
@@ -100,6 +104,8 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
         "hubs": config.get("hubs") or 0,
         "hub_multiplicity": config.get("hub_multiplicity") or 1,
         "directed": directed, "edges_mean": float(edges.mean()),
+        # Over every node of every graph, not weighted by the trajectories on each graph.
+        "in_degree": degree_range(graphs.in_degree()),
         "parameters": header["scalar_params"],
         "per_graph_parameters": {name.removeprefix("params/"): list(shape)
                                  for name, (shape, _) in shapes.items()
@@ -148,6 +154,9 @@ def _rows(facts: dict[str, Any]) -> list[tuple[str, str]]:
                    + (f" by up to {facts['hub_multiplicity']} parallel edges"
                       if facts["hub_multiplicity"] > 1 else "")
                    + f", {facts['edges_mean']:g} {kind} edges on average"),
+        ("in-degree", "min {min}, median {median:g}, max {max}".format(**facts["in_degree"])
+                      + (" (over every node of the graph)" if facts["graphs"] == 1 else
+                         f" (over every node of the {facts['graphs']} graphs)")),
         ("parameters", scalars or "none"),
         ("per-graph parameters", per_graph or "none"),
         ("states dtype", facts["states_dtype"]),

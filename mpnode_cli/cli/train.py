@@ -66,8 +66,8 @@ _SOLVER = ("method", "rtol", "atol", "fixed_dt")
 # `model`). A `TrainConfig` field or a solver option is built from its declaration; the
 # other names are the command's own parameters. A command has the ones it takes.
 _PANELS = {
-    DATA: ("normalize", "renormalize", "allow_other_system", "allow_predictions", "trajectories",
-           "stream"),
+    DATA: ("renormalize", "allow_other_system", "allow_predictions", "trajectories",
+           "stream", "for_graphs", "for_in_degree", "system_file"),
     RECIPE: ("recipe", "loss", "epochs", "batch_size", "even_batches", "lr", "min_lr",
              "schedule", "patience", "stop_patience", "time_limit", "clip", "noise",
              "max_bad_steps", "val_batch_size", "seed", "seeds", "wrap_angles",
@@ -94,13 +94,26 @@ def train_command(
     resume: Path | None = typer.Option(
         None, help="Continue the run in this folder, as configured: only "
         f"{resumable_options()} may change."),
+    for_graphs: list[Path] | None = typer.Option(
+        None, "--for-graphs", metavar="TARGET", show_default=False,
+        help=TrainConfig.model_fields["for_graphs"].description + " Repeat for several."),
+    for_in_degree: int | None = typer.Option(
+        None, min=1, show_default=False,
+        help=TrainConfig.model_fields["for_in_degree"].description),
+    system_file: Path | None = typer.Option(
+        None, show_default=False, help=TrainConfig.model_fields["system_file"].description),
     config_file: Path | None = _CONFIG, threads: str | None = THREADS,
     json_out: bool = JSON_OUT, **options: Any,
 ) -> None:
     """Train a model on a dataset's train split, or on several datasets' at once (fitted on
     their train splits pooled; validation and test reported per dataset and pooled, the
-    best epoch chosen by the pooled validation loss); results go to runs/<name>/."""
+    best epoch chosen by the pooled validation loss); results go to runs/<name>/.
+
+    For larger graphs: --for-graphs TARGET (or --for-in-degree K) adds degree-coverage data
+    that reach the targets' hubs, simulated from the dataset's own system."""
     fields, chosen = _given(options)
+    fields |= {k: v for k, v in (("for_graphs", for_graphs), ("for_in_degree", for_in_degree),
+                                 ("system_file", system_file)) if v}
     try:
         if resume is not None:
             from mpnode_cli.training.resume import resume_config
@@ -270,7 +283,8 @@ _MODEL_OPTIONS = {name for declared in OPTIONS.values() for name in declared.mod
 # A finetune's model is its checkpoint's; renormalizing and another system are a finetune's.
 train_command = _with_options(train_command, leave_out=("renormalize", "allow_other_system"),
                               model_options=True)
-finetune_command = _with_options(finetune_command, leave_out=("model",))
+finetune_command = _with_options(finetune_command, leave_out=(
+    "model", "for_graphs", "for_in_degree", "system_file"))
 
 
 def _run(config: Any, resume: bool, json_out: bool = False) -> None:
@@ -388,6 +402,9 @@ class _Display:
                 self.console.print(f"threads: {threads.describe()}")
             if "solver" in event:
                 self.console.print(f"solver: {event['solver']}")
+            if event.get("in_degree"):
+                lo, hi = event["in_degree"]
+                self.console.print(f"in-degree covered by training: {lo}–{hi}")
             if event.get("stream"):
                 self.console.print("data: streamed from the file, two batches read ahead")
             if event.get("processes", 1) > 1:
@@ -408,6 +425,13 @@ class _Display:
             self.bar.update(self.batches, description="testing", completed=0)
         elif kind == "warning":
             warn(event["text"])
+        elif kind == "coverage":
+            self.console.print(
+                f"coverage: simulating {event['trajectories']} trajectories on "
+                f"{event['nodes']}-node graphs whose {event['hubs']} hubs hear every other "
+                f"node up to {event['multiplicity']} times (in-degree up to "
+                f"{event['multiplicity'] * (event['nodes'] - 1)}, for {event['reach']}) "
+                f"into {event['path']}")
 
     def _epoch(self, row: dict[str, Any]) -> None:
         from mpnode_cli.report.tables import fmt

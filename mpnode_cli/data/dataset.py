@@ -33,116 +33,62 @@ _STD_FLOOR = 1e-8  # a constant feature is centred, not divided by zero
 
 @dataclass(frozen=True)
 class Normalizer:
-    """Per-feature z-score of node states (and controls), optionally of asinh(x / s).
-
-    `x_scale` (`fit(..., asinh=True)`; off by default) first maps each state component by
-    asinh(x / s), s its median absolute value over the fitted states: linear for |x| ≪ s
-    and logarithmic for |x| ≫ s, so that states spanning decades (the hubs of a
-    heterogeneous graph, whose states grow with their degree, beside typical nodes) are
-    all resolved, and a hub whose state is 10× any in training lies a few units, not
-    hundreds, outside the range. The z-score is then of asinh(x / s). A component whose
-    scale is 0 is left linear (a periodic angle, `unscaled`).
+    """Per-feature z-score of node states (and controls).
 
     Attributes:
         x_mean, x_std: `[D]` float32. u_mean, u_std: `[U]` float32 (empty when U = 0).
-        x_scale: `[D]` float32 s, or None (plain z-score).
     """
 
     x_mean: torch.Tensor
     x_std: torch.Tensor
     u_mean: torch.Tensor
     u_std: torch.Tensor
-    x_scale: torch.Tensor | None = None
 
     @staticmethod
     def fit(states: torch.Tensor | Sequence[torch.Tensor],
-            controls: torch.Tensor | Sequence[torch.Tensor] | None = None, *,
-            asinh: bool = False) -> Normalizer:
+            controls: torch.Tensor | Sequence[torch.Tensor] | None = None) -> Normalizer:
         """Fit on `states [K, T, N, D]` (and `controls [K, T, N, U]`), or on lists of them,
-        one per dataset (N and T may differ): pooled, every value counts once. `asinh`:
-        z-score asinh(x / s), s the median |x| per component (`x_scale`)."""
-        scale = _median_abs(states) if asinh else None
-        x_mean, x_std = _moments(states if scale is None else
-                                 [_asinh(part, scale) for part in _parts(states)])
+        one per dataset (N and T may differ): pooled, every value counts once."""
+        x_mean, x_std = _moments(states)
         if controls is None or _features(controls) == 0:
             u_mean = u_std = torch.zeros(0)
         else:
             u_mean, u_std = _moments(controls)
-        return Normalizer(x_mean, x_std, u_mean, u_std, scale)
+        return Normalizer(x_mean, x_std, u_mean, u_std)
 
     def unscaled(self, dims: Sequence[int]) -> Normalizer:
         """This normalization with the state components `dims` left as they are (mean 0,
-        std 1, no asinh): angles whose sin and cos a model takes (MP-NODE's
-        `periodic="embed"`) stay in radians."""
+        std 1): angles whose sin and cos a model takes (MP-NODE's `periodic="embed"`) stay
+        in radians."""
         if not dims:
             return self
         index = torch.as_tensor(list(dims), dtype=torch.long)
         x_mean, x_std = self.x_mean.clone(), self.x_std.clone()
         x_mean[index], x_std[index] = 0.0, 1.0
-        scale = None if self.x_scale is None else self.x_scale.clone()
-        if scale is not None:
-            scale[index] = 0.0
-        return Normalizer(x_mean, x_std, self.u_mean, self.u_std, scale)
+        return Normalizer(x_mean, x_std, self.u_mean, self.u_std)
 
     def to_dict(self) -> dict[str, list[float]]:
-        names = ["x_mean", "x_std", "u_mean", "u_std"]
         return {name: getattr(self, name).tolist()
-                for name in names + (["x_scale"] if self.x_scale is not None else [])}
+                for name in ("x_mean", "x_std", "u_mean", "u_std")}
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> Normalizer:
-        """From `to_dict`; a dict without `x_scale` (every file before it) is a plain
-        z-score."""
-        scale = d.get("x_scale")
         return Normalizer(**{name: torch.tensor(d[name], dtype=torch.float32)
-                             for name in ("x_mean", "x_std", "u_mean", "u_std")},
-                          x_scale=None if scale is None else torch.tensor(scale,
-                                                                          dtype=torch.float32))
+                             for name in ("x_mean", "x_std", "u_mean", "u_std")})
 
     def norm_x(self, x: torch.Tensor) -> torch.Tensor:
-        if self.x_scale is not None:
-            x = _asinh(x, self.x_scale)
         return (x - self.x_mean.to(x)) / self.x_std.to(x)
 
     def denorm_x(self, x: torch.Tensor) -> torch.Tensor:
-        y = x * self.x_std.to(x) + self.x_mean.to(x)
-        if self.x_scale is None:
-            return y
-        scale = self.x_scale.to(y)
-        return torch.where(scale > 0, torch.sinh(y) * scale, y)
+        return x * self.x_std.to(x) + self.x_mean.to(x)
 
-    def denorm_spread(self, s: torch.Tensor, at: torch.Tensor | None = None) -> torch.Tensor:
+    def denorm_spread(self, s: torch.Tensor) -> torch.Tensor:
         """A spread of states (a standard deviation, `[..., D]`) in physical units: scaled
-        by the state std, not shifted by the mean. With `x_scale`, to first order about the
-        normalized states `at` (the mean prediction; required then): times dx/dy there."""
-        spread = s * self.x_std.to(s)
-        if self.x_scale is None:
-            return spread
-        if at is None:
-            raise ValueError("an asinh normalization needs the states a spread is about")
-        scale = self.x_scale.to(s)
-        y = at * self.x_std.to(s) + self.x_mean.to(s)
-        return spread * torch.where(scale > 0, scale * torch.cosh(y), torch.ones_like(y))
+        by the state std, not shifted by the mean."""
+        return s * self.x_std.to(s)
 
     def norm_u(self, u: torch.Tensor) -> torch.Tensor:
         return (u - self.u_mean.to(u)) / self.u_std.to(u)
-
-
-def _median_abs(states: torch.Tensor | Sequence[torch.Tensor]) -> torch.Tensor:
-    """`[D]` float32: the median |x| per component over every value (pooled; the lower of
-    the two middle values for an even count, as `torch.median` takes it), floored at
-    `_STD_FLOOR` relative to the largest |x| so that a scale is never 0."""
-    flat = _flat(states).abs()
-    median = flat.median(dim=0).values
-    floor = torch.clamp(flat.amax(dim=0) * _STD_FLOOR, min=_STD_FLOOR)
-    return torch.maximum(median, floor).float()
-
-
-def _asinh(x: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """asinh(x / s) per component; components of scale 0 unchanged."""
-    scale = scale.to(x)
-    safe = torch.where(scale > 0, scale, torch.ones_like(scale))
-    return torch.where(scale > 0, torch.asinh(x / safe), x)
 
 
 def _recipe(raw: Any) -> dict[str, Any] | None:

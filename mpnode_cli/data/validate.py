@@ -35,7 +35,7 @@ from mpnode_cli.data.hdf5 import (
     _py,
 )
 from mpnode_cli.data.virtual import virtual_source_problems
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.graphs import Graphs, degree_range
 from mpnode_cli.limits import MULTIPLICITY_MAX
 from mpnode_cli.terminal import suggested
 
@@ -287,6 +287,7 @@ class _Checker:
         multigraph: an edge of multiplicity w is w messages, and w in the matrix); returns G."""
         v1 = version == 1
         multi = _is_int(version) and version >= 4
+        before, in_degree = len(self.problems), None
         g = self._edges(n, multi) if not v1 else None
         adjacency = self._array("graph/adjacency", required=v1)
         if adjacency is not None and self._shape("graph/adjacency", adjacency, (None, n, n),
@@ -297,8 +298,15 @@ class _Checker:
             g = adjacency.shape[0]
             if g < 1:
                 self.problem("graph/adjacency holds no graph (G = 0)")
-            # Above the threshold a matrix is only scanned, one graph at a time.
-            bad = any(not _counts(adjacency[i], multi) for i in range(g))
+            # Above the threshold a matrix is only scanned, one graph at a time; the same
+            # pass sums its rows: the in-degrees of version 1, which has no edge lists.
+            in_degree, bad = np.zeros((g, n), np.int64), False
+            for i in range(g):
+                matrix = adjacency[i]
+                if not _counts(matrix, multi):
+                    bad = True
+                    break
+                in_degree[i] = matrix.sum(axis=1)
             if bad:
                 self.problem("graph/adjacency must hold only 0 and 1 "
                              "(A[g, i, j] = 1 iff node j sends to node i)" if not multi else
@@ -311,6 +319,10 @@ class _Checker:
                     self.problem("graph/adjacency and graph/edges hold different graphs")
         g = g or 0
         self.summary["graphs"] = g
+        if self.edge_graphs is not None:
+            in_degree = self.edge_graphs.in_degree()  # [G, N], parallel edges w times
+        if g and in_degree is not None and len(self.problems) == before:
+            self.summary["in_degree"] = degree_range(in_degree)
         index = self._array("graph_index", required=True)
         if index is not None and self._shape("graph_index", index, (k,), "[K]"):
             if index.dtype.kind not in "iu":

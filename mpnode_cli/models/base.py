@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from mpnode_cli.models.options import ModelOptions
-from mpnode_cli.models.stacked import Linear, linear
+from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.options import SolverOptions
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -229,12 +229,10 @@ class NeuralModel(nn.Module, metaclass=abc.ABCMeta):
         return BatchLoss(loss, out.status, out.n_f_evals)
 
 
-def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str,
-        linear_path: bool = False) -> nn.Sequential:
+def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str) -> nn.Sequential:
     """`layers` hidden layers of width `hidden` with `activation`, then a linear output.
 
     Weights are Glorot-uniform and biases zero, as Flux's `Dense` (the authors' init).
-    `linear_path` adds a linear map of the input beside it (`LinearPathMLP`), zero at first.
     """
     if activation not in ACTIVATIONS:
         raise ValueError(f"unknown activation '{activation}' (choose from: "
@@ -250,34 +248,7 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, activation: str,
         if isinstance(module, nn.Linear):
             nn.init.xavier_uniform_(module.weight)
             nn.init.zeros_(module.bias)
-    return LinearPathMLP(*modules) if linear_path else nn.Sequential(*modules)
-
-
-class LinearPathMLP(nn.Sequential):
-    """An MLP with a linear path beside it: `F(x) = A·x + MLP(x)`.
-
-    A tanh MLP saturates where its input leaves the training range; the linear path goes
-    on linearly there, for nodes whose dynamics are (near) linear in their inputs, e.g. a
-    hub whose summed input grows with its degree (Xu et al. 2021, "How neural networks
-    extrapolate"). Trained together, the MLP keeps part of the slope, so the far field is
-    closer to a linear node's but not exact (`tests/test_linear_path.py`).
-    `A` (`linear_weight`, `[out, in]`) starts at zero, so an untrained model computes what
-    the plain MLP does; the offset b of `A·x + b` is the MLP's output bias. The MLP's
-    layers stay this module's items (`[0]` … `[-1]`, the same weight names as the plain
-    MLP), and `A` is its own parameter, which an ensemble stacks like every other
-    (`mpnode_cli.models.stacked.linear`).
-    """
-
-    def __init__(self, *modules: nn.Module):
-        super().__init__(*modules)
-        first, last = modules[0], modules[-1]
-        self.linear_weight = nn.Parameter(first.weight.new_zeros(last.out_features,
-                                                                 first.in_features))
-
-    def forward(self, x: torch.Tensor, raw: torch.Tensor | None = None) -> torch.Tensor:
-        """`A·raw + MLP(x)`; `raw` (default x): what the linear path sees, where the MLP
-        sees features of it (MP-NODE's `input_scale="asinh"`)."""
-        return super().forward(x) + linear(x if raw is None else raw, self.linear_weight, None)
+    return nn.Sequential(*modules)
 
 
 def model_dtype(model: nn.Module | None) -> torch.dtype:

@@ -23,22 +23,6 @@ linear in the neighbour sum, what it learns from nodes of degree 1–8 holds at 
 messages' own dynamics see the mean, so their feedback gain does not grow with the degree.
 `message_init="learned"` starts the message states from a learned function of
 `[x_i(t₀), u_i(t₀)]` instead of zero, for coupling that acts from the first instant.
-`gain="linear"` (off by default) makes the gains G_x and G_m affine functions of the
-node's own inputs, `G(x, u) = W·[x, u] + b`, instead of outputs of the drift's MLP. Every
-Barzel–Barabási coupling has this form (Barzel & Barabási 2013; `docs/systems.md`): a gain
-that is constant (regulatory, neuronal, population dynamics, `gene`) or linear in x_i
-(epidemic 1 − x_i, biochemical −R·x_i), and with embedded angles Kuramoto's and the swing
-equation's cos θ_i, sin θ_i. A hub's state grows with its degree beyond what the training
-graphs held; a linear gain carries what it learned there linearly, where an MLP's
-output is unconstrained (`docs/transfer.md`).
-`linear_path=True` (off by default) adds a linear map of its input beside each of these
-MLPs (`mpnode_cli.models.base.LinearPathMLP`), zero at first: where states leave the
-training range the tanh MLPs saturate, the linear path goes on linearly.
-`input_scale="asinh"` (off by default) feeds the networks asinh((z − c)/r) of each plain
-state z, with c and r the training states' median and median absolute deviation (buffers
-fitted once, `fit_statistics`): robust input scaling, linear near the typical states and
-logarithmic far out, so that a hub whose state is 100× a typical node's lies a few units
-outside the training range; a linear path still sees z (`docs/transfer.md`).
 `periodic="embed"` (off in the paper's model; "auto", mpnode's recipe, embeds where the data
 declare angles) feeds the networks (sin θ, cos θ) in place of each
 state θ the dataset declares periodic (`periodic_dims`, the indices in the model's config):
@@ -62,14 +46,12 @@ from collections.abc import Sequence
 from typing import Any, ClassVar
 
 import torch
-from torch import nn
 
 from mpnode_cli.models.aggregate import Mean, NeighbourAggregation, build_aggregation, channels
 from mpnode_cli.models.backend import Graph
-from mpnode_cli.models.base import LinearPathMLP, mlp
+from mpnode_cli.models.base import mlp
 from mpnode_cli.models.ode import Control, NeuralODEModel
 from mpnode_cli.models.options import MPNODEOptions
-from mpnode_cli.models.stacked import Linear
 from mpnode_cli.solver.runge_kutta import RHS
 
 
@@ -84,9 +66,8 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
             MLP; graph ("sys" or "full"); messages (False clamps incoming messages to zero,
             the paper's §4.1 ablation); aggregate ("mean", the paper's, "sum" or "pna");
             update ("mlp", the paper's, or "affine"); message_init ("zero", the paper's,
-            or "learned"); gain ("mlp" or "linear", with the affine update); linear_path
-            (a linear map beside each MLP, off by default); periodic ("off", "embed", or
-            "auto": embed the `periodic_dims` given, none if none);
+            or "learned"); periodic ("off", "embed", or "auto": embed the
+            `periodic_dims` given, none if none);
             backend ("auto", "dense" or "scatter").
         periodic_dims: the state indices that are angles (the dataset's periodic states);
             used only with `periodic="embed"`, which needs at least one.
@@ -110,9 +91,6 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
         if any(not 0 <= i < node_dim for i in self.periodic_dims):
             raise ValueError(f"periodic_dims {list(self.periodic_dims)} outside the "
                              f"{node_dim} states")
-        if o.gain == "linear" and o.update != "affine":
-            raise ValueError("gain linear shapes the affine update's gain; update "
-                             f"'{o.update}' has none (use update affine)")
         self._angles = list(self.periodic_dims)
         self._plain = [i for i in range(node_dim) if i not in self.periodic_dims]
         self.message_dim, self.graph, self.messages = o.message_dim, o.graph, o.messages
@@ -125,49 +103,15 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
             # One MLP of [x, u] gives the drift F (D+M) and the gains G_x (D × C), G_m (M × M);
             # a second one, ψ, is what a node sends: a function of its own [x, u, m].
             gains = d * c + m * m
-            linear_gain = o.gain == "linear"
-            self.net = mlp(e + control_dim, o.hidden, o.layers,
-                           d + m + (0 if linear_gain else gains), o.activation, o.linear_path)
-            self.emit = mlp(e + control_dim + m, o.hidden, 1, m, o.activation, o.linear_path)
-            if linear_gain:
-                self.gain = Linear(e + control_dim, gains)
-                nn.init.zeros_(self.gain.weight)
-                nn.init.zeros_(self.gain.bias)
+            self.net = mlp(e + control_dim, o.hidden, o.layers, d + m + gains, o.activation)
+            self.emit = mlp(e + control_dim + m, o.hidden, 1, m, o.activation)
             with torch.no_grad():  # G = 0: training starts from uncoupled nodes
                 self.net[-1].weight[d + m:].zero_()
         else:
-            self.net = mlp(e + control_dim + c, o.hidden, o.layers, d + m, o.activation,
-                           o.linear_path)
+            self.net = mlp(e + control_dim + c, o.hidden, o.layers, d + m, o.activation)
         if o.message_init == "learned":
-            self.init_net = mlp(e + control_dim, o.hidden, 1, m, o.activation, o.linear_path)
+            self.init_net = mlp(e + control_dim, o.hidden, 1, m, o.activation)
         self.aggregation = build_aggregation(o.aggregate)
-        if o.input_scale == "asinh":
-            # The plain states' median and median absolute deviation (normalized units),
-            # fitted once by `fit_statistics` (a spread of 0: not yet fitted).
-            self.register_buffer("input_center", torch.zeros(len(self._plain)))
-            self.register_buffer("input_spread", torch.zeros(len(self._plain)))
-
-    @property
-    def statistics_need_states(self) -> bool:
-        """asinh inputs fit their center and spread on the train states."""
-        return self.options.input_scale == "asinh"
-
-    def fit_statistics(self, states, dt: float, adjacency) -> None:
-        """PNA's δ (`NeighbourAggregation.fit_statistics`), and with asinh inputs the
-        plain states' median and median absolute deviation over every train value
-        (pooled over datasets; fitted once: a finetune keeps the parent's)."""
-        super().fit_statistics(states, dt, adjacency)
-        if self.options.input_scale != "asinh" or bool((self.input_spread > 0).any()):
-            return
-        parts = [states] if isinstance(states, torch.Tensor) else list(states)
-        flat = torch.cat([p[..., self._plain].reshape(-1, len(self._plain)).double()
-                          for p in parts])
-        center = flat.median(dim=0).values
-        spread = (flat - center).abs().median(dim=0).values
-        # A component that barely moves still gets a positive spread (its std's 1e-3).
-        floor = torch.clamp(flat.std(dim=0, correction=0) * 1e-3, min=1e-8)
-        self.input_center.copy_(center)
-        self.input_spread.copy_(torch.maximum(spread, floor))
 
     @property
     def config(self) -> dict[str, Any]:
@@ -177,33 +121,12 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
             else config
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        """The states `x [..., D]` as a linear path sees them: `[x_plain, sin θ, cos θ]`
+        """The states `x [..., D]` as the networks see them: `[x_plain, sin θ, cos θ]`
         `[..., D + P]` with the P periodic components θ; x itself when there are none."""
         if not self.periodic_dims:
             return x
         angles = x[..., self._angles]
         return torch.cat([x[..., self._plain], torch.sin(angles), torch.cos(angles)], dim=-1)
-
-    def features(self, view: torch.Tensor) -> torch.Tensor:
-        """What the MLPs see of `embed`'s view (and any controls after it): the same, or
-        with asinh inputs the plain states z (its first columns) as asinh((z − c)/r)."""
-        if self.options.input_scale != "asinh":
-            return view
-        p = len(self._plain)
-        center, spread = self.input_center.to(view), self.input_spread.to(view)
-        scaled = torch.asinh((view[..., :p] - center) / spread)
-        return torch.cat([scaled, view[..., p:]], dim=-1) if view.shape[-1] > p else scaled
-
-    @staticmethod
-    def _call_net(net: nn.Module, view: torch.Tensor, feats: torch.Tensor,
-               *rest: torch.Tensor) -> torch.Tensor:
-        """`net` of `[feats, *rest]`, its linear path (if any) of `[view, *rest]` (one
-        tensor when the features are the view)."""
-        inputs = torch.cat([feats, *rest], dim=-1) if rest else feats
-        if not isinstance(net, LinearPathMLP):
-            return net(inputs)
-        raw = inputs if view is feats else (torch.cat([view, *rest], dim=-1) if rest else view)
-        return net(inputs, raw)
 
     def vector_field(self, adjacency: Graph, u: Control | None = None) -> RHS:
         """`f(t [B], z [B, N, D+M]) → dz/dt [B, N, D+M]`, z = [x; m] per node: eqs. (3)–(5)
@@ -220,9 +143,8 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
                 x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
                 if not self.messages:
                     m = torch.zeros_like(m)
-                view = self.embed(x)
                 rest = [u(t).to(z.dtype)] if u is not None else []
-                return self._call_net(self.net, view, self.features(view), *rest, aggregate(m))
+                return self.net(torch.cat([self.embed(x), *rest, aggregate(m)], dim=-1))
 
             return f
         # The affine update drives the messages by their neighbours' *mean*: a sum there
@@ -235,15 +157,11 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
             x, m = z[..., :d], z[..., d:]  # (B, N, D), (B, N, M)
             view = self.embed(x)
             own = torch.cat([view, u(t).to(z.dtype)], dim=-1) if u is not None else view
-            feats = self.features(own)
             if self.messages:
-                sent = self._call_net(self.emit, own, feats, m)  # (B, N, M)
+                sent = self.emit(torch.cat([own, m], dim=-1))  # (B, N, M)
             else:
                 sent = own.new_zeros(*own.shape[:-1], m_dim)
-            out = self._call_net(self.net, own, feats)
-            if self.options.gain == "linear":
-                out = torch.cat([out, self.gain(own)], dim=-1)
-            return self._affine(out, aggregate(sent), average(sent))
+            return self._affine(self.net(own), aggregate(sent), average(sent))
 
         return f
 
@@ -262,7 +180,7 @@ class MPNODE(NeighbourAggregation, NeuralODEModel):
             return x0.new_zeros(*x0.shape[:-1], self.message_dim)
         e0 = self.embed(x0)
         inputs = torch.cat([e0, u0.to(x0.dtype)], dim=-1) if u0 is not None else e0
-        return self._call_net(self.init_net, inputs, self.features(inputs))
+        return self.init_net(inputs)
 
     def initial_state(self, x0: torch.Tensor, u0: torch.Tensor | None) -> torch.Tensor:
         """z(t₀) = `[x0, m(t₀)]` `[B, N, D+M]`: the states and `initial_messages`."""

@@ -26,8 +26,6 @@ GraphMode = Literal["sys", "full"]
 Update = Literal["mlp", "affine"]
 MessageInit = Literal["zero", "learned"]
 Periodic = Literal["off", "embed", "auto"]
-Gain = Literal["mlp", "linear"]
-InputScale = Literal["z", "asinh"]
 
 # Upper bounds on sizes: far beyond what the paper's systems need (widths of 32 to 128),
 # and small enough that a typo (`--hidden 10000000`) is refused rather than exhausting memory.
@@ -86,22 +84,6 @@ class MPNODEOptions(ModelOptions):
     message_init: MessageInit = Field("zero", description=(
         "Message states at t₀: zero (the paper's) or learned, a function of the node's "
         "x(t₀), u(t₀), for coupling that acts from the start."))
-    gain: Gain = Field("mlp", description=(
-        "With the affine update, how the gain G(x, u) depends on the node's own inputs: "
-        "mlp is an output of the node MLP; linear is an affine map of x and u (of sin θ, "
-        "cos θ for embedded angles), the form of every Barzel-Barabasi coupling, so "
-        "that it extrapolates linearly where a hub's state leaves the training range."))
-    linear_path: bool = Field(False, description=(
-        "Add a learned linear map of its input beside each MLP of the node networks, zero "
-        "at first: far outside the training range (a hub's summed input, large states) the "
-        "field then grows linearly where the MLP alone saturates."))
-    input_scale: InputScale = Field("z", description=(
-        "How the node networks see the (normalized) states: z as they are; asinh as "
-        "asinh((z − c)/r), c the median and r the median absolute deviation of the "
-        "training states per component (robust statistics, fitted once): linear near "
-        "typical states and logarithmic far out, so a hub whose state is 100× a typical "
-        "node's lies a few units outside the training range, not hundreds. A linear path "
-        "(--linear-path) still sees z, so the field can go on linearly there."))
     periodic: Periodic = Field("off", description=(
         "States the dataset declares periodic (angles, its periodic_states): embed feeds "
         "the node networks (sin θ, cos θ) in place of θ (the ODE state stays θ, in radians: "

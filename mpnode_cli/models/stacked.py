@@ -8,8 +8,7 @@ these: with an ordinary weight they are torch's; with a stacked one (`weight.dim
 more than torch's) the input's leading rows are member-major (member k's rows k·R …
 (k+1)·R − 1 of S·R), so `x.reshape(S, R, in)` lines each member's rows up with its
 weight, and the layer applies each member's weights to its rows as one batched matmul
-(`linear` does the same for a weight that is a model's own parameter, as an MLP's linear
-path). The layers read nothing but their weights: S is the weights' leading size.
+(`linear`). The layers read nothing but their weights: S is the weights' leading size.
 Everything else a model does acts row by row already.
 
 The rollout is told its members explicitly (`StackedMembers`). A solve that goes on with

@@ -151,6 +151,27 @@ def metrics_table(result: dict[str, Any], state_names: Sequence[str], title: str
     return table
 
 
+def degree_table(bins: Sequence[dict[str, Any]], title: str) -> Table:
+    """One row per in-degree bin (`mpnode_cli.training.by_degree.DegreeSums.rows`): its
+    node-trajectories, the model's MSE (physical) beside the naive predictors' and its
+    skill (MSE ÷ time-mean MSE: under 1 beats the time mean); an ensemble's members' MSE
+    as mean ± std."""
+    ensemble = any("members_mean" in row for row in bins)
+    table = titled(title)
+    for name in ("in-degree", "node-traj.", "MSE", "time mean", "skill", "hold x(0)",
+                 "outside", *(("members' MSE",) if ensemble else ())):
+        table.add_column(name, justify="left" if name == "in-degree" else "right")
+    for row in bins:
+        failed = f" ({row['failed']} failed)" if row["failed"] else ""
+        outside = row.get("states_outside")
+        table.add_row(f"[{row['lo']}, {row['hi']})", f"{row['node_trajectories']:,}{failed}",
+                      fmt(row["mse"]), fmt(row["time_mean"]), fmt(row["skill"], 3),
+                      fmt(row["hold_x0"]), "—" if outside is None else f"{100 * outside:.1f}%",
+                      *((format_mean_std(row.get("members_mean"), row.get("members_std")),)
+                        if ensemble else ()))
+    return table
+
+
 def zeroshot_table(rows: Sequence[dict[str, Any]], title: str) -> Table:
     """One row per dataset: where the trained node network ran, and how well.
 

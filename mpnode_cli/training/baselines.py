@@ -72,19 +72,7 @@ def baseline_mse_vs_time(train: TrajectoryData | StreamedTrajectories | Sequence
     nan = np.full(t, math.nan)
     if len(data) == 0:
         return {"hold_x0": nan, "time_mean": nan.copy()}
-    pred = None
-    if not isinstance(train, TrajectoryData | StreamedTrajectories):
-        train, mean_t = _pooled_time_mean(train, normalizer)
-    elif len(train):
-        total = sum(normalizer.norm_x(block.states.double()).sum(dim=(0, 2))
-                    for block in in_blocks(train))
-        mean_t = total / (len(train) * train.num_nodes)  # (T', D)
-    if len(train):
-        # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
-        ts, train_ts = data.time.double(), train.time.double()
-        slack = 1e-9 * max(1.0, float(ts.abs().max()))
-        at = torch.searchsorted(train_ts, ts + slack, right=True) - 1  # (T,) latest t' ≤ t_k
-        pred = mean_t[at.clamp(0, len(train_ts) - 1)]  # (T, D)
+    pred = time_mean_prediction(train, data.time, normalizer)  # (T, D) or None
     hold = torch.zeros(t, dtype=torch.float64)
     time_mean = torch.zeros(t, dtype=torch.float64)
     count = 0
@@ -96,6 +84,27 @@ def baseline_mse_vs_time(train: TrajectoryData | StreamedTrajectories | Sequence
         count += x[:, 0].numel()  # values per sample time
     return {"hold_x0": (hold / count).numpy(),
             "time_mean": (time_mean / count).numpy() if pred is not None else nan}
+
+
+def time_mean_prediction(train: TrajectoryData | StreamedTrajectories
+                         | Sequence[TrajectoryData], time: torch.Tensor,
+                         normalizer: Normalizer) -> torch.Tensor | None:
+    """The time_mean predictor at the sample times `time` (`[T]`): `[T, D]` float64 in
+    `normalizer`'s units (`baseline_mse` says which train time each takes), or None
+    without train trajectories. `train` as `baseline_mse_vs_time` takes it."""
+    if not isinstance(train, TrajectoryData | StreamedTrajectories):
+        train, mean_t = _pooled_time_mean(train, normalizer)
+    elif len(train):
+        total = sum(normalizer.norm_x(block.states.double()).sum(dim=(0, 2))
+                    for block in in_blocks(train))
+        mean_t = total / (len(train) * train.num_nodes)  # (T', D)
+    if not len(train):
+        return None
+    # Sample grids come from float arithmetic: a tolerance keeps t_k = 0.3 on 0.30000000004.
+    ts, train_ts = time.double(), train.time.double()
+    slack = 1e-9 * max(1.0, float(ts.abs().max()))
+    at = torch.searchsorted(train_ts, ts + slack, right=True) - 1  # (T,) latest t' ≤ t_k
+    return mean_t[at.clamp(0, len(train_ts) - 1)]  # (T, D)
 
 
 def _pooled_time_mean(train: Sequence[TrajectoryData], normalizer: Normalizer

@@ -57,6 +57,9 @@ version 7 file's `degree_delta` moves or goes (`_upgrade_v7`). An older mpnode w
 `degree_delta` in the weights, hence the new version.
 `dataset["train_range"]` came later without a new version: a file without it only goes
 without the extrapolation warning, and an older mpnode that ignores it computes the same.
+Options retired later without a new version (`mpnode_cli.config_upgrade.RETIRED`) go on
+reading where they are off, and a file trained with one on is refused, naming it
+(`checkpoint_upgrade.drop_retired`): a file without them reads as off in an older mpnode.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
 leaves the previous checkpoint intact.
@@ -72,11 +75,11 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from mpnode_cli import __version__
-from mpnode_cli.config_upgrade import upgrade_train_fields
+from mpnode_cli.config_upgrade import RetiredOptionError, retired_note, upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_path
 from mpnode_cli.paths import file_sha256  # noqa: F401  (a checkpoint's identity)
 from mpnode_cli.terminal import suggested
-from mpnode_cli.training.checkpoint_upgrade import upgrade_payload, version_problem
+from mpnode_cli.training.checkpoint_upgrade import drop_retired, upgrade_payload, version_problem
 
 if TYPE_CHECKING:
     from mpnode_cli.models.base import NeuralModel
@@ -231,6 +234,11 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
         raise CheckpointFormatError(f"{path} {problem}")
     upgrade_payload(payload, version)
     try:
+        drop_retired(payload)
+    except RetiredOptionError as exc:
+        raise CheckpointFormatError(f"{path}: this checkpoint was trained with {exc.setting}, "
+                                    f"{retired_note()}") from None
+    try:
         return Checkpoint(
             model_kind=payload["model_kind"], model_config=payload["model_config"],
             state_dict=payload["state_dict"], normalizer=payload["normalizer"],
@@ -325,14 +333,13 @@ def _weights(want: dict[str, torch.Tensor], have: Any) -> list[str]:
 
 
 def _normalizer(normalizer: Any, d: int, u: int) -> list[str]:
-    """Means and stds of the states (`[D]`) and controls (`[U]`), and any asinh scales of
-    the states (`[D]`): finite, stds positive, scales not negative, as the float32
-    `Normalizer.from_dict` makes of them."""
+    """Means and stds of the states (`[D]`) and controls (`[U]`): finite, stds positive,
+    as the float32 `Normalizer.from_dict` makes of them."""
     if not isinstance(normalizer, dict):
         return ["normalizer must be a dictionary of x_mean, x_std, u_mean, u_std"]
     problems = []
     named = [("x_mean", d), ("x_std", d), ("u_mean", u), ("u_std", u)]
-    for name, size in named + ([("x_scale", d)] if "x_scale" in normalizer else []):
+    for name, size in named:
         values = normalizer.get(name)
         if not isinstance(values, list | tuple) or len(values) != size:
             shown = len(values) if isinstance(values, list | tuple) else values
@@ -346,8 +353,6 @@ def _normalizer(normalizer: Any, d: int, u: int) -> list[str]:
             problems.append(f"normalizer {name} holds non-finite values (as float32)")
         elif name.endswith("std") and not bool((as_used > 0).all()):
             problems.append(f"normalizer {name} must be positive (as float32)")
-        elif name == "x_scale" and not bool((as_used >= 0).all()):
-            problems.append("normalizer x_scale must not be negative (as float32)")
     return problems
 
 

@@ -5,13 +5,22 @@ What each version changed is told in `mpnode_cli.training.checkpoint`'s docstrin
 is read as the version it says it is: one that says 1 goes through every upgrade from 1
 (each leaves what it does not find as it is), and `mpnode check` says so ("upgraded from
 v1"); a version that is not a whole number from 1 to this mpnode's is refused.
+Whatever its version, a file's retired options go where they hold their "off" value
+(`drop_retired`); a file that used one is refused.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_solver_fields, upgrade_train_fields
+from mpnode_cli.config_upgrade import (
+    RetiredOptionError,
+    pin_stored_solver,
+    upgrade_solver_fields,
+    upgrade_train_fields,
+    without_retired,
+    without_retired_options,
+)
 
 
 def version_problem(version: Any, newest: int) -> str | None:
@@ -42,6 +51,22 @@ def upgrade_payload(payload: dict[str, Any], version: int) -> None:
         _upgrade_v6(payload)
     if version < 8:
         _upgrade_v7(payload)
+
+
+def drop_retired(payload: dict[str, Any]) -> None:
+    """The retired options (`mpnode_cli.config_upgrade.RETIRED`) out of an upgraded
+    checkpoint's model config and train config, in place; an asinh scale in its
+    normalizer is the retired `normalize = "asinh"`.
+
+    Raises:
+        RetiredOptionError: one of them at another value than "off".
+    """
+    if isinstance(payload.get("model_config"), dict):
+        payload["model_config"] = without_retired_options(payload["model_config"])
+    if isinstance(payload.get("train_config"), dict):
+        payload["train_config"] = without_retired(payload["train_config"])
+    if isinstance(payload.get("normalizer"), dict) and "x_scale" in payload["normalizer"]:
+        raise RetiredOptionError("normalize", "asinh")
 
 
 def _upgrade_v1(payload: dict[str, Any]) -> None:

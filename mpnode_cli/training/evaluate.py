@@ -36,6 +36,7 @@ from mpnode_cli.training.baselines import (  # noqa: F401  (baseline_mse: evalua
     baseline_mse_vs_time,
     mean_of_curves,
 )
+from mpnode_cli.training.by_degree import degree_sums
 from mpnode_cli.training.compat import check_compatible
 from mpnode_cli.training.eval_result import (
     EvalResult,
@@ -120,7 +121,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
              batch_size: int = 128, solver: SolverOptions | None = None,
              device: str | torch.device = "cpu",
              combine: Callable[[torch.Tensor], torch.Tensor] | None = None,
-             progress: Progress | None = None, angles: Angles | None = None) -> EvalResult:
+             progress: Progress | None = None, angles: Angles | None = None,
+             per_batch: Callable[..., None] | None = None) -> EvalResult:
     """Roll `model` out on every trajectory of `data` and measure its errors.
 
     Args:
@@ -139,6 +141,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
         progress: called after each batch with the trajectories rolled out and K.
         angles: state components whose errors are taken mod 2π (`run_angles`; None:
             plain differences).
+        per_batch: called with each batch, its normalized states, rollout and `good`
+            mask (`mpnode_cli.training.by_degree.DegreeSums.add`).
 
     Returns:
         An `EvalResult`; errors are NaN when every rollout failed (or `data` is empty).
@@ -161,6 +165,8 @@ def evaluate(model: NeuralModel, data: TrajectoryData | StreamedTrajectories,
                 progress(done, k)
             good = (out.status == 0).cpu() & torch.isfinite(out.states).flatten(1).all(1).cpu()
             sums.add(out.states, x, good, normalizer, angles)
+            if per_batch is not None:
+                per_batch(batch, x, out, good)
             if getattr(out, "members", None) is None:
                 continue
             members = members or [_Sums(t, d) for _ in out.members]
@@ -199,7 +205,7 @@ def predict(model: NeuralModel, data: TrajectoryData, normalizer: Normalizer,
         out = model.rollout_from_data(x, data.time.to(device), batch.graph(device), u,
                                       solver=solver, return_messages=True)
     messages = None if out.messages is None else out.messages.cpu()
-    spread = (normalizer.denorm_spread(out.spread, out.states).cpu()
+    spread = (normalizer.denorm_spread(out.spread).cpu()
               if isinstance(out, EnsembleRollout) else None)
     return Prediction(time=data.time, true=batch.states, pred=normalizer.denorm_x(out.states).cpu(),
                       messages=messages, status=out.status.cpu(), spread=spread)
@@ -263,7 +269,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                         plot_dir: Path | None = None,
                         allow_other_system: bool = False,
                         save_predictions: Path | None = None,
-                        overwrite: bool = False,
+                        overwrite: bool = False, by_degree: bool = False,
                         progress: Progress | None = None) -> dict[str, Any]:
     """A checkpoint's errors on one split of a dataset (evaluate, zeroshot).
 
@@ -279,6 +285,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
         save_predictions: if given, write the split's predictions there as an
             `mpnode-dataset` file (`mpnode_cli.training.predict.write_predictions`).
         overwrite: replace an existing regular file at `save_predictions`.
+        by_degree: also the errors by in-degree bin, as "by_degree"
+            (`mpnode_cli.training.by_degree`); refused for a dataset of predictions.
         progress: called as the split's trajectories are rolled out (twice over with
             `save_predictions`: `progress(done, total)` counts both passes).
 
@@ -306,9 +314,11 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     options = {"solver": rollout_solver(ckpt), "device": device}
     passes = 1 if save_predictions is None else 2
     angles = checkpoint_angles(ckpt, normalizer)
-    result = evaluate(model, subset, normalizer, batch_size=batch_size,
-                      progress=pass_of(progress, 0, passes), angles=angles, **options)
     train, note = train_reference(ckpt, data)
+    degrees = degree_sums(data, subset, normalizer, train, angles) if by_degree else None
+    result = evaluate(model, subset, normalizer, batch_size=batch_size,
+                      progress=pass_of(progress, 0, passes), angles=angles,
+                      per_batch=degrees and degrees.add, **options)
     curves = baseline_mse_vs_time(train, subset, normalizer, angles)  # each [T]
     baselines = jsonable(mean_of_curves(curves))
     plots: list[str] = []
@@ -347,7 +357,8 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
             "topology": data.attrs.get("topology"), "split": split,
             "result": result.to_dict(), "baselines": baselines, "baselines_note": note,
             "plots": plots, "predictions": written, "data_note": data_note,
-            "extrapolation": None if beyond is None else beyond.to_dict()}
+            "extrapolation": None if beyond is None else beyond.to_dict(),
+            **({} if degrees is None else {"by_degree": degrees.rows(beyond and beyond.nodes)})}
 
 
 def evaluate_datasets(ckpt, datasets: Sequence[TrajectoryData], names: Sequence[str], *,

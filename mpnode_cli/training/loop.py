@@ -65,7 +65,7 @@ from mpnode_cli.config import TrainConfig
 from mpnode_cli.data.pooled import epoch_batches, taken
 from mpnode_cli.signals import raise_if_interrupted
 from mpnode_cli.solver import Status
-from mpnode_cli.training import distributed
+from mpnode_cli.training import coverage, distributed
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint
 from mpnode_cli.training.checkpointer import Checkpointer
@@ -145,7 +145,10 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
 
     # 1. Run setup: the data and the config settled for them, then the model from its
     # starting point (fresh, a finetune's parent, a resumed run's last.pt) and the rest.
-    data = load_data(config, resume, world, emit)
+    if not resume and (config.for_graphs or config.for_in_degree):
+        # `--for-graphs`: the coverage data, simulated into the reserved run folder first.
+        config = world.from_main(lambda: coverage.prepare(config, folder, emit))
+    data = load_data(config, resume, world, emit, reserved=config.coverage is not None)
     config = resolve_compile(data.config, sum(len(t) for t in data.train_sets))
     run = set_up(config, data, resume, folder, finished_ok)
     config, state = run.config, run.state
@@ -162,7 +165,8 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
           "batches": sum(math.ceil(len(t) / config.batch_size) for t in run.train_sets),
           "parameters": count_parameters(run.model), "solver": describe_solver(config),
           "processes": world.size, "backend": world.backend, "stream": config.stream,
-          "members": len(run.shuffles)})
+          "members": len(run.shuffles),
+          "in_degree": run.facts.get("train_range", {}).get("in_degree")})
 
     # 4. Epochs, each trained, validated and saved; epoch 0 validates the starting weights.
     try:

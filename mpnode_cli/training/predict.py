@@ -147,8 +147,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
             if out.messages is not None:
                 messages.append(out.messages.double().cpu())  # (B, T, N, M)
             if isinstance(out, EnsembleRollout):
-                spreads.append(normalizer.denorm_spread(out.spread, out.states).double()
-                               .cpu())  # (B, T, N, D)
+                spreads.append(normalizer.denorm_spread(out.spread).double().cpu())  # (B, T, N, D)
             status[idx.numpy()] = out.status.cpu().numpy()
             n_f_evals[idx.numpy()] = out.n_f_evals
             if progress is not None:

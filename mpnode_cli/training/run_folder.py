@@ -94,16 +94,27 @@ class RunFolder:
         self.path = run_dir
         self.last, self._best = check_run_folder(run_dir, config)
 
+    def reserve(self, run_dir: Path) -> None:
+        """Make and lock a new run's folder before the run is set up, for what the run
+        makes there first (`--for-graphs`' coverage data); `open` then takes it as it is.
+
+        Raises:
+            ValueError: as `mpnode_cli.training.run.create` and `lock_run`.
+        """
+        existed = not runs.create(run_dir)
+        self.path, self._existed = run_dir, existed
+        self._lock = lock_run(run_dir)
+
     def open(self, run_dir: Path, config: TrainConfig) -> None:
-        """Make and lock a new run's folder, or bring a resumed run's back to its `last.pt`
-        (`recover`); then write the config.
+        """Make and lock a new run's folder (unless `reserve` did), or bring a resumed run's
+        back to its `last.pt` (`recover`); then write the config.
 
         Raises:
             ValueError: as `mpnode_cli.training.run.create` and `lock_run`.
         """
         if self.last is not None:
             recover(run_dir, self.last, self._best)
-        else:
+        elif self.path != run_dir:
             existed = not runs.create(run_dir)
             self.path, self._existed = run_dir, existed
             self._lock = lock_run(run_dir)

@@ -190,7 +190,7 @@ class RunData:
 
 
 def load_data(config: TrainConfig, resume: bool, world: distributed.World,
-              emit: OnEvent) -> RunData:
+              emit: OnEvent, reserved: bool = False) -> RunData:
     """The datasets and their splits, and the config with their absolute paths (so that a
     run can be resumed and evaluated from any folder), resolved for the first (a resumed
     run's config.json is resolved already).
@@ -198,8 +198,8 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
     Raises:
         ValueError, FileNotFoundError: as `mpnode_cli.training.loop.train` says.
     """
-    if not resume:  # the run folder must be free and writable before any work (every rank
-        # refuses together)
+    if not resume and not reserved:  # the run folder must be free and writable before any
+        # work (every rank refuses together); a reserved one was checked when made
         world.from_main(lambda: runs.check_new(Path(config.run_dir)) if config.run_dir
                         else check_output_folder(runs.default_root()))
     datas = load_datasets(config.datasets, config.stream)
@@ -361,13 +361,12 @@ def _normalizer(config: TrainConfig, source: Checkpoint | None, renormalize: boo
         return source.build_normalizer()
     if config.stream:
         return train_sets[0].fit_normalizer()  # one pass over the file, in blocks
-    asinh = config.normalize == "asinh"
     if len(train_sets) == 1:
-        return Normalizer.fit(train_sets[0].states, train_sets[0].controls, asinh=asinh)
+        return Normalizer.fit(train_sets[0].states, train_sets[0].controls)
     # Several datasets: on their train splits pooled.
     controls = [t.controls for t in train_sets]
     return Normalizer.fit([t.states for t in train_sets],
-                          None if controls[0] is None else controls, asinh=asinh)
+                          None if controls[0] is None else controls)
 
 
 def _restore(last: Checkpoint, optimizer: Adam, shuffles: list[torch.Generator]
