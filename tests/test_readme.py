@@ -33,12 +33,13 @@ SMALL = {"generate": ["--trajectories", "12"],
 
 
 def your_files(folder: Path) -> None:
-    """The inputs the README's own-data commands name, tiny: 10 trajectories of 11 samples
-    on a 3-node chain (D = 2), and 2 initial states on a 5-node ring."""
+    """The inputs the README's commands name, tiny: 10 trajectories of 11 samples on a
+    3-node chain (D = 2) to import, and 2 initial states of the session's Lorenz model
+    (D = 3) on a 5-node ring to simulate."""
     rng = np.random.default_rng(0)
     np.save(folder / "states.npy", rng.normal(size=(10, 11, 3, 2)).cumsum(axis=1) * 0.1)
     np.save(folder / "graph.npy", np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.uint8))
-    np.save(folder / "x0.npy", rng.normal(size=(2, 5, 2)))
+    np.save(folder / "x0.npy", rng.normal(size=(2, 5, 3)))
     (folder / "big-graph.txt").write_text("".join(f"{i} {(i + 1) % 5}\n" for i in range(5)))
 
 
