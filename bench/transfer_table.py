@@ -172,7 +172,8 @@ def headline_row(key: tuple, kinds: dict[str, dict[int, dict]]) -> str:
     trained = (z[0] if z else {}).get("train_in_degree")
     cells = [
         set_of(system), system, protocol + (f" γ={gamma:g}" if gamma else ""),
-        variant, label, where, str(len(zs) or len(oracle)),
+        variant + ("‡" if _dirty(zs, oracle, source) else ""), label, where,
+        str(len(zs) or len(oracle)),
         (ratio_cell(zs, oracle) + ("†" if "borrowed" in kinds else "")) if label != "own"
         else "—",
         _pm([s["mse"] for s in z]), _pm([s["skill"] for s in z]),
@@ -182,6 +183,11 @@ def headline_row(key: tuple, kinds: dict[str, dict[int, dict]]) -> str:
         f"{_fmt_range(trained)} → {lo}–{hi}",
         oracle_cell(oracle), source_cell(source), str(failed)]
     return "| " + " | ".join(cells) + " |"
+
+
+def _dirty(*kinds: dict[int, dict]) -> bool:
+    """Whether a row rests on a record made from a tree with uncommitted changes."""
+    return any(str(r.get("commit", "")).endswith("+dirty") for k in kinds for r in k.values())
 
 
 def _fmt_range(pair: list[int] | None) -> str:
@@ -266,6 +272,10 @@ def page(records: dict[str, dict[str, Any]], note: str = "") -> str:
         lines += ["", "† A variant trained without oracles (`--no-oracles`): its oracle columns "
                   "are the default variant's oracles of the same target (`periodic-off`'s for "
                   "`hub-coverage-periodic-off`)."]
+    dirty = sum(str(r.get("commit", "")).endswith("+dirty") for r in records.values())
+    if dirty:
+        lines += ["", f"‡ A row resting on records made from a tree with uncommitted changes "
+                  f"({dirty} of the {len(records)} records): not quoted as results."]
     scales = sorted({r.get("scale", "?") for r in records.values()})
     if scales != ["full"]:
         lines += ["", f"Scales present: {', '.join(scales)} (smoke rows are not results)."]
