@@ -278,3 +278,25 @@ def test_a_timed_source_keeps_its_schedule_and_its_oracle_twice_it():
     plain = Namespace(variant="periodic-wrapped", scale="full")
     assert transfer.timed_source(plain) is None
     assert transfer.source_epochs(plain, bench) == bench.epochs == 100
+
+
+def test_a_row_resting_on_a_dirty_record_is_marked(tmp_path):
+    degree = np.array([1, 2, 3, 9, 20])
+    clean = _record("oracle", 0, epochs=400, best_epoch=200, train_seconds=300.0,
+                    stopped_by="patience", score=_score(0.1, 2.0, degree))
+    dirty = {**_record("zeroshot", 0, score=_score(0.3, 2.0, degree)), "commit": "abc+dirty"}
+    text = tt.page({r["job"]: {**r, "commit": r.get("commit", "abc")} for r in (clean, dirty)})
+    assert "| default‡ | x4 |" in text and "(1 of the 2 records)" in text
+    assert "‡" not in tt.page({clean["job"]: {**clean, "commit": "abc"}})
+
+
+def test_a_dirty_tree_is_refused_unless_allowed(monkeypatch, tmp_path, capsys):
+    monkeypatch.setattr(transfer, "git_commit", lambda: "abc+dirty")
+    monkeypatch.setattr(transfer, "run_jobs", lambda *a: pytest.fail("jobs ran"))
+    argv = ["--systems", "gene", "--seeds", "0", "--only-protocol", "size",
+            "--runs", str(tmp_path / "runs"), "--data", str(tmp_path / "data")]
+    assert transfer.main(argv) == 2
+    assert "uncommitted changes" in capsys.readouterr().err
+    monkeypatch.setattr(transfer, "run_jobs", lambda *a: [])
+    monkeypatch.setattr(transfer, "write_table", lambda args: "table")
+    assert transfer.main([*argv, "--allow-dirty"]) == 0
