@@ -19,7 +19,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from mpnode_cli.limits import DENSE_GRAPH_MAX_NODES, MULTIPLICITY_MAX
+from mpnode_cli.limits import DENSE_GRAPH_MAX_NODES, MULTIPLICITY_MAX, within_float32
+from mpnode_cli.memory import MemorySize
 from mpnode_cli.solver.options import SolverOptions
 
 # Seeds are stored as HDF5 int64 attributes and fed to numpy and torch generators.
@@ -66,13 +67,11 @@ def _split_fractions(cls: type, value: Any) -> Any:
 
 
 def _valid_split(cls: type, value: tuple[float, float, float]) -> tuple[float, float, float]:
-    if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(
-        sum(value), 1.0, abs_tol=1e-6
-    ):
+    if any(not 0.0 <= x <= 1.0 for x in value) or not math.isclose(sum(value), 1.0,
+                                                                    abs_tol=1e-6):
         shown = ",".join(f"{x:g}" for x in value)
-        raise ValueError(
-            f"train,validation,test fractions must lie in [0, 1] and sum to 1, got {shown}"
-        )
+        raise ValueError(f"train,validation,test fractions must lie in [0, 1] and sum to 1, "
+                         f"got {shown}")
     return value
 
 
@@ -100,9 +99,7 @@ def _check_graph_source(adjacency: Path | None, edge_list: Path | None, directed
 
 def _names(cls: type, value: Any) -> Any:
     """Accept the command line's `"x,y"` as well as a list of names."""
-    if isinstance(value, str):
-        return [part.strip() for part in value.split(",")]
-    return value
+    return [part.strip() for part in value.split(",")] if isinstance(value, str) else value
 
 
 # A user's graph, as `import` and `simulate` take it (an adjacency array or an edge list),
@@ -203,10 +200,8 @@ class GenerateConfig(BaseModel):
         if self.dt is not None and self.t_end is not None:
             _check_grid(self.dt, self.t_end)
         if self.nodes is not None and self.grid is not None and self.nodes != self.grid**2:
-            raise ValueError(
-                f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of side "
-                f"{self.grid} has {self.grid**2} nodes; give only one of them"
-            )
+            raise ValueError(f"nodes ({self.nodes}) and grid ({self.grid}) disagree: a grid of "
+                             f"side {self.grid} has {self.grid**2} nodes; give only one of them")
         if self.directed and self.edge_list is None:
             raise ValueError("directed applies to an edge list only (--edge-list)")
         if self.edge_list is not None and self.topology not in (None, "edgelist"):
@@ -225,10 +220,9 @@ class GenerateConfig(BaseModel):
                              f"{DENSE_GRAPH_MAX_NODES} nodes (held as matrices), not "
                              f"{self.nodes}")
         if self.trajectories is not None and self.trajectories < self.graphs:
-            raise ValueError(
-                f"trajectories ({self.trajectories}) must be at least graphs ({self.graphs}) "
-                "so that every graph has a trajectory"
-            )
+            raise ValueError(f"trajectories ({self.trajectories}) must be at least graphs "
+                             f"({self.graphs}) so that every graph has a trajectory")
+        self.solver.check_precision("float64")  # generate integrates in float64
         return self
 
     @property
@@ -419,6 +413,9 @@ class TrainConfig(BaseModel):
     dtype: Literal["float32", "float64"] = Field("float32", description=(
         "Precision of the weights and the training rollouts; float64 is slower, for "
         "checks that compare runs to round-off and for stiff systems."))
+    memory_budget: MemorySize | None = Field(None, description=(
+        "Memory the run may take, e.g. 4GiB or 500MiB (default: what is free): past it, "
+        "steps backpropagate through checkpointed solves (docs/training-recipe.md)."))
     run_dir: Path | None = Field(None, description=(
         "The run folder (default runs/<dataset>-<model>-<time>)."))
     solver: SolverOptions = Field(default_factory=train_solver, description=(
@@ -469,6 +466,9 @@ class TrainConfig(BaseModel):
     coverage: dict[str, Any] | None = Field(None, description=(
         "Set by the run: the coverage data --for-graphs made (file, W, seeds, reach)."))
 
+    # They meet float32 tensors (the optimizer's, the gradients', the states').
+    _in_float32 = field_validator("lr", "min_lr", "clip", "noise")(within_float32)
+
     @field_validator("solver", mode="before")
     @classmethod
     def _fill_solver(cls, value: Any) -> Any:
@@ -491,6 +491,7 @@ class TrainConfig(BaseModel):
             # would hold batches of different graph sizes, which one solve cannot stack.
             raise ValueError("seeds: an ensemble trains on one dataset; train one run per "
                              "seed on several datasets, or give one dataset")
+        self.solver.check_precision(self.dtype)
         return self
 
     @property

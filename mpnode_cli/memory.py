@@ -12,8 +12,12 @@ trajectories 3–4 of 8"), never the code that happened to ask for the bytes.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Annotated
+
+from pydantic import AfterValidator
 
 # What torch's CPU and CUDA allocators say when they fail (they raise RuntimeError).
 _ALLOCATOR_WORDS = ("can't allocate memory", "out of memory")
@@ -30,6 +34,33 @@ def format_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
         n /= 1024
     return f"{n:.3g} PiB"  # unreachable: the loop returns at TiB
+
+
+def parse_size(text: str) -> int:
+    """Bytes of `4GiB`, `1.5 GiB`, `500MiB`, `4G` (powers of 1024), `4GB` (of 1000) or a
+    number of bytes.
+
+    Raises:
+        ValueError: anything else, or not above zero (one line, with examples).
+    """
+    match = re.fullmatch(r"\s*(\d+(?:\.\d*)?)\s*(?:([kKMGT])(iB|B)?)?\s*", text)
+    size = 0
+    if match:
+        number, unit, suffix = match.groups()
+        power = " KMGT".index(unit.upper()) if unit else 0
+        size = int(float(number) * (1000 if suffix == "B" else 1024) ** power)
+    if size < 1:
+        raise ValueError(f"'{text}' is not a memory size: give e.g. 4GiB, 1.5GiB or 500MiB")
+    return size
+
+
+def _memory_size(text: str) -> str:
+    parse_size(text)
+    return text.strip()
+
+
+# A config's memory size: kept as written (`4GiB`), checked as `parse_size` reads it.
+MemorySize = Annotated[str, AfterValidator(_memory_size)]
 
 
 def format_seconds(seconds: float) -> str:

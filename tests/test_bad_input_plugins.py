@@ -99,6 +99,8 @@ def test_a_plugin_that_exits_as_it_is_imported_is_one_line(tmp_path, source, wor
 @pytest.mark.parametrize(("old", "new", "words"), [
     ('"c": 0.1}', '"c": "strong"}', "declares defaults = "),
     ('("v", "w")', '"vw"', "declares state_names = 'vw', not a tuple"),
+    ('("v", "w")', '("v", "v")', "declares state_names = ('v', 'v'), not a tuple of at least "
+     "one name, each once"),
     ("default_nodes: ClassVar[int] = 4", "default_nodes: ClassVar[int] = 0",
      "declares default_nodes = 0, not a whole number"),
     ('"trajectories": 200, "t_end"', '"trajectories": 200, "horizon"',

@@ -98,3 +98,20 @@ def test_the_python_readers_name_the_shard(merged):
     for read in (read_dataset, TrajectoryData.load):
         with pytest.raises(DatasetFormatError, match=SHARD):
             read(merged / "g.h5")
+
+
+@pytest.mark.parametrize("verb", ["check", "train", "evaluate"])
+def test_a_shard_replaced_by_one_of_another_dataset_is_refused(merged, verb):
+    """Regenerated with another seed, the shard holds the same arrays at the same shapes,
+    so HDF5 and the shapes cannot tell; the checksum the merge recorded of it can."""
+    config = GenerateConfig(**FIELDS, seed=7, out=merged / "g.h5", shard=(1, 2))
+    generate(config, overwrite=True)
+    line = one_line_error(invoke(*readers(merged)[verb]))
+    assert SHARD in line and "not the file it merged" in line and "merge" in line
+    assert not (merged / "r2").exists()
+
+
+def test_a_shard_copied_elsewhere_with_its_merge_still_reads(merged, tmp_path):
+    """A copy (new modification times) is still the file it merged."""
+    shutil.copytree(merged, tmp_path / "copy", copy_function=shutil.copy)
+    assert invoke("check", tmp_path / "copy" / "g.h5").exit_code == 0

@@ -47,9 +47,10 @@ def test_the_peak_is_measured_and_reset():
 
 
 def test_training_stops_after_a_saved_epoch_and_resumes(tmp_path, gene_2x2, monkeypatch):
-    """Peaks that rise 1 GiB an epoch against 1.5 GiB of headroom: the run stops after
-    epoch 2 (the first with a rise), exit 2 and one line; epoch 2 is saved, the summary
-    says why, and `--resume` finishes the run once memory allows."""
+    """Peaks that rise 1 GiB an epoch against 1.5 GiB of headroom: after epoch 2 (the
+    first with a rise) the run switches to checkpointed backprop, and as they still rise
+    it stops after epoch 4, exit 2 and one line; epoch 4 is saved, the summary says why,
+    and `--resume` finishes the run once memory allows."""
     pytest.importorskip("resource")
     peaks = iter(range(GIB, 100 * GIB, GIB))
     monkeypatch.setattr(memory_guard.EpochPeaks, "__init__", _always_on)
@@ -58,19 +59,21 @@ def test_training_stops_after_a_saved_epoch_and_resumes(tmp_path, gene_2x2, monk
     monkeypatch.setattr(memory_guard, "resident_bytes", lambda: GIB)
     monkeypatch.setattr(memory_guard, "available_memory", lambda: GIB + GIB // 2)
     run = tmp_path / "run"
-    line = one_line_error(invoke("train", gene_2x2, "--epochs", 4, "--batch-size", 17,
-                                 "--no-plots", "--run-dir", run))
-    assert "training stopped after epoch 2 of 4" in line
-    assert f"need about {AHEAD + 2} GiB" in line and "--resume" in line
+    result = invoke("train", gene_2x2, "--epochs", 6, "--batch-size", 17, "--no-plots",
+                    "--run-dir", run)
+    line = one_line_error(result)
+    assert "after epoch 2, " in result.output and "checkpointed solves" in result.output
+    assert "training stopped after epoch 4 of 6" in line and "even with checkpointed" in line
+    assert f"need about {AHEAD + 4} GiB" in line and "--resume" in line
     summary = json.loads((run / "summary.json").read_text())
     assert summary["interrupted"] == "memory" and summary["finished"] is False
     last = torch.load(run / "checkpoints" / "last.pt", weights_only=False)
-    assert last["epoch"] == 2
+    assert last["epoch"] == 4 and last["train_config"]["solver"]["checkpoints"] == 64
     monkeypatch.undo()
     result = invoke("train", "--resume", run, "--no-plots")
     assert result.exit_code == 0, result.output
-    assert json.loads((run / "summary.json").read_text())["epochs"] == 4
+    assert json.loads((run / "summary.json").read_text())["epochs"] == 6
 
 
-def _always_on(self, device_type: str) -> None:
-    self.on, self.peaks = True, []
+def _always_on(self, device_type: str, budget: str | None = None) -> None:
+    self.on, self.peaks, self.budget = True, [], None

@@ -278,7 +278,7 @@ def test_a_version_6_checkpoint_reads_with_no_periodic_states(user_files, tmp_pa
     assert raw["format_version"] == 8 and raw["dataset"]["periodic_states"] == []
     # What version 6 wrote: the same, less the periodic states.
     raw["format_version"] = 6
-    del raw["dataset"]["periodic_states"]
+    del raw["dataset"]["periodic_states"], raw["payload_sha256"]  # neither in version 6
     torch.save(raw, tmp_path / "v6.pt")
     ckpt = load_checkpoint(tmp_path / "v6.pt")
     assert ckpt.dataset["periodic_states"] == []

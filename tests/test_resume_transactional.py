@@ -256,6 +256,7 @@ def _weights_of_another_model(runs: dict[str, Path], run: Path, which: str) -> N
     """The ensemble's last.pt, whole and valid, with this run's train config."""
     ours = torch.load(checkpoint_path(run, which), weights_only=True)
     theirs = torch.load(checkpoint_path(runs["ensemble"], which), weights_only=True)
+    theirs.pop("payload_sha256")  # a file of its own making: no digest to disagree with
     torch.save(theirs | {"train_config": ours["train_config"]}, checkpoint_path(run, which))
 
 
@@ -285,6 +286,7 @@ def _as_written_before(path: Path, option: str, value=None) -> None:
     payload = torch.load(path, weights_only=True)
     options = payload["train_config"]["model_options"]
     options.pop(option) if value is None else options.update({option: value})
+    payload.pop("payload_sha256")  # written before checkpoints carried their digest
     torch.save(payload, path)
 
 

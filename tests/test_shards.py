@@ -25,7 +25,7 @@ runner = CliRunner()
 # Gene on two graphs: 11 trajectories in chunks of 2 (6 chunks of 2, 2, 2, 2, 2, 1).
 FIELDS = {"system": "gene", "grid": 2, "topology": "er", "graphs": 2, "trajectories": 11,
           "t_end": 0.5, "dt": 0.1, "chunk_size": 2}
-PROVENANCE = {"created_utc", "merged"}
+PROVENANCE = {"created_utc", "merged", "checksum"}  # the checksum covers created_utc
 
 
 def contents(path) -> tuple[dict, dict]:
@@ -179,6 +179,19 @@ def test_merge_refuses_shards_that_do_not_belong_together(tmp_path, monkeypatch)
     assert not (tmp_path / "m.h5").exists()
 
 
+def test_merge_checks_its_shards_first(tmp_path, monkeypatch):
+    """A shard that the dataset check refuses (a NaN here) is refused by merge, naming it,
+    before anything is written."""
+    monkeypatch.chdir(tmp_path)
+    paths = shard_files(2)
+    with h5py.File(paths[1], "r+") as f:
+        f["states"][0, 1, 0, 0] = np.nan
+    result = runner.invoke(app, ["merge", *map(str, paths), "-o", "m.h5"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert str(paths[1]) in result.output and "non-finite" in result.output
+    assert not (tmp_path / "m.h5").exists()
+
+
 def test_interrupted_merge_leaves_nothing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     paths = shard_files(2)
@@ -194,9 +207,13 @@ def test_interrupted_merge_leaves_nothing(tmp_path, monkeypatch):
 
 
 def test_merge_copies_in_bounded_blocks(single, monkeypatch):
-    """A block of one trajectory at a time gives the same file (the copy never needs the
-    whole array)."""
-    monkeypatch.setattr(shards_module, "_BLOCK_VALUES", 1)
+    """A block of one trajectory at a time gives the same file (the copy, the shards'
+    check and the checksum never need the whole array)."""
+    from mpnode_cli.data import integrity, validate
+
+    for module in (shards_module, integrity, validate):
+        monkeypatch.setattr(module, "_BLOCK_VALUES" if module is not validate else
+                            "BLOCK_VALUES", 1)
     reads = []
     original = h5py.Dataset.__getitem__
 

@@ -137,10 +137,32 @@ def test_prefetch_stops_on_error_and_on_leaving_early(gene, monkeypatch):
 
     monkeypatch.setattr(StreamedTrajectories, "take", failing)
     seen = []
-    with pytest.raises(OSError, match="disk gone"), prefetched(disk, indices) as batches:
+    # Raised where the file is read, an OSError is HDF5's: one line naming the file.
+    with pytest.raises(ValueError, match="disk gone"), prefetched(disk, indices) as batches:
         for batch in batches:
             seen.append(batch)
     assert len(seen) == 3 and not prefetch_threads()
+
+
+def test_a_file_replaced_while_streaming_is_refused(gene, tmp_path):
+    """The run's file is pinned when it is opened: replaced since (here by a copy of the
+    same data: a new file all the same), each pass and read refuses it in one line rather
+    than training on whatever is there now."""
+    import shutil
+
+    path = tmp_path / "gene.h5"
+    shutil.copy(gene, path)
+    disk = StreamedTrajectories.open(path)
+    assert len(list(disk.blocks())) >= 1
+    shutil.copy(gene, tmp_path / "new.h5")
+    (tmp_path / "new.h5").replace(path)
+    def prefetch():  # an epoch's pass
+        with prefetched(disk, [torch.tensor([i]) for i in range(3)]) as batches:
+            list(batches)
+
+    for read in (lambda: list(disk.blocks()), lambda: disk.take(torch.tensor([0])), prefetch):
+        with pytest.raises(ValueError, match=f"{path} changed while this run was reading"):
+            read()
 
 
 def metrics(run_dir) -> list[tuple]:

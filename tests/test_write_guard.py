@@ -136,3 +136,48 @@ def test_a_folder_of_the_users_where_a_report_goes_is_refused(tmp_path):
     assert "holds no results.json" in message
     assert (mine / "notes.txt").read_text() == "keep me"
     assert not (tmp_path / "wk").exists()
+
+
+def _no_work(monkeypatch):
+    """Fail the test if an evaluation, or the reading of a trajectory to draw, starts."""
+    import mpnode_cli.data.hdf5 as hdf5
+    import mpnode_cli.training.evaluate as evaluate
+
+    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda *a, **k: pytest.fail("ran"))
+    monkeypatch.setattr(hdf5, "read_trajectory", lambda *a, **k: pytest.fail("ran"))
+
+
+@pytest.mark.parametrize("verb", ["evaluate", "info"])
+def test_a_plot_refuses_what_is_there_as_every_output_does(user_files, tmp_path, monkeypatch,
+                                                           verb):
+    """Every plot is checked before any work: the last one of evaluate's here."""
+    figs, target = tmp_path / "figs", tmp_path / "target.png"
+    target.write_text("their figure")
+    name = {"evaluate": "data-all-error.png", "info": "data-trajectory-0.png"}[verb]
+    args = {"evaluate": ["evaluate", user_files["run"], user_files["data"], "--split", "all"],
+            "info": ["info", user_files["data"]]}[verb]
+    figs.mkdir()
+    (figs / name).write_text("my figure")
+    with monkeypatch.context() as m:
+        _no_work(m)
+        line = one_line_error(invoke(*args, "--plot", "--plot-dir", figs))
+        assert f"{figs / name} already exists (use --force to overwrite)" in line, line
+        (figs / name).unlink()
+        (figs / name).symlink_to(target)
+        line = one_line_error(invoke(*args, "--plot", "--plot-dir", figs, "--force"))
+        assert "is a symbolic link: mpnode only replaces regular files" in line, line
+    assert os.listdir(figs) == [name] and target.read_text() == "their figure"
+    (figs / name).unlink()
+    (figs / name).write_text("my figure")
+    result = invoke(*args, "--plot", "--plot-dir", figs, "--force")
+    assert result.exit_code == 0, result.output
+    assert (figs / name).read_bytes().startswith(b"\x89PNG")
+
+
+def test_infos_default_plot_folder_is_guarded_too(own_user_files):
+    plots = own_user_files["data"].parent / "plots"
+    plots.mkdir()
+    (plots / "data-trajectory-0.png").write_text("my figure")
+    line = one_line_error(invoke("info", own_user_files["data"], "--plot"))
+    assert "data-trajectory-0.png already exists" in line, line
+    assert (plots / "data-trajectory-0.png").read_text() == "my figure"

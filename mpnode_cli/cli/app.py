@@ -11,6 +11,7 @@ usage error) after parsing its options, before it runs.
 
 from __future__ import annotations
 
+import errno
 from typing import Any
 
 import typer
@@ -82,7 +83,7 @@ class _Computing(TyperCommand):
         except ValueError as exc:
             fail(str(exc))
         apply_threads(choice)
-        return super().invoke(ctx)
+        return _disk_full_is_one_line(super().invoke, ctx)
 
 
 class _Threadless(TyperCommand):
@@ -95,7 +96,21 @@ class _Threadless(TyperCommand):
             choose_threads(ctx.meta.get(_THREADS))
         except ValueError as exc:
             fail(str(exc))
-        return super().invoke(ctx)
+        return _disk_full_is_one_line(super().invoke, ctx)
+
+
+def _disk_full_is_one_line(invoke: Any, ctx: typer.Context) -> Any:
+    """Run a verb; a full disk that a write of its own meets in a file it names (a folder,
+    a metrics row; the atomic writes say it themselves) is one line and exit 2 too."""
+    import errno
+
+    try:
+        return invoke(ctx)
+    except OSError as exc:
+        if exc.filename is None or exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise  # stdout's own (`main`), or not a full disk
+        fail(f"no space left on device writing {exc.filename}: free some space and run it "
+             "again")
 
 
 # Each verb's module imports only typer at load time; heavy imports live in its function.
@@ -118,8 +133,32 @@ app.add_typer(experiment_app, name="experiment")
 
 
 def main() -> None:
+    """`mpnode`: the app, and a stdout that cannot take its output (a full disk, a closed
+    pipe) said in one line (exit 2; quietly, exit 1, for a pipe whose reader is gone, as
+    click does inside a verb) rather than in a traceback."""
+    import os
+    import sys
+
     ascii_fallback()
-    app()
+    try:
+        try:
+            app(prog_name="mpnode")
+        finally:
+            if sys.stdout is not None:  # None: started with stdout closed
+                sys.stdout.flush()  # what is left fails here, not untold at exit
+    except OSError as exc:  # not a file of a verb's: those are checked, and said in one line
+        if exc.filename is not None or exc.errno not in _UNWRITABLE:
+            raise
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # nothing left to fail
+        if exc.errno == errno.EPIPE:
+            raise SystemExit(1) from None
+        sys.stderr.write(f"Error: cannot write to standard output: {exc.strerror}\n")
+        raise SystemExit(2) from None
+
+
+# What a write to stdout fails with when the output cannot take it.
+_UNWRITABLE = {getattr(errno, name) for name in ("EPIPE", "ENOSPC", "EDQUOT", "EFBIG", "EIO")
+               if hasattr(errno, name)}
 
 
 if __name__ == "__main__":

@@ -28,6 +28,9 @@ def check_command(
     path: Path = typer.Argument(
         ..., metavar="FILE", help="A dataset (.h5), a checkpoint (.pt) or a run folder."),
     json_out: bool = typer.Option(False, "--json", help="Print the report as JSON."),
+    deep: bool = typer.Option(
+        False, "--deep", help="A dataset: read every byte, verifying its checksums (memory "
+        "stays bounded; the time is a read of the whole file)."),
     member: int | None = typer.Option(
         None, "--member", metavar="K", show_default=False,
         help="With --out: write member K of an ensemble checkpoint as a checkpoint of its "
@@ -42,7 +45,7 @@ def check_command(
     if (member is None) != (out is None):
         fail("--member and --out go together: mpnode check CKPT --member K --out FILE "
              "writes member K of an ensemble as a checkpoint of its own")
-    report = _check(path)
+    report = _check(path, deep)
     exported = _export(report, member, out, force) if report.ok and out is not None else None
     if json_out:
         typer.echo(json.dumps(report.to_dict() | ({"exported": exported} if exported else {}),
@@ -76,7 +79,7 @@ def _export(report, member: int, out: Path, force: bool) -> dict:
     return {"path": str(out), "member": member, "seed": ckpt.train_config.get("seed")}
 
 
-def _check(path: Path):
+def _check(path: Path, deep: bool = False):
     from mpnode_cli.data.validate import Report, check_dataset
     from mpnode_cli.paths import begins
 
@@ -86,13 +89,13 @@ def _check(path: Path):
         return Report(path, "file", [f"{path} is an empty file (0 bytes): neither a dataset "
                                      "nor a checkpoint"])
     if path.is_file() and begins(path, _HDF5_SIGNATURE):
-        return check_dataset(path)
+        return check_dataset(path, deep=deep)
     if (path.is_file() and path.suffix.lower() in _HDF5_SUFFIXES
             and not begins(path, _ZIP_SIGNATURE)):
         import h5py  # an HDF5 file may start after a user block: h5py looks further
 
         if h5py.is_hdf5(path):
-            return check_dataset(path)
+            return check_dataset(path, deep=deep)
         return Report(path, "file", [f"{path} is not an HDF5 file (it lacks HDF5's "
                                      "signature), so not an mpnode dataset"])
     from mpnode_cli.training.checkpoint_check import check_checkpoint

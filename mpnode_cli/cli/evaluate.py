@@ -49,7 +49,8 @@ def evaluate_command(
     split: str = _split("test"),
     plot: bool = typer.Option(False, "--plot", help="Draw the Fig. 2 rollout and error plots."),
     plot_dir: Path | None = typer.Option(
-        None, help="Where plots go (default <run>/plots beside the checkpoint).",
+        None, help="Where plots go (default <run>/plots beside the checkpoint, where the "
+        "run's own plots are drawn again).",
         parser=output_parser("--plot-dir", folder=True)),
     json_out: bool = _TABLE_JSON,
     batch_size: int = _BATCH,
@@ -60,7 +61,8 @@ def evaluate_command(
         "under hidden/messages) as an mpnode dataset file (a file's path: not one ending in "
         "/).", parser=output_parser("--save-predictions")),
     force: bool = typer.Option(
-        False, "--force", help="Overwrite an existing --save-predictions file."),
+        False, "--force", help="Overwrite existing output files: --save-predictions, and "
+        "the --plot files (regular files only)."),
     member: int | None = MEMBER,
     threads: str | None = THREADS,
     by_degree: bool = typer.Option(
@@ -68,10 +70,11 @@ def evaluate_command(
         "...; physical units) beside the naive predictors'."),
 ) -> None:
     """Roll out a checkpoint on a dataset split and report its errors."""
-    from contextlib import nullcontext
+    from contextlib import ExitStack
 
     from mpnode_cli.paths import check_output_folder, reserve_output
     from mpnode_cli.report.tables import baselines_note, degree_table, metrics_table
+    from mpnode_cli.training.evaluate import plot_paths
 
     _check_batch_size(batch_size)
     ckpt = _load_checkpoint(checkpoint, member)
@@ -82,14 +85,17 @@ def evaluate_command(
             check_output_folder(where)
         except ValueError as exc:
             fail(f"--plot-dir: {exc}")
-    reserved = nullcontext()
-    if save_predictions is not None:
-        try:
-            reserved = reserve_output(save_predictions, overwrite=force,
-                                      inputs=(checkpoint, dataset))
-        except (FileExistsError, ValueError) as exc:
-            fail(f"--save-predictions: {exc}")
-    with reserved:  # the predictions replace the reservation: written with overwrite
+    outputs = [("--plot", path) for path in (plot_paths(where, dataset, split) if where else ())]
+    outputs += [("--save-predictions", save_predictions)] if save_predictions else []
+    with ExitStack() as reserved:  # each file replaces its reservation: written with overwrite
+        for option, path in outputs:  # every one checked before any work
+            # The run folder's own plots (no --plot-dir) are mpnode's, drawn again.
+            mine = option == "--plot" and plot_dir is None
+            try:
+                reserved.enter_context(reserve_output(path, overwrite=force or mine,
+                                                      inputs=(checkpoint, dataset)))
+            except (FileExistsError, ValueError) as exc:
+                fail(f"{option}: {exc}")
         row = _evaluate(ckpt, dataset, split, "evaluate", batch_size, device, where,
                         allow_other_system, save_predictions, force=True, quiet=json_out,
                         by_degree=by_degree)

@@ -172,7 +172,8 @@ def _command_line(given: dict[str, Any], solver: dict[str, Any], param: list[str
     numbers), the solver's as the config's `solver` table and the system's as `params`.
 
     Raises:
-        ValueError: a count that is not a whole number, or a --param that is not NAME=VALUE.
+        ValueError: a count that is not a whole number, a --param that is not NAME=VALUE,
+            or a parameter given twice.
     """
     options = {key: value for key, value in given.items() if value is not None}
     for key in _COUNTS:
@@ -182,7 +183,11 @@ def _command_line(given: dict[str, Any], solver: dict[str, Any], param: list[str
     if solver:  # the config's `solver` table, merged over a config file's
         options["solver"] = solver
     params = _parse_params(param)
-    params.update({k: v for k, v in system_options.items() if v is not None})
+    system_options = {k: v for k, v in system_options.items() if v is not None}
+    if twice := sorted(set(params) & set(system_options)):
+        raise ValueError(f"{twice[0]} is given twice, as --param {twice[0]}=... and as "
+                         f"--{twice[0].replace('_', '-')}: give it once")
+    params |= system_options
     if params:
         options["params"] = params
     return options
@@ -393,6 +398,8 @@ def _parse_params(items: list[str]) -> dict[str, float | str]:
         name, sep, value = item.partition("=")
         if not sep or not name:
             raise ValueError(f"--param expects NAME=VALUE, got {item!r}")
+        if name in params:
+            raise ValueError(f"--param {name} is given twice: give it once")
         try:
             params[name] = float(value)
         except ValueError:

@@ -9,7 +9,7 @@ from typing import Any
 
 import typer
 
-from mpnode_cli.cli.common import output_parser
+from mpnode_cli.cli.common import FORCE, output_parser
 
 
 def info_command(
@@ -22,6 +22,7 @@ def info_command(
     plot_dir: Path | None = typer.Option(
         None, help="Where the plot goes (default plots/ beside FILE).",
         parser=output_parser("--plot-dir", folder=True)),
+    force: bool = FORCE,
 ) -> None:
     """Print a dataset's summary (after checking the file, as `mpnode check` does).
 
@@ -41,7 +42,7 @@ def info_command(
         fail(str(exc))
 
     facts = _facts(header)
-    plots = [str(_plot(path, header, trajectory, plot_dir))] if plot else []
+    plots = [str(_plot(path, header, trajectory, plot_dir, force))] if plot else []
     if json_out:
         typer.echo(json.dumps({"path": str(path), **facts, **({"plots": plots} if plot else {})}))
         return
@@ -55,25 +56,27 @@ def info_command(
         typer.echo(f"wrote {written}")
 
 
-def _plot(path: Path, header: dict[str, Any], k: int, plot_dir: Path | None) -> Path:
+def _plot(path: Path, header: dict[str, Any], k: int, plot_dir: Path | None,
+          force: bool) -> Path:
     """Draw trajectory `k` of the file as `<plot_dir>/<stem>-trajectory-<k>.png`."""
     from mpnode_cli.cli.common import fail
     from mpnode_cli.data.hdf5 import read_trajectory
-    from mpnode_cli.paths import check_output_folder
+    from mpnode_cli.paths import check_output_folder, reserve_output
     from mpnode_cli.report.plots import plot_rollout
 
     folder = plot_dir or path.parent / "plots"
+    out = folder / f"{path.stem}-trajectory-{k}.png"
     try:
         check_output_folder(folder)
-        one = read_trajectory(path, k)
-        attrs = header["attrs"]
-        predicted = isinstance(attrs.get("prediction"), str)
-        what = "a model's predictions, not ground truth" if predicted else "data"
-        return plot_rollout(one["time"], one["states"], None, one["hidden"].get("messages"),
-                            attrs["state_names"], folder / f"{path.stem}-trajectory-{k}.png",
-                            title=f"{path.name}: trajectory {k} ({what})",
-                            labels=("predicted" if predicted else "true", ""))
-    except ValueError as exc:
+        with reserve_output(out, overwrite=force, inputs=(path,)):  # the plot replaces it
+            one = read_trajectory(path, k)
+            predicted = isinstance(header["attrs"].get("prediction"), str)
+            what = "a model's predictions, not ground truth" if predicted else "data"
+            return plot_rollout(one["time"], one["states"], None,
+                                one["hidden"].get("messages"), header["attrs"]["state_names"],
+                                out, title=f"{path.name}: trajectory {k} ({what})",
+                                labels=("predicted" if predicted else "true", ""))
+    except (FileExistsError, ValueError) as exc:  # FileExistsError is an OSError too
         fail(f"--plot: {exc}")
     except OSError as exc:
         fail(f"--plot: cannot write {exc.filename or 'the plot'}: {exc.strerror or exc}")

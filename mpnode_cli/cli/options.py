@@ -16,7 +16,7 @@ import inspect
 import types
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 import typer
 from pydantic import BaseModel
@@ -113,11 +113,10 @@ def choices(annotation: Any) -> tuple[str, ...]:
 
 
 def plain(annotation: Any) -> Any:
-    """`int` of `int | None`; other types as they are."""
+    """`int` of `int | None`, `str` of `Annotated[str, ...]`; other types as they are."""
     if get_origin(annotation) in (Union, types.UnionType):
-        (kept,) = [a for a in get_args(annotation) if a is not type(None)]
-        return kept
-    return annotation
+        (annotation,) = [a for a in get_args(annotation) if a is not type(None)]
+    return get_args(annotation)[0] if get_origin(annotation) is Annotated else annotation
 
 
 def shown(value: Any) -> str:

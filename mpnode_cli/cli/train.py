@@ -60,7 +60,7 @@ DATA, RECIPE, CURRICULUM, SOLVER, RUN, MODEL = (
     "Model options")
 
 # The solver options, which fill the config's `solver` table (`train_solver()`'s defaults).
-_SOLVER = ("method", "rtol", "atol", "fixed_dt")
+_SOLVER = ("method", "rtol", "atol", "fixed_dt", "max_steps")
 
 # Every option of the two commands, by panel, in the order shown (the model options follow
 # `model`). A `TrainConfig` field or a solver option is built from its declaration; the
@@ -74,8 +74,8 @@ _PANELS = {
              "balance_datasets"),
     CURRICULUM: ("horizon_curriculum", "curriculum_start", "curriculum_epochs"),
     SOLVER: _SOLVER,
-    RUN: ("run_dir", "resume", "config_file", "device", "dtype", "threads", "plots",
-          "json_out"),
+    RUN: ("run_dir", "resume", "config_file", "device", "dtype", "memory_budget", "threads",
+          "plots", "json_out"),
     MODEL: ("model",),
 }
 
@@ -447,4 +447,10 @@ class _Display:
             self.console.print(f"epoch {epoch:>4}  train {fmt(row['train_loss']):>7}  "
                                f"val {fmt(val):>7} (MSE {fmt(row['val_mse']):>7}{each})  "
                                f"lr {row['lr']:.2g}  {row['seconds']:.2f}s  "
-                               f"{row['rhs_evals']} evals")
+                               f"{row['rhs_evals']} evals{_per_sample(row)}")
+
+
+def _per_sample(row: dict[str, Any]) -> str:
+    """` (12.5 per sample)`: the epoch's right-hand-side evaluations per trajectory sample."""
+    per = row.get("rhs_evals_per_sample")
+    return f" ({per:.3g} per sample)" if per else ""

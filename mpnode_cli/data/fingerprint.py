@@ -4,11 +4,17 @@ Runs and checkpoints record the fingerprint of the data they trained on; `mpnode
 refuses the same data twice, `train --resume` other data, and `evaluate` finds a
 checkpoint's own training file by it. Two files with the same fingerprint hold the same
 trajectories on the same graphs at the same times, with the same controls.
+
+A file read again and again while a run goes on (`mpnode train --stream`, each epoch) is
+pinned by a cheaper identity, `file_identity`: replaced or rewritten, it is refused
+(`same_file`) rather than trained on as if it were the data the run began with.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -53,3 +59,26 @@ def _blocks(digest, values: Any, step: int, progress: Progress | None) -> None:
         digest.update(np.ascontiguousarray(block).tobytes())
         if progress is not None:
             progress(min(start + step, len(values)), len(values))
+
+
+def file_identity(path: str | Path) -> tuple[int, ...]:
+    """A file's cheap identity: its device, inode, size and modification time (ns)."""
+    stat = os.stat(path)
+    return stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns
+
+
+def same_file(path: str | Path, identity: tuple[int, ...]) -> None:
+    """Refuse `path` unless it is still the file of `identity` (`file_identity`; an empty
+    one pins nothing).
+
+    Raises:
+        ValueError: the file was replaced, rewritten or removed (one line).
+    """
+    try:
+        now = file_identity(path)
+    except OSError:
+        now = ()
+    if identity and now != identity:
+        raise ValueError(f"{path} changed while this run was reading it (replaced, rewritten "
+                         "or removed): a run trains on the data it began with; put that file "
+                         "back and resume, or start a new run on the new data")

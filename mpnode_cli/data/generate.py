@@ -41,7 +41,7 @@ from mpnode_cli.data.shards import (
     shard_path,
     shard_range,
 )
-from mpnode_cli.data.size import SizeEstimate, check_job, generate_estimate
+from mpnode_cli.data.size import SizeEstimate, check_disk, check_job, generate_estimate
 from mpnode_cli.data.solve_rounds import Draws, Solved, solve_and_redraw, solver_chunks
 from mpnode_cli.data.solve_rounds import GenerateError as GenerateError  # part of this API
 from mpnode_cli.data.splits import split_trajectories
@@ -241,9 +241,10 @@ def _generate(config: GenerateConfig, out: Path, progress: Progress | None, stag
 
     system = build_system(config)
     lo, hi = trajectory_range(config)
-    need = generate_estimate(config, system, hi - lo).memory_bytes
-    with naming_memory(stage, need, "lower --chunk-size, --trajectories, --t-end or --nodes, "
-                                    "or raise --dt"):
+    size = generate_estimate(config, system, hi - lo)
+    check_disk(size, out, "this dataset")
+    with naming_memory(stage, size.memory_bytes, "lower --chunk-size, --trajectories, "
+                       "--t-end or --nodes, or raise --dt"):
         graphs, params = _graphs_and_params(system, config, stage)
         stage("drawing the initial states")
         draws = _draw_trajectories(system, config, graphs)

@@ -18,7 +18,8 @@ renamed when complete, so an interrupted run (Ctrl-C included) leaves nothing at
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -29,6 +30,13 @@ import numpy as np
 
 from mpnode_cli import __version__
 from mpnode_cli.config_upgrade import upgrade_solver_fields
+from mpnode_cli.data.integrity import (
+    CHECKSUM_ATTR,
+    HDF5_ERRORS,
+    create_array,
+    name_damage,
+    preflight,
+)
 from mpnode_cli.data.virtual import virtual_source_problems
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
 from mpnode_cli.progress import Progress
@@ -46,7 +54,7 @@ REQUIRED_ATTRS: tuple[str, ...] = (
 OPTIONAL_ATTRS: dict[str, Any] = {
     "control_dim": 0, "control_names": "[]", "seed": None, "config": "{}",
     "mpnode_version": None, "created_utc": None, "periodic_states": "[]"}
-_ROOT_ATTRS = frozenset(REQUIRED_ATTRS) | frozenset(OPTIONAL_ATTRS)
+_ROOT_ATTRS = frozenset(REQUIRED_ATTRS) | frozenset(OPTIONAL_ATTRS) | {CHECKSUM_ATTR}
 # Values per block when trajectories are read or written a block at a time (64 MB of
 # float64): a file larger than memory passes through in pieces.
 BLOCK_VALUES = 8 * 2**20
@@ -214,10 +222,10 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None,
         if key in _ROOT_ATTRS:
             raise ValueError(f"extra attribute '{key}' would overwrite a format attribute")
         f.attrs[key] = value
-    f.create_dataset("time", data=np.asarray(ds.time, dtype=np.float64))
+    create_array(f, "time", np.asarray(ds.time, dtype=np.float64))
     # One trajectory per chunk: training reads whole trajectories in random order.
-    states = f.create_dataset("states", shape=(k, t, n, d), dtype=ds.states.dtype,
-                              chunks=(1, t, n, d))
+    states = create_array(f, "states", shape=(k, t, n, d), dtype=ds.states.dtype,
+                          chunks=(1, t, n, d))
     rows = max(1, BLOCK_VALUES // max(t * n * d, 1))
     for start in range(0, k, rows):
         states[start:start + rows] = ds.states[start:start + rows]
@@ -226,24 +234,24 @@ def _write(f: h5py.File, ds: Dataset, check: Any = lambda: None,
             progress(min(start + rows, k), k)
     check()
     if ds.controls is not None and len(ds.control_names) > 0:
-        f.create_dataset("controls", data=ds.controls, chunks=(1, *ds.controls.shape[1:]))
+        create_array(f, "controls", ds.controls, chunks=(1, *ds.controls.shape[1:]))
     _write_graphs(f, ds.graphs)
-    f.create_dataset("graph_index", data=np.asarray(ds.graph_index, dtype=np.int32))
+    create_array(f, "graph_index", np.asarray(ds.graph_index, dtype=np.int32))
     params = f.create_group("params")
     for name, value in ds.params.items():
-        params.create_dataset(name, data=np.asarray(value, dtype=np.float64))
+        create_array(params, name, np.asarray(value, dtype=np.float64))
     for name, value in ds.scalar_params.items():
         params.attrs[name] = float(value)
     for name, value in ds.hidden.items():
-        f.create_dataset(f"hidden/{name}", data=value, chunks=(1, *value.shape[1:]))
+        create_array(f, f"hidden/{name}", value, chunks=(1, *value.shape[1:]))
         check()
-    f.create_dataset("split", data=np.asarray(ds.split, dtype=np.uint8))
+    create_array(f, "split", np.asarray(ds.split, dtype=np.uint8))
     status = np.zeros(k) if ds.solver_status is None else ds.solver_status
     n_f_evals = np.zeros(k) if ds.solver_n_f_evals is None else ds.solver_n_f_evals
-    f.create_dataset("solver/status", data=np.asarray(status, dtype=np.int8))
-    f.create_dataset("solver/n_f_evals", data=np.asarray(n_f_evals, dtype=np.int32))
+    create_array(f, "solver/status", np.asarray(status, dtype=np.int8))
+    create_array(f, "solver/n_f_evals", np.asarray(n_f_evals, dtype=np.int32))
     if ds.extrapolation is not None:
-        f.create_dataset("extrapolation", data=np.asarray(ds.extrapolation, dtype=np.uint8))
+        create_array(f, "extrapolation", np.asarray(ds.extrapolation, dtype=np.uint8))
 
 
 def _check_shapes(ds: Dataset) -> None:
@@ -282,11 +290,11 @@ def _write_graphs(f: h5py.File, graphs: Graphs) -> None:
     `graph/adjacency [G, N, N]` uint8 when N ≤ `DENSE_GRAPH_MAX_NODES` (so that small
     files read as they always did, by h5py users and version 1 readers' habits alike)."""
     # int32 ids: half of int64 on disk, and 2³¹ nodes is beyond any graph mpnode solves.
-    f.create_dataset("graph/edges", data=np.stack([graphs.senders, graphs.receivers]).astype(
+    create_array(f, "graph/edges", np.stack([graphs.senders, graphs.receivers]).astype(
         np.int32).reshape(2, -1))
-    f.create_dataset("graph/num_edges", data=np.asarray(graphs.num_edges, dtype=np.int64))
+    create_array(f, "graph/num_edges", np.asarray(graphs.num_edges, dtype=np.int64))
     if graphs.dense_ok:
-        f.create_dataset("graph/adjacency", data=np.asarray(graphs.dense(), dtype=np.uint8))
+        create_array(f, "graph/adjacency", np.asarray(graphs.dense(), dtype=np.uint8))
 
 
 def read_graphs(f: h5py.File) -> Graphs:
@@ -323,7 +331,7 @@ def read_dataset(path: str | Path) -> Dataset:
         DatasetFormatError: not an mpnode dataset, or a newer format version.
         FileNotFoundError: no such file.
     """
-    with _open(path) as f:
+    with open_dataset(path) as f:
         attrs = _root_attrs(f)
         has_controls = "controls" in f
         return Dataset(
@@ -363,7 +371,7 @@ def read_header(path: str | Path) -> dict[str, Any]:
     Raises:
         DatasetFormatError, FileNotFoundError: as `read_dataset`.
     """
-    with _open(path) as f:
+    with open_dataset(path) as f:
         attrs = _root_attrs(f)
         for key in ("state_names", "control_names", "periodic_states"):
             attrs[key] = json.loads(attrs[key])
@@ -398,7 +406,7 @@ def read_trajectory(path: str | Path, k: int) -> dict[str, Any]:
         DatasetFormatError, FileNotFoundError: as `read_dataset`.
         ValueError: no trajectory `k` in the file.
     """
-    with _open(path) as f:
+    with open_dataset(path) as f:
         _root_attrs(f)
         count = f["states"].shape[0]
         if not 0 <= k < count:
@@ -424,7 +432,17 @@ def _config(text: str) -> dict[str, Any]:
     return upgrade_solver_fields(config) if isinstance(config, dict) else config
 
 
-def _open(path: str | Path) -> h5py.File:
+@contextmanager
+def open_dataset(path: str | Path) -> Iterator[h5py.File]:
+    """`with open_dataset(path) as f`: the file, for reading, once its virtual merge's
+    shards are found; HDF5's errors inside the block (a damaged file: a chunk that fails
+    its Fletcher-32 checksum, a broken object header) become one line naming the file and
+    the array where it can.
+
+    Raises:
+        FileNotFoundError: no such file.
+        DatasetFormatError: not HDF5, a virtual merge's missing shard, or a damaged file.
+    """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no such dataset file: {path}")
@@ -432,11 +450,15 @@ def _open(path: str | Path) -> h5py.File:
         f = h5py.File(path, "r")
     except OSError:
         raise DatasetFormatError(f"{path} is not an HDF5 file") from None
-    problems = virtual_source_problems(f)
-    if problems:
-        f.close()
-        raise DatasetFormatError(f"{path}: {problems[0]}")
-    return f
+    with f:
+        try:
+            preflight(path)  # before `f` reads an attribute
+            problems = virtual_source_problems(f)
+            if problems:
+                raise DatasetFormatError(f"{path}: {problems[0]}")
+            yield f
+        except HDF5_ERRORS as exc:
+            raise DatasetFormatError(f"{path}: {name_damage(f, exc)}") from None
 
 
 def _root_attrs(f: h5py.File) -> dict[str, Any]:

@@ -337,6 +337,11 @@ def _read_csv(path: Path) -> Loaded:
     names = tuple(c for c, low in zip(columns, lower, strict=True) if low not in CSV_INDEX)
     if not names:
         raise ValueError(f"{path}: no state columns besides trajectory, time and node")
+    twice = sorted({c for c in names if names.count(c) > 1} | {c for c in CSV_INDEX
+                                                                 if lower.count(c) > 1})
+    if twice:
+        raise ValueError(f"{path}: the header names {', '.join(twice)} more than once: give "
+                         "each column its own name")
     if rows.shape[0] == 0:
         raise ValueError(f"{path} has a header but no rows")
     col = {name: rows[:, lower.index(name)] for name in CSV_INDEX}

@@ -162,7 +162,7 @@ def merge_shards(paths: list[str | Path], out: str | Path, *, overwrite: bool = 
         nbytes = sum(int(np.prod(first[name].shape[1:])) * k * first[name].dtype.itemsize
                      for name in per_trajectory)
         with atomic_h5(out, overwrite=True) as (f, check):  # over the reservation
-            f.attrs.update(_merged_attrs(shards, out))
+            f.attrs.update(_merged_attrs(shards, out, virtual))
             _copy_shared(first, f, shards, check)
             done = 0
             for name in per_trajectory:
@@ -212,20 +212,17 @@ def _check_shards(paths: list[Path]) -> list[_Shard]:
 
 def _read_shard(path: Path) -> _Shard:
     """One shard file's attributes, shard record and config (less what may differ between
-    shards), checked against its trajectory count."""
-    import h5py
-
-    from mpnode_cli.data.hdf5 import DatasetFormatError, read_header
+    shards), checked against its trajectory count, once the file passes the dataset check
+    every reader runs (`mpnode_cli.data.validate.require_valid`)."""
+    from mpnode_cli.data.hdf5 import open_dataset
+    from mpnode_cli.data.validate import require_valid
 
     if not path.is_file():
         raise ValueError(f"no such shard file: {path}")
-    try:
-        read_header(path)  # an mpnode dataset of a version this mpnode reads
-        with h5py.File(path, "r") as f:
-            attrs = dict(f.attrs)  # as stored, to be written again as they are
-            k = f["states"].shape[0]
-    except DatasetFormatError as exc:
-        raise ValueError(str(exc)) from None
+    require_valid(path)
+    with open_dataset(path) as f:
+        attrs = dict(f.attrs)  # as stored, to be written again as they are
+        k = f["states"].shape[0]
     if SHARD_ATTR not in attrs:
         raise ValueError(f"{path} is not a shard (no '{SHARD_ATTR}' attribute): merge "
                          "takes the files that mpnode generate --shard i/n writes")
@@ -277,8 +274,12 @@ def _per_trajectory_names(f) -> list[str]:
     return names
 
 
-def _merged_attrs(shards: list[_Shard], out: Path) -> dict[str, Any]:
-    """Root attributes of the merged file: the shards' own, as the single file has them."""
+def _merged_attrs(shards: list[_Shard], out: Path, virtual: bool) -> dict[str, Any]:
+    """Root attributes of the merged file: the shards' own, as the single file has them;
+    a virtual merge records each shard's checksum by the name it maps it by
+    (`mpnode_cli.data.virtual`: a shard replaced since is refused)."""
+    from mpnode_cli.data.integrity import CHECKSUM_ATTR
+
     attrs = {k: v for k, v in shards[0].attrs.items() if k != SHARD_ATTR}
     # Where the file lies, as `generate --out` records it; the rest is the shards' config.
     attrs["config"] = json.dumps({**shards[0].config, "out": str(out)}, sort_keys=True)
@@ -289,8 +290,15 @@ def _merged_attrs(shards: list[_Shard], out: Path) -> dict[str, Any]:
     attrs[MERGED_ATTR] = json.dumps({
         "shards": [s.path.name for s in shards],
         "created_utc": [s.attrs.get("created_utc") for s in shards],
-        "redrawn": sum(s.redrawn for s in shards)})
+        "redrawn": sum(s.redrawn for s in shards),
+        **({"sources": {_source_name(s, out): s.attrs[CHECKSUM_ATTR] for s in shards
+                        if CHECKSUM_ATTR in s.attrs}} if virtual else {})})
     return attrs
+
+
+def _source_name(shard: _Shard, out: Path) -> str:
+    """The name a virtual merge at `out` gives `shard` (relative to its folder)."""
+    return os.path.relpath(shard.path.resolve(), out.resolve().parent)
 
 
 def _copy_shared(first, f, shards: list[_Shard], check: Callable[[], None]) -> None:
@@ -298,11 +306,13 @@ def _copy_shared(first, f, shards: list[_Shard], check: Callable[[], None]) -> N
     the shards agree on it."""
     import h5py
 
+    from mpnode_cli.data.hdf5 import open_dataset
+
     shared: list[str] = []
     first.visititems(lambda name, obj: shared.append(name) if isinstance(obj, h5py.Dataset)
                      and not name.startswith(_PER_TRAJECTORY) else None)
     for s in shards[1:]:
-        with h5py.File(s.path, "r") as other:
+        with open_dataset(s.path) as other:
             for name in shared:
                 if name not in other or not np.array_equal(other[name][()], first[name][()]):
                     raise ValueError(f"{s.path.name} and {shards[0].path.name} differ in "
@@ -319,17 +329,17 @@ def _copy_shared(first, f, shards: list[_Shard], check: Callable[[], None]) -> N
 def _copy(f, name: str, src, shards: list[_Shard], check, progress: Progress | None,
           done: int, total: int) -> int:
     """Concatenate the shards' `name` into `f`, a block of trajectories at a time."""
-    import h5py
+    from mpnode_cli.data.hdf5 import open_dataset
+    from mpnode_cli.data.integrity import create_array
 
     k = shards[-1].info["stop"]
     row = int(np.prod(src.shape[1:]))
-    dst = f.create_dataset(name, shape=(k, *src.shape[1:]), dtype=src.dtype,
-                           chunks=src.chunks, compression=src.compression,
-                           compression_opts=src.compression_opts)
+    dst = create_array(f, name, shape=(k, *src.shape[1:]), dtype=src.dtype, chunks=src.chunks,
+                       compression=src.compression, compression_opts=src.compression_opts)
     dst.attrs.update(dict(src.attrs))
     rows = max(1, _BLOCK_VALUES // max(row, 1))
     for s in shards:
-        with h5py.File(s.path, "r") as shard:
+        with open_dataset(s.path) as shard:
             part = shard[name]
             for a in range(0, len(part), rows):
                 b = min(a + rows, len(part))
@@ -352,9 +362,8 @@ def _map(f, name: str, src, shards: list[_Shard], out: Path) -> None:
     layout = h5py.VirtualLayout(shape=(k, *src.shape[1:]), dtype=src.dtype)
     for s in shards:
         rows = s.info["stop"] - s.info["start"]
-        source = os.path.relpath(s.path.resolve(), out.resolve().parent)
         layout[s.info["start"]:s.info["stop"]] = h5py.VirtualSource(
-            source, name, shape=(rows, *src.shape[1:]))
+            _source_name(s, out), name, shape=(rows, *src.shape[1:]))
     fill = np.nan if src.dtype.kind == "f" else np.iinfo(src.dtype).max
     f.create_virtual_dataset(name, layout, fillvalue=fill)
     f[name].attrs.update(dict(src.attrs))

@@ -20,7 +20,9 @@ and the estimate is then a guess within a factor of a few.
 from __future__ import annotations
 
 import math
+import shutil
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES
@@ -152,6 +154,23 @@ def check_memory(size: SizeEstimate, what: str, advice: str) -> None:
                          f"{format_bytes(have)} this machine has available: {advice}")
 
 
+def check_disk(size: SizeEstimate, path: Path, what: str) -> None:
+    """Refuse a job whose file would not fit in the space free beside `path`, before the
+    work that would be lost when writing it fails.
+
+    Raises:
+        ValueError: the file would not fit (one line).
+    """
+    try:
+        have = shutil.disk_usage(Path(path).parent).free
+    except OSError:  # no figure to compare with: the write itself says it, if it fails
+        return
+    if size.file_bytes > have:
+        raise ValueError(f"{what} needs about {format_bytes(size.file_bytes)} on disk, more "
+                         f"than the {format_bytes(have)} free where {path} goes: free some "
+                         "space, or write it elsewhere")
+
+
 def graph_messages(system: Any, config: GenerateConfig) -> int:
     """Messages (directed edges) of one of the config's graphs, before it is built: the
     topology's expected count for the system's parameters of it, an upper bound for an edge
@@ -159,8 +178,6 @@ def graph_messages(system: Any, config: GenerateConfig) -> int:
     the edges `--hubs` adds (times `--hub-multiplicity`)."""
     n = config.nodes
     if config.edge_list is not None:  # each line `i j` takes at least 4 bytes
-        from pathlib import Path
-
         lines = Path(config.edge_list).stat().st_size // 4
         return min(2 * lines, n * (n - 1))
     w = config.hub_multiplicity  # `--hubs`: each joined to all others, both ways, w times

@@ -7,6 +7,8 @@ when asked (`take`). A batch read this way holds the very values `TrajectoryData
 would (float32 states, each trajectory's graph), so training on it gives the same losses.
 
 - `select` and `subset` are views (no reading); `take` reads into a `TrajectoryData`.
+- The file is pinned (`mpnode_cli.data.fingerprint.file_identity`) when it is opened: each
+  read or pass (each epoch) refuses it, in one line, once it is replaced or rewritten.
 - `prefetched(data, indices)` reads the batches ahead in a background thread, at most
   `depth` of them waiting (2 by default), while the model trains on the current one; the
   thread stops when the loop ends, fails or is interrupted.
@@ -31,8 +33,8 @@ import numpy as np
 import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData, _recipe, split_subset
-from mpnode_cli.data.fingerprint import fingerprint
-from mpnode_cli.data.hdf5 import read_graphs, read_header
+from mpnode_cli.data.fingerprint import file_identity, fingerprint, same_file
+from mpnode_cli.data.hdf5 import open_dataset, read_graphs, read_header
 from mpnode_cli.data.validate import require_valid
 from mpnode_cli.graphs import EdgeBatch, Graphs
 
@@ -51,6 +53,7 @@ class StreamedTrajectories:
         file_split: uint8 `[K_file]`. time: float64 `[T]`.
         shape: `(T, N, D)` of one trajectory; control_dim: U (0 if none).
         system, state_names, control_names, fingerprint, attrs: as `TrajectoryData`'s.
+        identity: the file's when it was opened (`file_identity`), which every read checks.
     """
 
     path: Path
@@ -66,15 +69,17 @@ class StreamedTrajectories:
     control_names: tuple[str, ...]
     fingerprint: str
     attrs: dict[str, Any] = field(default_factory=dict)
+    identity: tuple[int, ...] = ()
 
     @staticmethod
     def open(path: str | Path) -> StreamedTrajectories:
         """Check a dataset file completely (`require_valid`, which reads it in blocks) and
         keep what is small; the fingerprint is taken in blocks too."""
+        identity = file_identity(path) if Path(path).exists() else ()
         require_valid(path)
         header = read_header(path)
         attrs, config = header["attrs"], header["attrs"]["config"]
-        with h5py.File(path, "r") as f:
+        with open_dataset(path) as f:
             states = f["states"]
             graph_index = f["graph_index"][()].astype(np.int64)
             time = f["time"][()]
@@ -96,7 +101,7 @@ class StreamedTrajectories:
             attrs={"topology": topology, "config": config, "dt": attrs["dt"],
                    "recipe": _recipe(attrs.get("recipe")),
                    "prediction": attrs.get("prediction"),
-                   "periodic_states": tuple(attrs["periodic_states"])})
+                   "periodic_states": tuple(attrs["periodic_states"])}, identity=identity)
 
     def __len__(self) -> int:
         return len(self.rows)
@@ -143,7 +148,7 @@ class StreamedTrajectories:
         """
         rows = self.rows[np.asarray(index, dtype=np.int64).reshape(-1)]
         if f is None:
-            with h5py.File(self.path, "r") as f:
+            with self.file() as f:
                 return self.take(index, f)
         states = _read_rows(f["states"], rows)
         controls = None
@@ -159,9 +164,16 @@ class StreamedTrajectories:
     def blocks(self, values: int = _BLOCK_VALUES) -> Iterator[TrajectoryData]:
         """All these trajectories in order, about `values` state values at a time."""
         per = max(1, values // int(np.prod(self.shape)))
-        with h5py.File(self.path, "r") as f:
+        with self.file() as f:
             for index in torch.arange(len(self)).split(per):
                 yield self.take(index, f)
+
+    @contextmanager
+    def file(self) -> Iterator[h5py.File]:
+        """The file, open for a read or a pass, once it is found to be the one opened."""
+        same_file(self.path, self.identity)
+        with open_dataset(self.path) as f:
+            yield f
 
     def fit_normalizer(self) -> Normalizer:
         """`Normalizer.fit` of these trajectories' states and controls, in one pass."""
@@ -265,7 +277,7 @@ class _Reader:
 
     def _run(self, data: StreamedTrajectories, indices: list[torch.Tensor]) -> None:
         try:
-            with h5py.File(data.path, "r") as f:
+            with data.file() as f:
                 for index in indices:
                     if not self._put(data.take(index, f)):
                         return

@@ -23,6 +23,7 @@ from typing import Any
 import h5py
 import numpy as np
 
+from mpnode_cli.data import integrity
 from mpnode_cli.data.arrays import BLOCK_VALUES, nonfinite
 from mpnode_cli.data.hdf5 import (
     DENSE_GRAPH_MAX_NODES,
@@ -84,8 +85,9 @@ def require_valid(path: str | Path) -> None:
         raise DatasetFormatError(f"{path} is not a valid dataset: {report.problems[0]}{tail}")
 
 
-def check_dataset(path: str | Path) -> Report:
-    """Check every field of a dataset file against the format and against each other."""
+def check_dataset(path: str | Path, *, deep: bool = False) -> Report:
+    """Check every field of a dataset file against the format and against each other;
+    `deep`: then read every byte, verifying its checksums (`integrity.deep_problems`)."""
     report = Report(Path(path), "dataset")
     if not report.path.is_file():
         report.problems.append(f"no such file: {path}" if not report.path.exists()
@@ -98,8 +100,14 @@ def check_dataset(path: str | Path) -> Report:
         return report
     with f:
         try:
+            integrity.preflight(report.path)  # before `f` reads an attribute
             _Checker(f, report).run()
-        except (OSError, ValueError, TypeError, KeyError) as exc:  # h5py on a damaged file
+            report.problems += integrity.deep_problems(f) if deep and report.ok else []
+            if report.ok:
+                report.summary["checksums"] = integrity.checksum_summary(f, verified=deep)
+        except integrity.HDF5_ERRORS as exc:  # a damaged file
+            report.problems.append(integrity.name_damage(f, exc))
+        except (ValueError, TypeError) as exc:  # h5py on a file it reads oddly
             report.problems.append(f"{path} could not be read completely: {exc}")
     return report
 

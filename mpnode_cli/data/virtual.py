@@ -1,9 +1,13 @@
 """The source files of a virtual merge (`mpnode merge --virtual`): whether they are still
-where the merged file reads them from, and still hold what it maps.
+where the merged file reads them from, still hold what it maps, and are still the files it
+merged: the merge records each shard's `checksum` (`mpnode_cli.data.integrity`, the sha256
+of its contents) in its `merged` attribute, which a shard replaced by another no longer
+carries, while a copy of the folder still does.
 """
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -36,7 +40,7 @@ def virtual_source_problems(f: h5py.File) -> list[str]:
                     sources.setdefault(m.file_name, []).append((m.dset_name, block))
 
     f.visititems(visit)
-    problems, missing = [], []
+    problems, missing, recorded = [], [], _recorded(f)
     for file_name, mapped in sources.items():
         candidates = _source_candidates(file_name, Path(f.filename))
         found = next((c for c in candidates if _readable_hdf5(c)), None)
@@ -44,6 +48,11 @@ def virtual_source_problems(f: h5py.File) -> list[str]:
             missing.append(candidates[0])
             continue
         with h5py.File(found, "r") as source:
+            if recorded.get(file_name, source.attrs.get("checksum")) != source.attrs.get(
+                    "checksum"):
+                problems.append(f"its shard {found} is not the file it merged (its checksum "
+                                "differs: replaced or rewritten since); merge the shards again")
+                continue
             for dset, shape in mapped:
                 have = source[dset].shape if isinstance(source.get(dset), h5py.Dataset) else None
                 if have is None or len(have) != len(shape) or any(
@@ -63,6 +72,15 @@ def virtual_source_problems(f: h5py.File) -> list[str]:
     return problems
 
 
+def _recorded(f: h5py.File) -> dict[str, str]:
+    """Each shard's checksum at the merge, by its name (none in a merge before they were)."""
+    try:
+        sources = json.loads(f.attrs.get("merged", "{}")).get("sources", {})
+    except (ValueError, TypeError, AttributeError):
+        return {}
+    return sources if isinstance(sources, dict) else {}
+
+
 def _source_candidates(name: str, virtual_file: Path) -> list[Path]:
     """Where HDF5 looks for the virtual source file `name`, in its order."""
     path = Path(name)
@@ -77,8 +95,11 @@ def _source_candidates(name: str, virtual_file: Path) -> list[Path]:
 def _readable_hdf5(path: Path) -> bool:
     if not path.is_file():
         return False
+    from mpnode_cli.data.integrity import HDF5_ERRORS, preflight
+
     try:
         with h5py.File(path, "r"):
+            preflight(path)
             return True
-    except OSError:
+    except HDF5_ERRORS:
         return False

@@ -258,8 +258,8 @@ def _try_lock(folder: Path) -> Any:
 
 # Options added after steps were first fingerprinted, left out of the fingerprint at their
 # default so that a new option does not make every finished step run again: the solver's
-# `compact` (on by default; it changes results by rounding only).
-_LATER_DEFAULTS = {"solver": {"compact": True}}
+# `compact` (on by default; it changes results by rounding only) and `checkpoints` (off).
+_LATER_DEFAULTS = {"solver": {"compact": True, "checkpoints": None}}
 
 
 def _without_later_defaults(value: Any) -> Any:

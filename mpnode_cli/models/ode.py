@@ -98,8 +98,13 @@ class NeuralODEModel(NeuralModel):
         graph = as_graph(adjacency, x0)
         restrict, block = self._restriction(graph, controls if u is not None else None, ts,
                                             z0.shape[0], members)
-        sol = solve(self.vector_field(graph, u), z0, ts, **options, tstops=tstops,
-                    restrict=restrict, restrict_block=block)
+        f = self.vector_field(graph, u)
+        if members is not None and options.get("checkpoints"):
+            # The backward pass reruns steps after the ensemble's `functional_call` has put
+            # back this member's own weights: each evaluation binds the members' again.
+            f = members.kept(self, torch.arange(members.size, device=z0.device), f)
+        sol = solve(f, z0, ts, **options, tstops=tstops, restrict=restrict,
+                    restrict_block=block)
         d = self.node_dim
         messages = sol.ys[..., d:] if return_messages and self.message_dim else None
         return Rollout(states=sol.ys[..., :d], messages=messages, status=sol.status,

@@ -20,6 +20,9 @@ sample that fails is frozen and marked while the others go on.
   tape, which `torch.compile` takes whole (`STEP`: dynamo cannot trace the fused nodes'
   shared buffers), and the outputs are gathered once at the end. The loop around either
   does the host-side work.
+- With `solve(..., checkpoints=C)` each step (`loop_step`) runs through
+  `checkpoint.Checkpointed`: one autograd node that keeps nothing, rerun in the backward
+  pass from a kept state (`replica`: the reruns write their outputs apart).
 - For compaction (`solve(..., restrict=...)`) the loop may stop once few samples still run,
   returning each sample's `State` (`Restart`), from which `solve` goes on with those
   samples only: a restart needs no change to either step.
@@ -27,11 +30,14 @@ sample that fails is frozen and marked while the others go on.
 
 from __future__ import annotations
 
+import copy
 import math
+from functools import partial
 from typing import NamedTuple
 
 import torch
 
+from mpnode_cli.solver.checkpoint import Checkpointed
 from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import StepController
 from mpnode_cli.solver.dense import (
@@ -190,8 +196,12 @@ def solve_adaptive(problem: Problem, fun: RHS, shaped: RHS, y: torch.Tensor,
     # Stop for compaction when few enough rows still run and enough could be dropped.
     keep_max = (min(int(batch * COMPACT_KEEP_FRACTION), batch - COMPACT_MIN_DROP)
                 if problem.block else -1)
-    state, status, n_f, early = _loop(fun, consts, state, status, n_f, steps, problem.compile,
-                                      problem.report, keep_max)
+    step = partial(loop_step, fun, consts, problem.compile, steps)
+    if problem.checkpoints is not None and record:  # steps recomputed in the backward pass
+        step = Checkpointed(step, problem.checkpoints, lambda: partial(
+            loop_step, fun, consts, False, steps.replica()))
+    state, status, n_f, early = _loop(step, consts, (state, status, n_f), problem.report,
+                                      keep_max)
     stats = {"n_steps": state.n_steps, "n_accepted": state.n_accepted,
              "n_rejected": state.n_steps - state.n_accepted,
              "n_f_evals": n_f + (tab.stages - 1) * state.n_steps}
@@ -232,32 +242,40 @@ COMPACT_MIN_DROP = 8
 COMPACT_KEEP_FRACTION = 0.5
 
 
-def _loop(fun, consts, state, status, n_f, steps, compile, report, keep_max):
-    """Step until no sample runs, or (`keep_max` ≥ 0, `consts.block`) until the rows of
-    the blocks that still run are at most `keep_max`; returns `(state, status, n_f,
-    stopped early)`."""
+def _loop(step, consts, carry, report, keep_max):
+    """Step (`step(carry)`, `loop_step`'s) until no sample runs, or (`keep_max` ≥ 0,
+    `consts.block`) until the rows of the blocks that still run are at most `keep_max`;
+    returns `(state, status, n_f, stopped early)`."""
     while True:
-        state, flags, step = steps.attempt(fun, consts, state, compile)
-        flags = flags.tolist()  # the step's one sync
-        any_running, width, any_jumped, any_failed = flags[:4]
-        if any_failed:  # rare: record why those samples stopped
-            why = torch.where(step.too_many, Status.NON_FINITE,
-                              torch.where(step.underflow, Status.DT_UNDERFLOW,
-                                          Status.MAX_STEPS))
-            status = torch.where(step.failed, why, status)
-        state = steps.end(state, step, width)
-        if width > 0:
-            state = state._replace(out_idx=state.out_idx + step.n_cross)
-        if any_jumped:  # right-limit derivative at the stop, for those that landed there
-            k1 = torch.where(step.jumped[:, None], fun(state.t, state.y), state.k1)
-            n_f = n_f + state.running
-            state = state._replace(k1=k1)
-        if not any_running:
-            return state, status, n_f, False
+        carry, flags = step(carry)
+        if not flags[0]:
+            return (*carry, False)
         if consts.block and flags[4] <= keep_max:
-            return state, status, n_f, True
+            return (*carry, True)
         if report is not None:
-            report(state.t)
+            report(carry[0].t)
+
+
+def loop_step(fun, consts, compile, steps, carry):
+    """One attempted step of the samples that run, and its bookkeeping: `carry` is
+    `(state, status, n_f)`; returns the next carry and the step's `control` flags as
+    Python ints (its one host sync). What `checkpoint.Checkpointed` reruns."""
+    state, status, n_f = carry
+    state, flags, step = steps.attempt(fun, consts, state, compile)
+    flags = flags.tolist()  # the step's one sync
+    _, width, any_jumped, any_failed = flags[:4]
+    if any_failed:  # rare: record why those samples stopped
+        why = torch.where(step.too_many, Status.NON_FINITE,
+                          torch.where(step.underflow, Status.DT_UNDERFLOW, Status.MAX_STEPS))
+        status = torch.where(step.failed, why, status)
+    state = steps.end(state, step, width)
+    if width > 0:
+        state = state._replace(out_idx=state.out_idx + step.n_cross)
+    if any_jumped:  # right-limit derivative at the stop, for those that landed there
+        k1 = torch.where(step.jumped[:, None], fun(state.t, state.y), state.k1)
+        n_f = n_f + state.running
+        state = state._replace(k1=k1)
+    return (state, status, n_f), flags
 
 
 def plan_step(state: State):
@@ -402,6 +420,15 @@ class FusedSteps:
         self.out = OutputTimes.of(ts, tape.tab, host_weights)
         self.base = torch.arange(batch, device=dev)[:, None] * ts.numel()  # (B, 1) column 0
         self.spare = batch * ts.numel()  # the output buffer's spare row
+
+    def replica(self) -> FusedSteps:
+        """The same steps writing their outputs into a buffer of their own (a checkpointed
+        solve's reruns, which must leave the result as it is); their backward reads the
+        outputs' gradient as it is now."""
+        twin = copy.copy(self)
+        twin.tape = copy.copy(self.tape)
+        twin.tape.out = torch.empty_like(self.tape.out)
+        return twin
 
     def attempt(self, fun: RHS, consts: Constants, state: State, compile: bool):
         """`control`'s `(state, flags, attempt)`; `end` then advances y and k₁."""

@@ -2,7 +2,8 @@
 and every stop exactly (the only way to run a method without an error estimate, e.g. RK4).
 
 The step grid is the same for every sample, so it is a Python list and the loop needs no
-host sync; a sample whose state turns non-finite is frozen and marked `NON_FINITE`.
+host sync; a sample whose state turns non-finite is frozen and marked `NON_FINITE`. With
+`solve(..., checkpoints=C)` each step (`fixed_step`) runs through `checkpoint.Checkpointed`.
 """
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Iterator
+from functools import partial
 
 import torch
 
+from mpnode_cli.solver.checkpoint import Checkpointed
 from mpnode_cli.solver.fused import StepTape, end_step, fused_stages
 from mpnode_cli.solver.problem import Problem
 from mpnode_cli.solver.runge_kutta import RHS, Stages, rk_step
@@ -64,23 +67,23 @@ def solve_fixed(problem: Problem, fun: RHS, shaped: RHS, y: torch.Tensor):
     n_steps = torch.zeros(batch, dtype=torch.long, device=dev)
     outs = [y] + [None] * (n_out - 1)
     nan_row = torch.full_like(y, math.nan)
+    step = partial(fixed_step, advance, fun, zero)
+    if problem.checkpoints is not None and torch.is_grad_enabled() and (
+            k1.requires_grad or y.requires_grad):  # steps recomputed in the backward pass
+        step = Checkpointed(step, problem.checkpoints)
     j = 1
-    for step, t_next in enumerate(grid):
-        if step >= problem.max_steps:
+    for i, t_next in enumerate(grid):
+        if i >= problem.max_steps:
             status = torch.where(running, Status.MAX_STEPS, status)
             running = torch.zeros_like(running)
             break
-        h = torch.where(running, t_next - t_prev, zero)
-        t_end = torch.full_like(t, t_next)
-        y, k1, ok = advance(t, h, y, k1, t_end, running)
+        stop = t_next in interior_stops
+        (t, y, k1, ok), _ = step((t, y, k1, running), t_prev, t_next, stop)
         status = torch.where(running & ~ok, Status.NON_FINITE, status)
         n_steps += running
         running = ok
-        t = t_end
         t_prev = t_next
-        if t_next in interior_stops:  # f may jump here: FSAL's left limit is not valid
-            k1 = fun(t, y)
-            n_extra += 1
+        n_extra += stop
         if j < n_out and t_next == out_times[j]:
             # Samples that already failed report NaN from here on, like the adaptive solver.
             outs[j] = torch.where(running[:, None], y, nan_row)
@@ -93,6 +96,21 @@ def solve_fixed(problem: Problem, fun: RHS, shaped: RHS, y: torch.Tensor):
              "n_rejected": torch.zeros_like(n_steps),
              "n_f_evals": 1 + (tab.stages - 1) * n_steps + n_extra}
     return ys, status, stats
+
+
+def fixed_step(advance, fun: RHS, zero: torch.Tensor, carry, t_prev: float, t_next: float,
+               stop: bool):
+    """One step of every running sample from `carry = (t, y, k1, running)` (`[B]`,
+    `[B, F]`, `[B, F]`, `[B]`), all at `t_prev`, to `t_next`, f re-evaluated there if it is
+    an interior `stop`: the next carry (running: still finite) and None. What
+    `checkpoint.Checkpointed` reruns."""
+    t, y, k1, running = carry
+    h = torch.where(running, t_next - t_prev, zero)
+    t_end = torch.full_like(t, t_next)
+    y, k1, ok = advance(t, h, y, k1, t_end, running)
+    if stop:  # f may jump here: FSAL's left limit is not valid
+        k1 = fun(t_end, y)
+    return (t_end, y, k1, ok), None
 
 
 def _stepper(problem: Problem, fun: RHS, shaped: RHS | None, y: torch.Tensor,

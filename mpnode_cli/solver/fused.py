@@ -164,6 +164,8 @@ class _Stage(torch.autograd.Function):
         if i > 1:
             return None, None, (lam_k * rec.hc).view(ctx.k_shape), None
         gk = lam_k * rec.hc if rec.gk1 is None else torch.addcmul(rec.gk1, lam_k, rec.hc)
+        # The step's last node: its buffers can go (the graph keeps `rec` to its end).
+        rec.lam = rec.gk1 = None
         return None, None, gk.view(ctx.k_shape), lam[0].view(lam_k.shape)
 
 

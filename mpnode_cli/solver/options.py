@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from mpnode_cli.limits import EPS, RTOL_ULPS
 from mpnode_cli.solver.controller import ATOL, CONTROLLER, CONTROLLERS, RTOL, controller_for
 from mpnode_cli.solver.tableau import METHODS, get_method
 
@@ -44,6 +45,9 @@ class SolverOptions(BaseModel):
         compact: once most samples have finished, go on with the running ones only (where
             the caller can restrict its right-hand side to them: the neural ODEs' rollouts);
             the same result up to rounding, fewer rows stepped.
+        checkpoints: backpropagate keeping at most this many solver states, the steps
+            recomputed from them (`mpnode_cli.solver.checkpoint`): memory that does not
+            grow with the steps, the same gradient, 1.5–2× the time; None: keep every step.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -63,11 +67,27 @@ class SolverOptions(BaseModel):
     compact: bool = Field(
         True, description="Once most trajectories have finished, step the running ones only "
         "(adaptive, uncompiled steps).")
+    checkpoints: int | None = Field(
+        None, ge=1, description="Backpropagate through the solve keeping at most this many "
+        "solver states, recomputing the steps between (none: keep every step).")
 
     @model_validator(mode="after")
     def _check_method(self) -> SolverOptions:
         get_method(self.method, self.fixed_dt)  # a method without error estimate: fixed_dt
         return self
+
+    def check_precision(self, dtype: str) -> None:
+        """Refuse an rtol below what adaptive steps in `dtype` can meet (`RTOL_ULPS` of its
+        machine epsilon, `mpnode_cli.limits`): their error estimate would be rounding
+        noise, and the steps would shrink towards `max_steps`.
+
+        Raises:
+            ValueError: one line, with the least rtol the dtype allows.
+        """
+        least = RTOL_ULPS * EPS[dtype]
+        if self.fixed_dt is None and self.rtol < least:
+            raise ValueError(f"rtol {self.rtol:g} is below what {dtype} can resolve: give at "
+                             f"least {least:.2g} ({RTOL_ULPS} × its machine epsilon)")
 
     def solve_kwargs(self) -> dict[str, Any]:
         """The keyword arguments of `solve` these options stand for: the controller built

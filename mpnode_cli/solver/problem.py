@@ -41,6 +41,9 @@ class Problem:
         block: compaction keeps or drops whole blocks of this many samples (0: no
             compaction).
         fixed_dt: the largest fixed step (None: adaptive steps).
+        checkpoints: keep at most this many solver states and no step's saved tensors,
+            recomputing the steps in the backward pass (`checkpoint.py`); None: plain
+            backpropagation.
     """
 
     tab: StageTableau
@@ -58,6 +61,7 @@ class Problem:
     restrict: Callable[[torch.Tensor], RHS] | None = None
     block: int = 0
     fixed_dt: float | None = None
+    checkpoints: int | None = None
 
     def batch_shape(self, batch: int) -> tuple[int, ...]:
         """`(B, *S)`, the states' shape as f sees them, for a batch of `batch` samples."""

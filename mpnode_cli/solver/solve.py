@@ -55,6 +55,7 @@ def solve(
     compact: bool = True,
     restrict: Callable[[torch.Tensor], RHS] | None = None,
     restrict_block: int = 1,
+    checkpoints: int | None = None,
 ) -> Solution:
     """Integrate `dy/dt = f(t, y)` for a batch of initial states with a Runge–Kutta method.
 
@@ -104,6 +105,17 @@ def solve(
             consecutive samples, and `restrict` is only given such blocks (an ensemble's
             members, `mpnode_cli.models.ensemble`); 1: sample by sample. A batch that is
             not a multiple of it is not compacted.
+        checkpoints: None (the default): backpropagate through every step, keeping its
+            graph and what autograd saves of it (f's activations), so memory grows with
+            the steps. An int C ≥ 1: each step is one autograd node that keeps nothing,
+            and at most C solver states are kept (every s-th step's, s doubling as the
+            solve grows); the backward pass reruns each step from the nearest state
+            (keeping up to C more on the way) and backpropagates through it alone. The
+            forward is the plain solve's bit for bit and the gradient plain backprop's
+            to rounding, for 2–2.5 more forward passes with C = 64 up to 5000 steps
+            (`checkpoint.py`, docs/solver.md, bench/results/memory.md). Needs the fused steps
+            (`fused=True`); `compile` is ignored with it; no effect where autograd does
+            not record the solve.
 
     Returns:
         A `Solution`. Gradients flow from `ys` to `y0` and to any parameters used by `f`
@@ -112,6 +124,13 @@ def solve(
         (`fused=False` takes higher derivatives).
     """
     ts = _checked_times(y0, t_eval, fixed_dt)
+    if checkpoints is not None and (isinstance(checkpoints, bool)
+                                    or not isinstance(checkpoints, int) or checkpoints < 1):
+        raise ValueError(f"checkpoints must be a positive integer or None, got {checkpoints!r}")
+    if checkpoints is not None and not fused:
+        raise ValueError("checkpoints reruns the fused steps: leave fused=True (fused=False "
+                         "records every op, for higher derivatives, which checkpoints lack)")
+    compile = compile and checkpoints is None
     tableau = get_method(method, fixed_dt)
     ctrl = _controller(controller, rtol, atol)
 
@@ -128,7 +147,7 @@ def solve(
         shape=tuple(shape), dtype=y0.dtype, max_steps=max_steps, fused=fused,
         report=_Reporter(progress, ts), controller=ctrl,
         order=tableau.controller_order if adaptive else 0, dt0=dt0, compile=compile,
-        restrict=restrict, fixed_dt=fixed_dt,
+        restrict=restrict, fixed_dt=fixed_dt, checkpoints=checkpoints,
         block=_compaction_block(adaptive and compact and not compile, restrict,
                                 restrict_block, batch))
     if adaptive:

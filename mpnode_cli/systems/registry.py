@@ -222,9 +222,9 @@ def _wrong_declaration(cls: type[System]) -> str | None:
     `name = 3, not a non-empty string`), or None: read at generate time, a wrong one would
     fail far from the class."""
 
-    def names(value: object, least: int = 0) -> bool:
+    def names(value: object, least: int = 0) -> bool:  # distinct, as they name columns
         return (isinstance(value, tuple | list) and len(value) >= least
-                and all(isinstance(v, str) and v for v in value))
+                and all(isinstance(v, str) and v for v in value) and len(set(value)) == len(value))
 
     def number(value: object, low: float = -math.inf) -> bool:
         return (isinstance(value, int | float) and not isinstance(value, bool)
@@ -246,9 +246,9 @@ def _wrong_declaration(cls: type[System]) -> str | None:
         # The name becomes part of paths (datasets/<name>-n8-ring-s0.h5): no '/' or '..'.
         ("name", lambda v: isinstance(v, str) and v.isidentifier(),
          "an identifier (letters, digits and _, as a Python name; it names the dataset file)"),
-        ("state_names", lambda v: names(v, 1), "a tuple of at least one name"),
-        ("control_names", names, "a tuple of names"),
-        ("topologies", lambda v: names(v, 1), "a tuple of at least one topology"),
+        ("state_names", lambda v: names(v, 1), "a tuple of at least one name, each once"),
+        ("control_names", names, "a tuple of names, each once"),
+        ("topologies", lambda v: names(v, 1), "a tuple of at least one topology, each once"),
         ("default_nodes", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
          "a whole number ≥ 1"),
         ("defaults", lambda v: table(v, None, number), "a dict of names to finite numbers"),
@@ -263,8 +263,8 @@ def _wrong_declaration(cls: type[System]) -> str | None:
          "a dict of train-config fields that JSON can hold"),
         ("sparse", lambda v: isinstance(v, bool), "True or False"),
     ]
-    checks.append(("periodic_states", lambda v: names(v) and len(set(v)) == len(v) and set(
-        v) <= set(cls.state_names), "a tuple of distinct names among its state_names"))
+    checks.append(("periodic_states", lambda v: names(v) and set(v) <= set(cls.state_names),
+                   "a tuple of distinct names among its state_names"))
     for attr, ok, what in checks:
         value = getattr(cls, attr)
         if not ok(value):

@@ -26,6 +26,8 @@ Fields of the dict:
         ensemble's holds each member's under `members`.
     parent_sha256: sha256 of the checkpoint a finetune started from, else None.
     metrics: its epoch's metrics row (best.pt's: the best epoch's validation metrics).
+    payload_sha256: sha256 of all the other fields, which every reader verifies
+        (`mpnode_cli.training.checkpoint_digest`); none in a file saved before it.
 
 Version 2 renamed MP-NODE's `aggregation` option (dense/scatter, how the mean is computed)
 to `backend`, added the `aggregate` choice (mean/sum/pna) and the PNA degree statistic
@@ -62,11 +64,13 @@ reading where they are off, and a file trained with one on is refused, naming it
 (`checkpoint_upgrade.drop_retired`): a file without them reads as off in an older mpnode.
 
 Writes are atomic (temporary file beside the target, then rename), so Ctrl-C during a save
-leaves the previous checkpoint intact.
+leaves the previous checkpoint intact; torch serializes in memory and Python writes the
+bytes, so that a full disk is one line (`mpnode_cli.data.atomic.atomic_bytes`).
 """
 
 from __future__ import annotations
 
+import io
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -76,9 +80,10 @@ import torch
 
 from mpnode_cli import __version__
 from mpnode_cli.config_upgrade import RetiredOptionError, retired_note, upgrade_train_fields
-from mpnode_cli.data.atomic import atomic_path
+from mpnode_cli.data.atomic import atomic_bytes
 from mpnode_cli.paths import file_sha256  # noqa: F401  (a checkpoint's identity)
 from mpnode_cli.terminal import suggested
+from mpnode_cli.training.checkpoint_digest import DIGEST, payload_sha256
 from mpnode_cli.training.checkpoint_upgrade import drop_retired, upgrade_payload, version_problem
 
 if TYPE_CHECKING:
@@ -114,6 +119,8 @@ class Checkpoint:
     member: int | None = None
     # In memory only: the format version the file was stored in (upgraded on reading).
     format_version: int = FORMAT_VERSION
+    # In memory only: the digest the file carried and matched (None: saved before digests).
+    digest: str | None = None
 
     @property
     def members(self) -> int:
@@ -160,9 +167,10 @@ def save_checkpoint(path: str | Path, ckpt: Checkpoint) -> Path:
         "parent_sha256": ckpt.parent_sha256,
         "metrics": ckpt.metrics,
     }
-    with atomic_path(path) as (tmp, _):  # an interrupt waits for the save, then propagates
-        torch.save(payload, tmp)
-    return path
+    payload[DIGEST] = payload_sha256(payload)
+    buffer = io.BytesIO()
+    torch.save(payload, buffer)
+    return atomic_bytes(path, buffer.getbuffer())  # an interrupt waits for the write
 
 
 def resolve_path(path: str | Path) -> Path:
@@ -229,6 +237,16 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
             "dictionary of tensors; is it a dataset or another file?)") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointFormatError(f"{path} is not an mpnode checkpoint (no format '{FORMAT}')")
+    digest = payload.get(DIGEST)
+    try:
+        intact = digest is None or digest == payload_sha256(payload)
+    except (RuntimeError, TypeError, ValueError):  # a tensor of a kind mpnode never saves
+        intact = False
+    if not intact:
+        raise CheckpointFormatError(
+            f"{path} is damaged: its contents are not those it was saved with (their sha256 "
+            "differs from the one recorded in it); use another checkpoint (a run keeps "
+            "best.pt and last.pt) or train again")
     version = payload.get("format_version")
     if problem := version_problem(version, FORMAT_VERSION):
         raise CheckpointFormatError(f"{path} {problem}")
@@ -247,7 +265,7 @@ def read_checkpoint(path: str | Path) -> Checkpoint:
             rng=payload.get("rng") or {}, loop=payload.get("loop") or {},
             parent_sha256=payload.get("parent_sha256"), metrics=payload.get("metrics") or {},
             mpnode_version=payload.get("mpnode_version", "?"), path=path,
-            format_version=version,
+            format_version=version, digest=digest,
         )  # fmt: skip
     except KeyError as exc:
         raise CheckpointFormatError(f"{path} lacks the checkpoint field {exc.args[0]!r}") from None

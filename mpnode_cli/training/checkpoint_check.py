@@ -39,7 +39,9 @@ def check_checkpoint(path: str | Path) -> Report:
     if ckpt.format_version != FORMAT_VERSION:  # read as stored, then upgraded
         shown += f" (upgraded from v{ckpt.format_version} on reading)"
     report.summary.update({"format": shown, "model": ckpt.model_kind,
-                           "epoch": ckpt.epoch, "trained_on": _trained_on(ckpt.dataset)})
+                           "epoch": ckpt.epoch, "trained_on": _trained_on(ckpt.dataset),
+                           "checksum": "sha256 of the contents, verified" if ckpt.digest else
+                           "none (saved before mpnode recorded one)"})
     report.problems += checkpoint_problems(ckpt)
     if report.ok:
         report.summary["parameters"] = sum(p.numel() for p in ckpt.build_model().parameters())

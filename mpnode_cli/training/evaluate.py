@@ -263,6 +263,12 @@ def train_reference(ckpt, data: TrajectoryData) -> tuple[TrajectoryData | list[T
     return (train[0] if len(train) == 1 else train), f"the train {splits} of {names}{note}"
 
 
+def plot_paths(plot_dir: Path, dataset: Path, split: str) -> tuple[Path, Path]:
+    """The rollout and error plots `evaluate_checkpoint` draws of a dataset's split."""
+    stem = f"{Path(dataset).stem}-{split}"
+    return Path(plot_dir) / f"{stem}-rollout.png", Path(plot_dir) / f"{stem}-error.png"
+
+
 def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                         verb: str = "evaluate", batch_size: int = 128,
                         device: str | torch.device = "cpu",
@@ -325,7 +331,7 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
     if plot_dir is not None:
         from mpnode_cli.report.plots import BASELINE_LABELS, plot_error_vs_time, plot_rollout
 
-        stem = f"{data.path.stem}-{split}"
+        rollout_png, error_png = plot_paths(plot_dir, data.path, split)
         pred = predict(model, subset, normalizer, torch.arange(1), **options)
         messages = None if pred.messages is None else pred.messages[0]
         index = _file_index(data, split, 0)
@@ -334,14 +340,14 @@ def evaluate_checkpoint(ckpt, data: TrajectoryData, *, split: str = "all",
                   if data.attrs.get("prediction") else ("true", "predicted"))
         plots = [
             str(plot_rollout(pred.time, pred.true[0], pred.pred[0], messages, data.state_names,
-                             Path(plot_dir) / f"{stem}-rollout.png",
+                             rollout_png,
                              title=f"{data.path.name}: trajectory {index} (the first of the "
                                    f"{split} split)", labels=labels,
                              spread=None if pred.spread is None else pred.spread[0])),
             str(plot_error_vs_time(data.time, [np.asarray(result.mse_vs_time, dtype=float),
                                                curves["hold_x0"],
                                                curves["time_mean"]],
-                                   Path(plot_dir) / f"{stem}-error.png",
+                                   error_png,
                                    labels=("model", *BASELINE_LABELS),
                                    title=f"{data.path.name} ({split}): error vs time")),
         ]

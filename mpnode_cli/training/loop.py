@@ -78,6 +78,7 @@ from mpnode_cli.training.memory_guard import EpochPeaks, stop_if_outgrowing
 from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_train_config
 from mpnode_cli.training.run_folder import RunFolder
 from mpnode_cli.training.setup import OnEvent, Run, load_data, member_state, set_up
+from mpnode_cli.training.stiffness import Stiffness
 
 # What other modules use; `resolve_train_config` lives in the recipe module and is named
 # here too (the recipe also holds `resolve_compile`: the two steps that settle a config).
@@ -176,7 +177,7 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
             row = _record(run, schedules, 0, val, each, None, val.seconds)
             saver.save_epoch(row, best=True, improved=list(range(len(schedules))))
             emit({"event": "epoch", **row})
-        peaks = EpochPeaks(run.device.type)
+        peaks, emit = EpochPeaks(run.device.type, config.memory_budget), Stiffness(emit).emit
         for epoch in range(state.epoch + 1, config.epochs + 1):
             if not run.active() or (config.time_limit and state.epoch >= 1
                                     and state.seconds >= config.time_limit):
@@ -189,7 +190,7 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
             row = _record(run, schedules, epoch, val, each, steps, time.perf_counter() - start)
             saver.save_epoch(row, best=row["improved"], improved=row.get("improved_members"))
             emit({"event": "epoch", **row})
-            stop_if_outgrowing(run, saver.snapshot.epoch, peaks.end())
+            stop_if_outgrowing(run, saver.snapshot.epoch, peaks)
     except KeyboardInterrupt as exc:
         saver.save_interrupted(exc)
         raise TrainingInterrupted(run.run_dir, saver.snapshot.epoch, exc) from None
@@ -243,6 +244,7 @@ def train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
                           "batches": len(plans[0]), "loss": sum(losses) / len(losses)})
     # A batch's RHS evaluations are its slowest trajectory's, wherever that was solved.
     n_f_evals = int(world.max(torch.tensor(evals_per_batch, dtype=torch.long)).sum())
+    intervals = sum(horizons[i] - 1 for i, _ in plans[0])  # each batch's sample intervals
     rows = {k: t.row() for k, t in tallies.items()}
     return {"train_loss": _mean([r["train_loss"] for r in rows.values()]),
             "grad_norm": _mean([r["grad_norm"] for r in rows.values()]),
@@ -250,6 +252,7 @@ def train_epoch(run: Run, schedules: list[LRSchedule], saver: Checkpointer,
             "skip_reasons": [_of_member(run, k, reason, ", ") for k, r in rows.items()
                              for reason in r["skip_reasons"]],
             "horizon": max(horizons), "rhs_evals": n_f_evals,
+            "rhs_evals_per_sample": n_f_evals / max(intervals, 1),
             "train_seconds": time.perf_counter() - start, "by_member": rows}
 
 
@@ -456,8 +459,9 @@ def _record(run: Run, schedules: list[LRSchedule], epoch: int, val: EvalResult,
     by_member = steps.pop("by_member", {})
     row = {"epoch": epoch, **steps, "val_loss": val.loss(config.loss), "val_mse": val.mse,
            "val_failed": val.failed, "val_rhs_evals": val.n_f_evals, "lr": lrs[0],
-           "seconds": seconds, "improved": bool(improved)} | by_dataset(run.names, each,
-                                                                         config.loss)
+           "seconds": seconds, "improved": bool(improved),
+           "backprop_checkpoints": config.solver.checkpoints} | by_dataset(
+               run.names, each, config.loss)
     if len(results) > 1:
         row |= _member_rows(run, val, lrs, improved, by_member)
     return row

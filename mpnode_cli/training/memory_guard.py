@@ -16,6 +16,11 @@ because one epoch's rise is noisy (batches differ in how many solver steps they 
 a run killed mid-epoch loses that epoch; a run stopped one epoch early loses nothing, as
 `last.pt` holds it and `--resume` continues on a machine with more memory.
 
+A `--memory-budget` lowers what the process can reach to the budget. A run of a neural ODE
+that backpropagates through every solver step is not stopped but switched, for the epochs
+that follow, to checkpointed backprop (`CHECKPOINTS` stored states: the same gradient, in
+memory that does not grow with the steps); one already checkpointing is stopped.
+
 On CUDA an allocation that fails raises an exception that `mpnode_cli.memory.naming_memory`
 names, so no guard is needed there, and none runs. Where `/proc/self/clear_refs` cannot be
 written (not Linux), the guard is off.
@@ -32,7 +37,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from mpnode_cli.memory import OutOfMemory, available_memory, format_bytes
+from mpnode_cli.memory import OutOfMemory, available_memory, format_bytes, parse_size
+from mpnode_cli.models.ode import NeuralODEModel
 from mpnode_cli.terminal import suggested
 from mpnode_cli.training import run as runs
 
@@ -42,6 +48,9 @@ if TYPE_CHECKING:
 # How many epoch-to-epoch rises the projection looks back over, and ahead.
 LOOKBACK = 3
 AHEAD = 2
+# Solver states a checkpointed step keeps (`SolverOptions.checkpoints`): with 64 a step runs
+# 3 times up to ~2000 solver steps, 4 up to ~70 000 (docs/solver.md).
+CHECKPOINTS = 64
 
 _STATUS = "/proc/self/status"
 _CLEAR_REFS = "/proc/self/clear_refs"
@@ -100,9 +109,10 @@ def projected_overrun(peaks: Sequence[int], resident: int, available: int) -> in
 class EpochPeaks:
     """Each epoch's peak resident memory, and whether the next epochs will still fit."""
 
-    def __init__(self, device_type: str):
+    def __init__(self, device_type: str, budget: str | None = None):
         self.on = device_type == "cpu" and os.path.exists(_CLEAR_REFS)
         self.peaks: list[int] = []
+        self.budget = None if budget is None else parse_size(budget)
 
     def begin(self) -> None:
         """Call as an epoch starts."""
@@ -117,36 +127,54 @@ class EpochPeaks:
         resident, available = resident_bytes(), available_memory()
         if resident is None or available is None:
             return None
-        projected = projected_overrun(self.peaks, resident, available)
+        reach, limit = resident + available, "this process can reach"
+        if self.budget is not None and self.budget < reach:
+            reach, limit = self.budget, "--memory-budget allows"
+        projected = projected_overrun(self.peaks, resident, reach - resident)
         if projected is None:
             return None
         first = self.peaks[-(LOOKBACK + 1):][0]
         return (f"the training step's peak memory grew from {format_bytes(first)} to "
                 f"{format_bytes(peak)} over the last epochs, and two more epochs at that "
                 f"rate would need about {format_bytes(projected)}, more than the "
-                f"{format_bytes(resident + available)} this process can reach")
+                f"{format_bytes(reach)} {limit}")
 
 
 # What a process whose own step fits says when another's does not.
 OTHER_RANK = "another training process's step is outgrowing its memory"
 
 
-def stop_if_outgrowing(run: Run, epoch: int, why: str | None) -> None:
-    """Stop the run, its epoch saved, when any process's step is outgrowing its memory
-    (`why`, from `EpochPeaks.end`; `run` the loop's `Run`, `epoch` its last saved one):
-    an interrupted `summary.json` that says so, and one line.
+def stop_if_outgrowing(run: Run, epoch: int, peaks: EpochPeaks) -> None:
+    """After a saved epoch (`epoch`; `run` the loop's `Run`), when any process's step is
+    outgrowing its memory (`peaks.end()`): switch a neural ODE's plain backprop to
+    checkpointed backprop for the next epochs (`run.config` and config.json say so, and a
+    warning line), or stop the run, with an interrupted `summary.json` and one line.
 
     Raises:
         OutOfMemory: the line, with how to continue.
     """
+    why = peaks.end()
     stop = run.world.max(torch.tensor([float(why is not None)], dtype=torch.float64))
     if not stop[0]:
         return
+    solver = run.config.solver
+    if solver.checkpoints is None and isinstance(run.members[0], NeuralODEModel):
+        run.config = run.config.model_copy(update={
+            "solver": solver.model_copy(update={"checkpoints": CHECKPOINTS})})
+        if run.world.main:
+            runs.write_json(Path(run.run_dir) / runs.CONFIG, run.config.model_dump(mode="json"))
+        run.emit({"event": "warning", "text": f"after epoch {epoch}, {why or OTHER_RANK}: "
+                  f"the next epochs backpropagate through checkpointed solves ({CHECKPOINTS} "
+                  "stored states; the same gradient, about 1.5–2× the time)"})
+        peaks.peaks.clear()  # plain backprop's peaks say nothing of checkpointed epochs'
+        return
     if run.world.main:
         runs.write_interrupted(run.run_dir, epoch, "memory")
+    even = " even with checkpointed backprop" if solver.checkpoints is not None else ""
     raise OutOfMemory(
         f"training stopped after epoch {epoch} of {run.config.epochs}: "
-        f"{why or OTHER_RANK}. "
+        f"{why or OTHER_RANK}{even}. "
         f"last.pt keeps epoch {epoch} and best.pt the best so far; continue on a machine "
-        f"with more memory with: {suggested('train', '--resume', Path(run.run_dir))}, "
+        f"with more memory (or a larger --memory-budget) with: "
+        f"{suggested('train', '--resume', Path(run.run_dir))}, "
         f"or train again with a lower --batch-size")

@@ -142,12 +142,15 @@ def resolve_train_config(config: TrainConfig, data: TrajectoryData) -> TrainConf
 
     Raises:
         ValueError: unknown model, or an option the model does not declare or refuses
-            (one line naming the model and the option).
+            (one line naming the model and the option); a min_lr above the lr.
     """
     finetune = config.init_checkpoint is not None
     declared = () if finetune or config.model not in OPTIONS else OPTIONS[config.model].model_fields
     config = resolve_recipe(config, data.system, data.attrs.get("recipe"), data.time.numel(),
                             lambda name: name in declared)
+    if config.min_lr > config.lr:  # checked here, where a system's recipe has set the lr
+        raise ValueError(f"min_lr ({config.min_lr:g}) is above lr ({config.lr:g}): the lr "
+                         "would start below its floor; lower --min-lr or raise --lr")
     if finetune:
         return config
     options = resolve_options(config.model, config.model_options)
@@ -165,18 +168,19 @@ def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
 
     Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps), its steps are
     adaptive (compiling does not apply to `fixed_dt`), it trains one model (not an
-    ensemble) and a C++ compiler is there for inductor on CPU. Shapes that change (a
-    smaller last batch, the horizon curriculum's growing horizon) cost one more compile,
-    after which torch.compile treats that size as dynamic (`solve`'s automatic dynamic
-    shapes).
+    ensemble), backpropagates without checkpoints and a C++ compiler is there for
+    inductor on CPU. Shapes that change (a smaller last batch, the horizon curriculum's
+    growing horizon) cost one more compile, after which torch.compile treats that size as
+    dynamic (`solve`'s automatic dynamic shapes).
     """
     if config.solver.compile != "auto":
         return config
     steps = config.epochs * -(-n_train // config.batch_size)
     # An ensemble runs eager: its members' stacked weights are swapped in for each rollout
     # (`mpnode_cli.models.ensemble`), which the compiled step is not traced for.
+    # A checkpointed solve runs its steps uncompiled (`solve` ignores compile there).
     decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
-              and config.seeds == 1
+              and config.seeds == 1 and config.solver.checkpoints is None
               and (config.device != "cpu" or have_cxx()))
     return config.model_copy(update={"solver": config.solver.model_copy(
         update={"compile": decide})})
@@ -188,6 +192,8 @@ def describe_solver(config: TrainConfig) -> str:
     steps = f"fixed dt {o.fixed_dt:g}" if o.fixed_dt is not None else (
         f"rtol {o.rtol:g}, atol {o.atol:g}, {o.controller.upper()} controller")
     compiled = "compiled (the first epochs compile)" if o.compile is True else "not compiled"
+    if o.checkpoints is not None:  # `solve` ignores compile then
+        compiled = f"not compiled, checkpointed backprop ({o.checkpoints} stored states)"
     return f"{o.method}, {steps}, {compiled}"
 
 

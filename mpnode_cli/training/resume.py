@@ -4,8 +4,9 @@ A resumed run is the run its folder describes: its `config.json` (the resolved c
 field explicit, so no recipe applies again) and its `last.pt` (weights, optimizer, RNG
 states and the loop's counters), so that 2 + 2 epochs train as 4 did. Only what leaves the
 losses as they are may change (`RESUMABLE`): the total of epochs, the time limit, the
-device, the plots, and streaming (which reads the same batches). Its datasets are found
-from any folder (their paths are absolute), and datasets given again are accepted when they
+device, the plots, streaming (which reads the same batches) and the memory budget (the
+checkpointed backprop it may start gives the same gradient). Its datasets are found from
+any folder (their paths are absolute), and datasets given again are accepted when they
 hold the same data, in the same order (`check_same_data`: by fingerprint). A config file
 given again is taken when it asks for what the run is (`file_changes`).
 
@@ -27,11 +28,11 @@ if TYPE_CHECKING:
     from mpnode_cli.training.checkpoint import Checkpoint
 
 # The rest would make the run something else (streaming reads the same batches).
-RESUMABLE = ("epochs", "time_limit", "device", "plots", "stream")
+RESUMABLE = ("epochs", "time_limit", "device", "plots", "stream", "memory_budget")
 
 
 def resumable_options() -> str:
-    """`--epochs, --device, --plots and --stream`: the options `RESUMABLE` stands for."""
+    """`--epochs, --device, ... and --memory-budget`: the options `RESUMABLE` stands for."""
     flags = ["--" + name.replace("_", "-") for name in RESUMABLE]
     return ", ".join(flags[:-1]) + " and " + flags[-1]
 

@@ -209,9 +209,17 @@ def add_to_summary(run_dir: str | Path, fields: dict[str, Any]) -> None:
 
 
 def append_metrics(run_dir: Path, row: dict[str, Any]) -> None:
-    """Append an epoch's row (one that a kill cuts short is dropped on resume)."""
-    with open(Path(run_dir) / METRICS, "a") as f:
-        f.write(json.dumps(jsonable(row)) + "\n")
+    """Append an epoch's row (one that a kill cuts short is dropped on resume; one that a
+    full disk cuts short is taken back at once, so that a resume reads the file)."""
+    path, line = Path(run_dir) / METRICS, (json.dumps(jsonable(row)) + "\n").encode()
+    with open(path, "ab", buffering=0) as f:
+        size = f.tell()
+        try:
+            while line:
+                line = line[f.write(line):]
+        except OSError as exc:
+            f.truncate(size)
+            raise OSError(exc.errno, exc.strerror, str(path)) from None  # naming the file
 
 
 def read_metrics(run_dir: str | Path) -> list[dict[str, Any]]:

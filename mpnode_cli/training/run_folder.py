@@ -201,6 +201,8 @@ def _check_own(ckpt: Checkpoint, stored: TrainConfig, model: torch.nn.Module,
     # model that older mpnode built (a checkpoint of an earlier session's resume).
     for config in (theirs, ours):
         config["model_options"] = _with_defaults(config["model"], config["model_options"])
+        # A run may start checkpointed backprop as its step outgrows memory (same gradient).
+        config["solver"] = {k: v for k, v in config["solver"].items() if k != "checkpoints"}
     differ = [k for k in ours if k not in _MAY_DIFFER and theirs.get(k) != ours[k]]
     if differ:
         raise ValueError(f"{ckpt.path} is not this run's checkpoint: it and "

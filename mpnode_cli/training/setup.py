@@ -211,6 +211,10 @@ def load_data(config: TrainConfig, resume: bool, world: distributed.World,
         if config.init_checkpoint is not None else {}))
     if not resume:
         config = resolve_train_config(config, datas[0])
+        bare = [p for d, p in zip(datas, paths, strict=True) if not d.attrs.get("periodic_states")]
+        if config.wrap_angles and bare:  # as `--periodic embed` there is refused
+            raise ValueError(f"--wrap-angles: {bare[0]} declares no periodic states (a system's "
+                             "periodic_states, or mpnode import --periodic NAME): leave it out")
     longest = max(d.time.numel() for d in datas)  # fixed steps a rollout of them all takes
     check_steps(solver_steps(config.solver, float(datas[0].time[1] - datas[0].time[0]),
                              longest)[0], config.solver)
@@ -256,13 +260,15 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
     # would round a float64 checkpoint's weights (a float64 resume would then drift).
     model.to(dtype=getattr(torch, config.dtype))
     if source is not None:
-        model.load_state_dict(member_weights(source, seeds))
+        model.load_state_dict(source.state_dict)  # as many members (`members_of`)
     if source is None or renormalize:
         # Statistics of this train split: L2S's one-step differences, PNA's degree δ.
         _fit_statistics(model, train_sets, normalizer)
     model.to(device=data.device, dtype=getattr(torch, config.dtype))
     world.broadcast_module(model)
-    step_memory.check_run(model, config, train_sets, normalizer, data.device, world)
+    # Checkpointed backprop where plain backprop does not fit: config.json says so.
+    config = step_memory.check_run(model, config, train_sets, normalizer, data.device, world,
+                                   data.emit)
     optimizer = Adam([{"params": list(m.parameters())} for m in model.members], lr=config.lr)
     # Batch order and noise, each member's from its own seed.
     shuffles = [torch.Generator().manual_seed(config.seed + k) for k in range(seeds)]
@@ -272,12 +278,17 @@ def set_up(config: TrainConfig, data: RunData, resume: bool, folder: RunFolder,
         # The only draws from torch's global generator in training are L2S's step noise on
         # each rank's own slice: other ranks must not repeat rank 0's draws.
         torch.manual_seed(hash((config.seed, world.rank, state.epoch)))
+    facts = _facts(datas, config.datasets, train_sets)
+    if all(lo == hi for lo, hi in facts["train_range"]["states"]):
+        data.emit({"event": "warning", "text": "every state component is constant over the "
+                   "train split: there is nothing to learn, and every error and baseline "
+                   "will be 0; check the data"})
     world.from_main(lambda: folder.open(run_dir, config))
     # Each rank validates its part of each split; the error sums are added over ranks.
     val_parts = [v.select(torch.arange(len(v))[world.shard(len(v))]) for v in data.val_sets]
     return Run(config=config, run_dir=run_dir, world=world, emit=data.emit, datas=datas,
                names=dataset_names(config.datasets), train_sets=train_sets,
-               val_parts=val_parts, facts=_facts(datas, config.datasets, train_sets),
+               val_parts=val_parts, facts=facts,
                kind=kind, model_config=model.config, model=model, normalizer=normalizer,
                optimizer=optimizer, shuffle=shuffles[0], shuffles=shuffles,
                device=data.device,
@@ -384,29 +395,26 @@ def members_of(config: TrainConfig, source: Checkpoint | None, finetune: bool) -
     """S, the members the run trains: `seeds`; a resumed run's, or a finetuned ensemble's.
 
     Raises:
-        ValueError: a finetune of an ensemble of S members asked for another number > 1.
+        ValueError: a finetune of an ensemble of S members asked for another number > 1,
+            or of a single model asked for several.
     """
     have = int(source.model_config.get("members", 1)) if source is not None else 1
     if finetune and have > 1 and len(config.datasets) > 1:
         raise ValueError(f"the checkpoint is an ensemble of {have} members, which trains on "
                          "one dataset: finetune it on one, or export a member (mpnode check "
                          "CKPT --member K --out FILE) and finetune that on several")
-    if source is None or (finetune and have == 1):
-        return config.seeds  # a single model's finetune: every member starts from it
+    if finetune and have == 1 and config.seeds > 1:
+        raise ValueError(f"the checkpoint is a single model: the {config.seeds} members of "
+                         "--seeds would all start from its weights, and their spread would "
+                         "measure nothing; finetune it with --seeds 1, or finetune an "
+                         "ensemble (train --seeds S)")
+    if source is None:
+        return config.seeds
     if finetune and config.seeds not in (1, have):
         raise ValueError(f"the checkpoint is an ensemble of {have} members, each finetuned "
                          f"from its own: give --seeds {have} (or leave it out), not "
                          f"{config.seeds}")
     return have
-
-
-def member_weights(source: Checkpoint, seeds: int) -> dict[str, torch.Tensor]:
-    """The starting weights of a model of `seeds` members: the source's, or a single
-    model's copied into every member (a finetune of one model into an ensemble)."""
-    if seeds == 1 or int(source.model_config.get("members", 1)) == seeds:
-        return source.state_dict
-    return {f"members.{k}.{name}": value.clone() for k in range(seeds)
-            for name, value in source.state_dict.items()}
 
 
 def member_state(state_dict: dict[str, torch.Tensor], k: int, members: int

@@ -20,20 +20,42 @@ still fail in its step, where `mpnode_cli.memory.naming_memory` names it. The pr
 uncompiled, whatever the run's `solver.compile` (compiling it would cost a CPU tens of
 seconds for one trajectory): for a compiled run it is the floor of the eager step, which
 the run falls back to if its compile fails.
+
+A neural ODE's whole rollout, whose graph may itself not fit, is measured in parts: its
+evaluations of f without gradients, the bytes saved per evaluation on its first samples.
+Where the plain step passes what a `--memory-budget` (or the free memory) leaves, the run
+backpropagates through checkpointed solves (`SolverOptions.checkpoints`).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, NamedTuple
 
 import torch
 
-from mpnode_cli.memory import available_memory, format_bytes
+from mpnode_cli.memory import available_memory, format_bytes, parse_size
+from mpnode_cli.training.memory_guard import CHECKPOINTS, resident_bytes
 
 ADVICE = ("lower --batch-size or --seeds, or train on shorter trajectories, smaller graphs or "
           "a machine with more memory")
+_PROBE_SAMPLES = 3  # the samples whose rollout measures the bytes saved per evaluation
+_STEP_EVALS = 7  # evaluations of f whose graph one rerun step holds (Tsit5's 7 stages)
+# A checkpointed solve's own bytes per evaluation of f: each step's autograd node and its
+# host-side arguments (3.5 kB a step of 6 evaluations: docs/solver.md).
+_NODE_BYTES = 1024
+# The fewest states a run is switched to: fewer would rerun each step many times.
+_LEAST_STATES = 8
+
+
+class StepNeed(NamedTuple):
+    """The bytes a training step keeps at least: `plain`, backpropagating through every
+    solver step; checkpointed with C states, `step + C × state` (step inf: no solver)."""
+
+    plain: float
+    step: float
+    state: float
 
 
 def saved_bytes(model: torch.nn.Module, x: torch.Tensor, ts: torch.Tensor, graph: Any,
@@ -42,6 +64,12 @@ def saved_bytes(model: torch.nn.Module, x: torch.Tensor, ts: torch.Tensor, graph
     loss: every member of `model` on the same trajectories `x: [B, H, N, D]` (controls `u`),
     over `ts: [H]` and `graph`, solved with `solver`. Torch's global random state is left
     as it was (L2S draws its training noise from it)."""
+    return _measure(model, x, ts, graph, u, solver)[0]
+
+
+def _measure(model: torch.nn.Module, x: torch.Tensor, ts: torch.Tensor, graph: Any,
+             u: torch.Tensor | None, solver: Any) -> tuple[int, int]:
+    """`(saved_bytes, evaluations of f)` of that training loss (its slowest member's)."""
     storages: dict[tuple[int, int], int] = {}
 
     def pack(t: torch.Tensor) -> torch.Tensor:
@@ -57,8 +85,31 @@ def saved_bytes(model: torch.nn.Module, x: torch.Tensor, ts: torch.Tensor, graph
             torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
         losses = model.training_losses(xs, ts, [graph] * members, us, _squared_error,
                                        range(members), solver=solver)
+    evals = max(loss.n_f_evals for loss in losses)
     del losses  # frees the graph the hooks counted
-    return sum(storages.values())
+    return sum(storages.values()), evals
+
+
+def batch_need(model: torch.nn.Module, x: torch.Tensor, ts: torch.Tensor, graph: Any,
+               u: torch.Tensor | None, solver: Any, batch: int) -> StepNeed:
+    """The `StepNeed` of `batch` trajectories like `x: [1, H, N, D]` over `ts: [H]` (as
+    `saved_bytes`): a model without solver measured whole; a neural ODE by the bytes saved
+    per evaluation of f on the first samples and the evaluations of a whole rollout."""
+    with torch.no_grad():  # the whole horizon's evaluations, keeping nothing
+        evals = _measure(model, x, ts, graph, u, solver)[1]
+    if not evals:
+        return StepNeed(batch * saved_bytes(model, x, ts, graph, u, solver), math.inf, 0)
+    k = min(_PROBE_SAMPLES, ts.numel())
+    saved, probed = _measure(model, x[:, :k], ts[:k], graph, None if u is None else u[:, :k],
+                             solver)
+    per_eval = saved / max(probed, 1)
+    member = model.members[0]
+    y = (len(model.members) * x.shape[-2] * x.element_size()  # one state y, every member
+         * (member.node_dim + getattr(member, "message_dim", 0)))
+    # One rerun step's graph, the outputs (one y per sample) and the loss's difference of
+    # them; each kept state holds y and k₁.
+    step = per_eval * _STEP_EVALS + 2 * ts.numel() * y
+    return StepNeed(batch * per_eval * evals, batch * step + evals * _NODE_BYTES, batch * 2 * y)
 
 
 def _squared_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -67,37 +118,39 @@ def _squared_error(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def step_need(model: torch.nn.Module, train_sets: Sequence, normalize: Any, dtype: torch.dtype,
-              device: torch.device, solver: Any, batch: int) -> int:
+              device: torch.device, solver: Any, batch: int) -> StepNeed:
     """The bytes a training step of `batch` trajectories (this rank's share) will keep at
-    least: the largest over `train_sets` of `batch` × the bytes saved for one trajectory
-    over the dataset's whole horizon (`saved_bytes`). `normalize` maps raw states to the
-    model's (the run's `Normalizer`)."""
-    need = 0
+    least: the largest over `train_sets` of `batch` × one trajectory's over the dataset's
+    whole horizon (`batch_need`). `normalize` maps raw states to the model's (the run's
+    `Normalizer`)."""
+    needs = [StepNeed(0, 0, 0)]
     for data in train_sets:
         one = data.take(torch.arange(min(1, len(data))))
         if not len(one):
             continue
         x = normalize.norm_x(one.states).to(device, dtype)
         u = None if one.controls is None else normalize.norm_u(one.controls).to(device, dtype)
-        ts = data.time.to(device)
-        per = saved_bytes(model, x, ts, one.graph(device), u, solver)
-        need = max(need, per * min(batch, len(data)))
-    return need
+        needs.append(batch_need(model, x, data.time.to(device), one.graph(device), u, solver,
+                                min(batch, len(data))))
+    return StepNeed(*(max(v) for v in zip(*needs, strict=True)))
 
 
-def check_step_memory(need: int, batch: int, members: int) -> None:
-    """Refuse a run whose step will keep more than this process may still take.
-
-    Raises:
-        ValueError: one line with the need, what is available and what to lower.
-    """
+def budget_room(budget: str | None) -> int | None:
+    """The bytes a training step may take: what this process may still allocate
+    (`available_memory`), and within a `--memory-budget` (all the process holds) what is
+    left of it; None where neither is known."""
     have = available_memory()
-    if have is None or need <= have:
-        return
-    raise ValueError(
-        f"a training step needs at least {format_bytes(need)} of memory ({members} "
-        f"member{'s' * (members != 1)} × {batch} trajectories over the whole horizon, "
-        f"measured on one), more than the {format_bytes(have)} available: {ADVICE}")
+    if budget is None:
+        return have
+    left = max(parse_size(budget) - (resident_bytes() or 0), 0)
+    return left if have is None else min(have, left)
+
+
+def _states_that_fit(need: StepNeed, room: int) -> int:
+    """The most states, up to `CHECKPOINTS`, that a checkpointed step keeps in `room`."""
+    if not math.isfinite(need.step) or need.step >= room:
+        return 0
+    return int(min(CHECKPOINTS, (room - need.step) // max(need.state, 1)))
 
 
 def per_rank_batch(batch_size: int, ranks: int) -> int:
@@ -106,19 +159,44 @@ def per_rank_batch(batch_size: int, ranks: int) -> int:
 
 
 def check_run(model: torch.nn.Module, config: Any, train_sets: Sequence, normalize: Any,
-              device: torch.device, world: Any) -> None:
-    """Refuse, before its run folder is touched, a run (`config`: its `TrainConfig`) whose
-    training step cannot fit in memory; every rank (`world`) takes the largest need, so
-    all refuse together.
+              device: torch.device, world: Any, emit: Callable[[dict], None]) -> Any:
+    """The run's config (`config`: its `TrainConfig`) with the backprop its training step
+    fits in (`budget_room`): as it is where plain backprop fits, or the run checkpoints
+    already (a resumed run goes on as it began); else checkpointed, with as many states as
+    fit up to `CHECKPOINTS`, said in one warning (`emit`). Every rank takes the largest
+    need, so all decide alike.
 
     Raises:
-        ValueError: one line (`check_step_memory`).
+        ValueError: one line, before the run folder is touched, where even that cannot fit.
     """
     batch = per_rank_batch(config.batch_size, world.size)
     # Measured uncompiled: a compiled step would compile here for this one trajectory (tens
-    # of seconds on a CPU) and once more for the run's own batch.
-    solver = config.solver.model_copy(update={"compile": False})
+    # of seconds on a CPU) and once more for the run's own batch. And without checkpoints,
+    # whose steps save nothing to count.
+    solver = config.solver.model_copy(update={"compile": False, "checkpoints": None})
     need = step_need(model, train_sets, normalize, getattr(torch, config.dtype), device,
                      solver, batch)
-    need = int(world.max(torch.tensor([need], dtype=torch.float64))[0])
-    check_step_memory(need, batch, len(model.members))
+    need = StepNeed(*world.max(torch.tensor(need, dtype=torch.float64)).tolist())
+    room, c = budget_room(config.memory_budget), config.solver.checkpoints
+    if room is None or (c is None and need.plain <= room):
+        return config
+    fits = c or _states_that_fit(need, room)
+    least = min(need.plain, need.step + _LEAST_STATES * need.state)
+    where = "available" if config.memory_budget is None else (
+        f"--memory-budget {config.memory_budget} leaves")
+    if fits < (c or _LEAST_STATES) or need.step + fits * need.state > room:
+        members = len(model.members)
+        raise ValueError(
+            f"a training step needs at least {format_bytes(least)} of memory ({members} "
+            f"member{'s' * (members != 1)} × {batch} trajectories over the whole horizon, "
+            f"measured on one{', checkpointed' if least < need.plain else ''}), more than "
+            f"the {format_bytes(room)} {where}: "
+            f"{'raise --memory-budget, or ' * (config.memory_budget is not None)}{ADVICE}")
+    if c is None:
+        emit({"event": "warning", "text": f"a training step needs about "
+              f"{format_bytes(need.plain)} with plain backprop, more than the "
+              f"{format_bytes(room)} {where}: it backpropagates through checkpointed solves "
+              f"({fits} stored states, about {format_bytes(need.step + fits * need.state)}; "
+              "the same gradient, 1.5–2× the time)"})
+    return config.model_copy(update={"solver": config.solver.model_copy(
+        update={"checkpoints": fits})})
