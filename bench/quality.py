@@ -556,7 +556,10 @@ def git_commit() -> str:
     def git(*a):
         return subprocess.run(["git", *a], capture_output=True, text=True, cwd=ROOT).stdout
     commit = git("rev-parse", "--short=10", "HEAD").strip() or "?"
-    return commit + ("+dirty" if git("status", "--porcelain", "--untracked-files=no") else "")
+    # The benches' own tables (bench/results) change as they run: not the code that ran.
+    changed = git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                  ":(exclude)bench/results")
+    return commit + ("+dirty" if changed else "")
 
 
 def write_report(args, header: dict[str, Any]) -> None:
