@@ -277,16 +277,10 @@ def oracle_epochs(args) -> int:
 
 
 def max_in_degree(path: Path) -> int:
-    """The largest in-degree over a dataset's graphs, from its edge lists alone."""
-    import h5py
-    import numpy as np
+    """The largest in-degree over a dataset's graphs (`train --for-graphs` reads it so)."""
+    from mpnode_cli.training.coverage import targets_max_in_degree
 
-    with h5py.File(path, "r") as f:
-        receivers = f["graph/edges"][1].astype(np.int64)
-        counts = f["graph/num_edges"][()]
-        n = int(f["states"].shape[2])
-    graph = np.repeat(np.arange(len(counts)), counts)
-    return int(np.bincount(graph * n + receivers).max(initial=0))
+    return targets_max_in_degree([path])
 
 
 def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:

@@ -292,7 +292,9 @@ def coverage(source: Data, max_in_degree: int) -> Data:
     targets' graphs are read, never their trajectories: a user knows the graphs a model
     will be deployed to. Kuramoto keeps the source's graph seed, as its targets do: its
     natural frequencies are drawn per graph seed, and only shared ones carry over."""
-    w = max(1, math.ceil(max_in_degree / (source.nodes - 1)))
+    from mpnode_cli.training.coverage import multiplicity_for
+
+    w = multiplicity_for(max_in_degree, source.nodes)
     graph_seed = source.graph_seed + (0 if source.system == "kuramoto" else COVERAGE_SEED)
     return replace(source, k=max(source.k // 2, source.graphs), hubs=COVERAGE_HUBS,
                    multiplicity=w, graph_seed=graph_seed,
