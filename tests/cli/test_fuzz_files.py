@@ -111,7 +111,7 @@ def run_cases(file: str, what: str, work: str) -> dict:
 
 _CHILD = """
 import json, sys
-sys.path.insert(0, sys.argv[1])
+sys.path[:0] = [sys.argv[1], sys.argv[1].rsplit("/", 1)[0]]  # this file, conftest
 from test_fuzz_files import run_cases
 print(json.dumps(run_cases(*sys.argv[2:])))
 """
@@ -127,7 +127,7 @@ def files(tiny_checkpoint) -> dict[str, Path]:
 @pytest.mark.parametrize("what", ["dataset", "checkpoint"])
 def test_damaged_files_are_refused_in_one_line_or_read_as_written(files, what, tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-c", _CHILD, str(Path(__file__).parent), str(files[what]), what,
+        [sys.executable, "-c", _CHILD, str(Path(__file__).resolve().parent), str(files[what]), what,
          str(tmp_path)], capture_output=True, text=True, timeout=120, env=child_env())
     assert proc.returncode == 0, proc.stderr[-3000:]  # no crash, no traceback
     found = json.loads(proc.stdout.splitlines()[-1])

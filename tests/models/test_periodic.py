@@ -21,7 +21,7 @@ from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.hdf5 import read_dataset, read_header
 from mpnode_cli.data.validate import check_dataset
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fitzhugh_nagumo.py"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "fitzhugh_nagumo.py"
 
 
 # --- 1. Declaration ----------------------------------------------------------------------

@@ -4,7 +4,7 @@ metrics of 2 epochs uninterrupted, to the bit.
 Models are built in float32 and cast to the run's dtype. A float64 checkpoint's weights
 loaded into the float32 model before the cast would lose their last 29 mantissa bits, and
 every later number would move by float32 round-off (about 1e-9 relative). In float32
-nothing is rounded, so `tests/test_training.py`'s float32 resume test cannot see it.
+nothing is rounded, so `tests/training/test_training.py`'s float32 resume test cannot see it.
 """
 
 from __future__ import annotations

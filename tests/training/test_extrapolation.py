@@ -69,7 +69,7 @@ def test_quiet_on_the_training_graphs_and_states(trained):
         "in_degree": [1, 2], "train_in_degree": [1, 2], "num_nodes": [4, 4],
         "train_num_nodes": [4, 4], "outside": False, "states_outside_fraction": 0.0,
         "note": None,
-        # node by node (tests/test_extrapolation_nodes.py): none outside
+        # node by node (tests/training/test_extrapolation_nodes.py): none outside
         "node_states": "true", "trajectory_nodes": 4 * len(data.subset("train")),
         "trajectory_nodes_outside": 0, "nodes_outside": 0, "state_outside": 0,
         "in_degree_outside": 0, "worst": []}

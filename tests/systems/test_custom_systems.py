@@ -13,7 +13,7 @@ from conftest import doc_commands, fhn_reference, invoke
 
 from mpnode_cli.data.hdf5 import read_dataset
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLE = ROOT / "examples" / "fitzhugh_nagumo.py"
 DOC = ROOT / "docs" / "custom-systems.md"
 # Later options win: the walk-through at a test's size.

@@ -30,7 +30,7 @@ from mpnode_cli.experiments.report import write_report
 from mpnode_cli.experiments.runner import PENDING_JSON, STEP_JSON, run_experiment
 
 runner = CliRunner()
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # An absolute path of the machine that wrote a file: a root folder right after a space,
 # quote, backtick or bracket (not inside a URL, a relative path or a word).
 ABSOLUTE_PATH = re.compile(

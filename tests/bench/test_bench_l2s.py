@@ -9,7 +9,7 @@ from pathlib import Path
 
 from conftest import invoke
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 
 import l2s_tuning
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from conftest import invoke, one_line_error
 
-EXAMPLE = (Path(__file__).resolve().parents[1] / "examples" / "fitzhugh_nagumo.py").read_text()
+EXAMPLE = (Path(__file__).resolve().parents[2] / "examples" / "fitzhugh_nagumo.py").read_text()
 
 RETURN_F = "        return f\n"
 RETURN_DY = "            return torch.stack((dv, dw), dim=-1)  # [K, N, 2]\n"

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from conftest import invoke, one_line_error
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 GENERATE = ["generate", "lorenz", "--nodes", "3", "--trajectories", "8", "--t-end", "0.5"]
 
 

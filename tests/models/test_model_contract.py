@@ -50,7 +50,7 @@ def random_weights(net: nn.Module, seed: int) -> None:
 def mlp_np(net: nn.Sequential, v: np.ndarray) -> np.ndarray:
     """A tanh MLP (Linear, Tanh, ..., Linear) applied to one input `v: [F]` by numpy."""
     linears = [m for m in net if isinstance(m, nn.Linear)]
-    # mpnode's Linear is torch's for an ordinary weight (tests/test_ensemble.py checks it).
+    # mpnode's Linear is torch's for an ordinary weight (tests/models/test_ensemble.py checks it).
     kinds = [nn.Linear if type(m) in (nn.Linear, Linear) else type(m) for m in net]
     assert kinds == [nn.Linear, nn.Tanh] * (len(linears) - 1) + [nn.Linear]
     for k, layer in enumerate(linears):

@@ -13,7 +13,7 @@ import pytest
 import torch
 from conftest import synthetic
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "bench"))
 
 import transfer
 import transfer_score as ts

@@ -22,7 +22,7 @@ from mpnode_cli.config import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.systems.registry import SYSTEMS
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fitzhugh_nagumo.py"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "fitzhugh_nagumo.py"
 SMALL = ["--t-end", "0.2", "--dt", "0.1"]
 FAST = ["--epochs", "1", "--batch-size", "8", "--no-plots"]
 
