@@ -9,7 +9,7 @@ another (the same seeds). Reported per S:
   that mean, so `throughput × = S / ratio`;
 - the largest relative difference, over members and epochs, between a member's validation
   loss and the same seed trained alone (float32, the training precision: batched matmuls
-  round otherwise than one member's, and training amplifies it; `tests/test_ensemble.py`
+  round otherwise than one member's, and training amplifies it; `tests/models/test_ensemble.py`
   checks float64 to 1e-4).
 
 Rounds are interleaved (each round runs every S), and the table gives each ratio's median

@@ -46,23 +46,15 @@ sys.path.insert(0, str(HERE))
 from quality import ROOT, command, git_commit, mpnode, priorities, schedule  # noqa: E402
 from transfer_specs import (  # noqa: E402
     BB,
-    COVERAGE_VARIANTS,
     EVAL_SECONDS,
     FOR_GRAPHS_VARIANTS,
     GAMMAS,
-    LONG_SOURCE_EPOCHS,
-    LONG_SOURCE_PATIENCE,
-    LONG_SOURCE_SECONDS,
-    LONG_VARIANTS,
-    ORACLE_EPOCH_VARIANTS,
     PROCESS_SECONDS,
     SETS,
     SYSTEMS,
-    TIMED_SOURCES,
     VARIANTS,
     Bench,
     Data,
-    coverage,
     curriculum_share,
     epoch_seconds,
     generate_seconds,
@@ -212,31 +204,17 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
     run.parent.mkdir(parents=True, exist_ok=True)
     clock: dict[str, float] = {}
     extra: dict[str, Any] = {}
-    datasets = [data_path(args, bench.source)]
     options: tuple[Any, ...] = VARIANTS[args.variant]
     if args.variant in FOR_GRAPHS_VARIANTS:  # the CLI makes the coverage data itself
         options = tuple(x for d in bench.targets.values()
                         for x in ("--for-graphs", data_path(args, d)))
-    elif args.variant in COVERAGE_VARIANTS:
-        reach = max(max_in_degree(data_path(args, d)) for d in bench.targets.values())
-        cov = coverage(bench.source, reach)
-        generate(args, cov)
-        datasets.append(data_path(args, cov))
-        extra = {"coverage": cov.name, "coverage_multiplicity": cov.multiplicity,
-                 "targets_max_in_degree": reach}
     budget: tuple[Any, ...] = ("--epochs", source_epochs(args, bench))
-    if args.variant in LONG_VARIANTS and args.scale == "full":
-        budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit", LONG_SOURCE_SECONDS)
-    if args.variant in ORACLE_EPOCH_VARIANTS:
-        budget += ("--stop-patience", NEVER)
-    if timed := timed_source(args):
-        budget += ("--stop-patience", LONG_SOURCE_PATIENCE, "--time-limit", timed[1])
     if resume:
         if run_state(run)[0] < budget[1]:
             mpnode("train", "--resume", run, *budget[:2], "--no-plots",
                    log=run.parent / "log.txt", clock=clock)
     else:
-        mpnode("train", *datasets, *budget, "--seed", seed,
+        mpnode("train", data_path(args, bench.source), *budget, "--seed", seed,
                "--run-dir", run, "--no-plots", "--threads", 1, *options,
                log=run.parent / "log.txt", clock=clock)
     summary = json.loads((run / "summary.json").read_text())
@@ -255,32 +233,8 @@ def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
 
 def source_epochs(args, bench: Bench) -> int:
     """The epochs a source trains for (at most, for a variant that stops early): the
-    system's, the long variants' cap, or the oracles' cap."""
-    if args.variant in LONG_VARIANTS and args.scale == "full":
-        return LONG_SOURCE_EPOCHS
-    if timed := timed_source(args):
-        return timed[0]
-    if args.variant in ORACLE_EPOCH_VARIANTS or args.variant in FOR_GRAPHS_VARIANTS:
-        return ORACLE_EPOCHS[args.scale]  # for-graphs: the recipe's, its patience kept
-    return bench.epochs
-
-
-def timed_source(args) -> tuple[int, float] | None:
-    """A timed source's (epochs, seconds) budget (`TIMED_SOURCES`), at the full scale."""
-    return TIMED_SOURCES.get(args.variant) if args.scale == "full" else None
-
-
-def oracle_epochs(args) -> int:
-    """An oracle's epoch cap: the recipe's, or twice a timed source's schedule."""
-    timed = timed_source(args)
-    return 2 * timed[0] if timed else ORACLE_EPOCHS[args.scale]
-
-
-def max_in_degree(path: Path) -> int:
-    """The largest in-degree over a dataset's graphs (`train --for-graphs` reads it so)."""
-    from mpnode_cli.training.coverage import targets_max_in_degree
-
-    return targets_max_in_degree([path])
+    system's, or for `--for-graphs` the recipe's, its patience kept."""
+    return ORACLE_EPOCHS[args.scale] if args.variant in FOR_GRAPHS_VARIANTS else bench.epochs
 
 
 def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
@@ -290,15 +244,15 @@ def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
     It trains for at least the source's wall time, then in chunks of a quarter of the
     patience, until its best validation is `--oracle-patience` epochs old or a cap is hit
     (`stop_reason`); `mpnode train --stop-patience` cannot say "not before", so the run
-    itself gets a patience it never reaches. The oracle of a timed source (`TIMED_SOURCES`)
-    or of a cosine schedule trains in one run, to its epoch cap or its time cap: resuming
-    it with fewer epochs would shorten the schedule."""
+    itself gets a patience it never reaches. The oracle of a cosine schedule trains in one
+    run, to its epoch cap or its time cap: resuming it with fewer epochs would shorten the
+    schedule."""
     d, name = bench.targets[label], job_name(args, bench, seed, f"oracle-{label}")
     floor = read_record(args, job_name(args, bench, seed, "source"))["train_seconds"]
     run, log = args.runs / name, args.runs / name.rsplit("/", 1)[0] / "log.txt"
-    cap_s, cap_e = args.oracle_cap * floor, oracle_epochs(args)
+    cap_s, cap_e = args.oracle_cap * floor, ORACLE_EPOCHS[args.scale]
     chunk, clock = oracle_chunk(args.oracle_patience), {}
-    whole = timed_source(args) is not None or "cosine" in VARIANTS[args.variant]
+    whole = "cosine" in VARIANTS[args.variant]
     first_limit = cap_s if whole else floor
     if not (run / "checkpoints" / "last.pt").is_file():
         shutil.rmtree(run, ignore_errors=True)
@@ -357,8 +311,6 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
     src = bench.source
     per_epoch, epochs = epoch_seconds(bench.system, src, src), source_epochs(args, bench)
     train_s = epochs * per_epoch * curriculum_share(bench.system, epochs)
-    if timed := timed_source(args):
-        train_s = min(train_s, timed[1])
     source = job_name(args, bench, seed, "source")
     jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
                 lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())
@@ -368,8 +320,7 @@ def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
         return lambda: record_path(args, name).is_file()
 
     needs = (f"gen:{src.name}",) + (tuple(f"gen:{d.name}" for d in bench.targets.values())
-                                     if args.variant in COVERAGE_VARIANTS
-                                     or args.variant in FOR_GRAPHS_VARIANTS else ())
+                                     if args.variant in FOR_GRAPHS_VARIANTS else ())
     jobs.append(Job(source, bench.system, train_s + PROCESS_SECONDS, needs,
                     lambda: train_source(args, bench, seed), recorded(source)))
     for label, d in {"own": src, **bench.targets}.items():

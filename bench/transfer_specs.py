@@ -19,77 +19,18 @@ SMOKE_S1_TARGETS, SMOKE_S1_LARGEST = (256, 512), 1024
 SPLIT = (0.7, 0.15, 0.15)  # `mpnode generate`'s default fractions
 MIN_TRAIN, MIN_VAL, MIN_TEST = 1, 1, 2  # a target's splits hold at least these
 SMOKE_TRAJECTORIES, SMOKE_GRAPHS, SMOKE_EPOCHS = 24, 3, 3
-# Variants built on options since retired (`linear-path`, `linear-gain`, `asinh`,
-# `asinh-inputs`, ...) are gone from here; their records, each with the options it ran,
-# stay in results/transfer.json, and docs/transfer.md lists what they measured.
+# Variants the benches rejected or superseded (the aggregations `pna`, `mean`, `mlp-sum`;
+# `relu`, `softplus`, `node-mse`, the `periodic-*` ablations, the hand-made `hub-coverage*`
+# and `*-long` budgets, and those built on since-retired options) are gone from here; their
+# records, each with the options and commit it ran, stay in results/transfer.json, and
+# docs/transfer.md lists what they measured.
 VARIANTS = {  # `--variant`: train options beyond the CLI's defaults (source and oracle alike)
     "default": (),
-    "pna": ("--aggregate", "pna", "--update", "mlp", "--message-init", "zero"),
-    "mean": ("--aggregate", "mean", "--update", "mlp", "--message-init", "zero"),
-    "mlp-sum": ("--aggregate", "sum", "--update", "mlp", "--message-init", "zero"),
-    # Candidates for node networks that extrapolate (docs/transfer.md, "Variants"): an
-    # unbounded activation (Xu et al. 2021: ReLU MLPs extrapolate linearly, tanh saturates).
-    "relu": ("--activation", "relu"),
-    "softplus": ("--activation", "softplus"),
     "l2s": ("--model", "l2s"),  # Learning to Simulate (Sanchez-Gonzalez et al. 2020), a peer
-    # Each node's error over its own variance (`--loss node-mse`): hubs whose states are
-    # 100× a typical node's no longer swamp the loss.
-    "node-mse": ("--loss", "node-mse"),
-    # The node networks see (sin θ, cos θ) of each angle the dataset declares periodic
-    # (Kuramoto, the pendulum, the grid), in place of the unwrapped θ (`--periodic embed`);
-    # errors stay plain differences, so the rows compare with the default's.
-    "periodic": ("--periodic", "embed"),
-    # The same, with the loss and every error of those angles taken mod 2π
-    # (`--wrap-angles`): a phase slip of 2π costs nothing, as the physics says.
-    "periodic-wrapped": ("--periodic", "embed", "--wrap-angles"),
-    # `periodic-wrapped` trained for what "10 minutes of one core" allows (`TIMED_SOURCES`)
-    # instead of the system's fixed epochs: the grid's 100 reach the whole horizon only at
-    # their last (the recipe's horizon curriculum takes 100 epochs).
-    "periodic-wrapped-10min": ("--periodic", "embed", "--wrap-angles"),
-    # The same budget, with the lr annealed over 260 epochs (`--schedule cosine`) and the
-    # gradient norm clipped at 5: the grid's 10-minute run above degraded at the whole
-    # horizon (its loss jumped 5× at epoch 125 with the lr still at 1e-3 and gradient
-    # norms up to 33, clipped only at 500). Found on the grid itself (docs/transfer.md).
-    "periodic-wrapped-cosine-clip": ("--periodic", "embed", "--wrap-angles", "--schedule",
-                                     "cosine", "--clip", "5"),
-    # Each of those two changes alone, in the same budget: which one the grid needed.
-    "periodic-wrapped-cosine": ("--periodic", "embed", "--wrap-angles", "--schedule", "cosine"),
-    "periodic-wrapped-clip": ("--periodic", "embed", "--wrap-angles", "--clip", "5"),
     # The recipe's rates annealed and its steps clipped (`--schedule cosine --clip 5`) over
-    # the system's fixed epochs: what the grid's 10-minute budget needed, tried on the
-    # selection systems before it could become a default.
+    # the system's fixed epochs, and the clipping alone: candidates for train's defaults.
     "cosine-clip": ("--schedule", "cosine", "--clip", "5"),
-    # The clipping alone (`--clip 5`), which the grid's ablation found to be what it needed.
     "clip": ("--clip", "5"),
-    # The angles fed as they are: the recipe before its `--periodic auto` (rows of angle
-    # systems labelled `default` before that change are kept under these two names).
-    "periodic-off": ("--periodic", "off"),
-    "hub-coverage-periodic-off": ("--periodic", "off"),
-    # Degree coverage (`mpnode generate --hubs --hub-multiplicity`): the source also trains
-    # on a dataset of its own size whose hubs reach the targets' in-degrees (`coverage`).
-    "hub-coverage": (),
-    # The same two, with the source trained like an oracle: until its best validation is
-    # `LONG_SOURCE_PATIENCE` epochs old (capped), not for the system's fixed epochs.
-    "default-long": (),
-    "hub-coverage-long": (),
-    # Degree coverage with the node-scaled loss: the coverage graphs' hubs are the ones
-    # that swamp a plain MSE (docs/transfer.md).
-    "hub-coverage-node-mse": ("--loss", "node-mse"),
-    "hub-coverage-periodic": ("--periodic", "embed"),
-    # Degree coverage with each dataset's loss over its own variance (`--balance-datasets`):
-    # the coverage graphs' hubs no longer swamp the source's typical nodes, and within
-    # the coverage data the hubs still count in full.
-    "hub-coverage-balanced": ("--balance-datasets",),
-    "hub-coverage-balanced-long": ("--balance-datasets",),
-    # Degree coverage with the source trained as long as the oracles may train: their
-    # epoch cap, with no early stop, so that zero-shot and oracle get the same epochs.
-    "hub-coverage-oracle-epochs": (),
-    # The same, with the lr annealed over those epochs and the steps clipped
-    # (`cosine-clip`): the default's plateau schedule left both the source and the oracles
-    # still improving at the cap.
-    "hub-coverage-oracle-epochs-cosine-clip": ("--schedule", "cosine", "--clip", "5"),
-    # The clipping alone: whether gene's win needed the annealing too.
-    "hub-coverage-oracle-epochs-clip": ("--clip", "5"),
     # The product path: the source trained by `mpnode train SOURCE --for-graphs TARGET...`
     # and no other option (the CLI makes the coverage data and applies the transfer
     # recipe); these are its oracles' options, the same transfer recipe on the target.
@@ -262,43 +203,6 @@ def s1_bench(system: str, gamma: float, seed: int, smoke: bool, largest: bool) -
         targets[f"n{n}"] = replace(t, graphs=t.k)  # one graph per trajectory
     epochs = SMOKE_EPOCHS if smoke else SOURCE_EPOCHS[system]
     return Bench(system, "s1", f"s1/{system}-g{gamma:g}", source, targets, epochs, gamma)
-
-
-# A variant's name says its data and its budget: "hub-coverage…" trains on degree
-# coverage (`coverage`), "…-long" until its patience (`LONG_SOURCE_*`), "…-oracle-epochs"
-# for the oracles' epoch cap.
-COVERAGE_VARIANTS = tuple(v for v in VARIANTS if v.startswith("hub-coverage"))
-LONG_VARIANTS = tuple(v for v in VARIANTS if v.endswith("-long"))
-LONG_SOURCE_PATIENCE = 100  # the oracles' patience in the runs of docs/transfer.md
-LONG_SOURCE_EPOCHS = 1000
-LONG_SOURCE_SECONDS = 1200.0  # a cap on the source's training seconds (one thread)
-ORACLE_EPOCH_VARIANTS = tuple(v for v in VARIANTS if "-oracle-epochs" in v)
-# Sources trained for a wall-time budget: (epochs, seconds of one thread), stopped earlier
-# by `LONG_SOURCE_PATIENCE`. Their oracles train twice those epochs (the same schedule,
-# stretched), within the usual time cap.
-TIMED_SOURCES = {"periodic-wrapped-10min": (LONG_SOURCE_EPOCHS, 600.0),
-                 "periodic-wrapped-cosine-clip": (260, 600.0),
-                 "periodic-wrapped-cosine": (260, 600.0),
-                 "periodic-wrapped-clip": (LONG_SOURCE_EPOCHS, 600.0)}
-COVERAGE_HUBS = 2  # hubs per coverage graph
-COVERAGE_SEED = 500  # the coverage data's graph and data seeds are the source's + this
-
-
-def coverage(source: Data, max_in_degree: int) -> Data:
-    """The `hub-coverage` variant's second training dataset: half as many trajectories as
-    the source, on graphs of the source's size and topology whose `COVERAGE_HUBS` hubs are
-    joined to every other node by parallel edges, 1 to W over the graphs, with W the
-    least that reaches `max_in_degree` (the targets' largest: W·(N − 1) ≥ it). Only the
-    targets' graphs are read, never their trajectories: a user knows the graphs a model
-    will be deployed to. Kuramoto keeps the source's graph seed, as its targets do: its
-    natural frequencies are drawn per graph seed, and only shared ones carry over."""
-    from mpnode_cli.training.coverage import multiplicity_for
-
-    w = multiplicity_for(max_in_degree, source.nodes)
-    graph_seed = source.graph_seed + (0 if source.system == "kuramoto" else COVERAGE_SEED)
-    return replace(source, k=max(source.k // 2, source.graphs), hubs=COVERAGE_HUBS,
-                   multiplicity=w, graph_seed=graph_seed,
-                   seed=source.seed + COVERAGE_SEED, counts=None)
 
 
 def set_of(system: str) -> str:

@@ -237,49 +237,6 @@ def test_identity_normalizer_is_physical():
     assert torch.equal(norm.norm_x(x), x)
 
 
-def test_coverage_data_reach_the_targets_in_degree_on_the_sources_size():
-    source = spec.size_bench("gene", smoke=False).source
-    for reach in (1, 8, 9, 34, 40, 41):
-        cov = spec.coverage(source, reach)
-        w = cov.multiplicity
-        assert w * (source.nodes - 1) >= reach > (w - 1) * (source.nodes - 1) or w == 1
-        assert (cov.nodes, cov.topology, cov.graphs) == (source.nodes, source.topology,
-                                                         source.graphs)
-        assert cov.hubs == spec.COVERAGE_HUBS and f"-h2w{w}-" in cov.name
-        assert (cov.graph_seed, cov.seed) != (source.graph_seed, source.seed)
-    kuramoto = spec.size_bench("kuramoto", smoke=False).source
-    cov = spec.coverage(kuramoto, 22)
-    assert cov.graph_seed == kuramoto.graph_seed and cov.multiplicity == 3  # ω shared
-
-
-def test_max_in_degree_counts_a_multigraphs_edges(tmp_path):
-    from conftest import invoke
-
-    out = tmp_path / "hubs.h5"
-    assert invoke("generate", "gene", "--nodes", 9, "--topology", "ba", "--graphs", 2,
-                  "--trajectories", 2, "--hubs", 1, "--hub-multiplicity", 3, "--t-end", 1,
-                  "--dt", 0.5, "-o", out).exit_code == 0
-    assert transfer.max_in_degree(out) == 3 * 8
-
-
-def test_a_timed_source_keeps_its_schedule_and_its_oracle_twice_it():
-    """A 10-minute grid source trains its 260-epoch cosine schedule against a 600 s limit;
-    its oracle gets twice the epochs; smoke runs and other variants keep theirs."""
-    from argparse import Namespace
-
-    full = Namespace(variant="periodic-wrapped-cosine-clip", scale="full")
-    bench = spec.size_bench("grid", smoke=False)
-    assert transfer.timed_source(full) == (260, 600.0)
-    assert transfer.source_epochs(full, bench) == 260
-    assert transfer.oracle_epochs(full) == 520
-    smoke = Namespace(variant="periodic-wrapped-cosine-clip", scale="smoke")
-    assert transfer.timed_source(smoke) is None
-    assert transfer.oracle_epochs(smoke) == transfer.ORACLE_EPOCHS["smoke"]
-    plain = Namespace(variant="periodic-wrapped", scale="full")
-    assert transfer.timed_source(plain) is None
-    assert transfer.source_epochs(plain, bench) == bench.epochs == 100
-
-
 def test_a_row_resting_on_a_dirty_record_is_marked(tmp_path):
     degree = np.array([1, 2, 3, 9, 20])
     clean = _record("oracle", 0, epochs=400, best_epoch=200, train_seconds=300.0,
