@@ -29,10 +29,11 @@ validation MSE below L2S's at equal wall time; pendulum test ≤ 0.05 with messa
 worse without; every MP-NODE test or zero-shot MSE ≥ 20× below hold x(0) and ≥ 5× below
 the time mean.
 
-Cases run as subprocesses, `--workers` (2) at a time, each on one thread
-(OMP_NUM_THREADS=1). Datasets are generated once into `--data` (bench/.data); each case
-trains into `--runs`/<case>/ and leaves `result.json` there, so `--only` refreshes some rows
-and the table is rebuilt from every cached case.
+Cases run as subprocesses on the experiments' engine (`mpnode_cli.experiments.jobs`),
+`--workers` (2) at a time, each on one thread (OMP_NUM_THREADS=1): each dataset and each
+case is a job in its folder under `--runs`, its result in the folder's `step.json`. A case
+that ran with the same options is not run again, so `--only` refreshes some rows, and the
+table is rebuilt from every recorded case.
 
 Usage:
     .venv/bin/python bench/quality.py                       # all cases (see --plan for time)
@@ -54,8 +55,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -63,6 +62,11 @@ from typing import Any
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))  # this checkout's package, before an installed one
+
+from mpnode_cli.experiments import jobs  # noqa: E402 (the engine the cases run on)
+from mpnode_cli.experiments.spec import CallStep  # noqa: E402
+
 RESULTS = HERE / "results" / "quality.md"
 L2S_CI = ("--model", "l2s", "--latent", "32", "--hidden", "32", "--steps", "5")
 GENE_AGGREGATES = ("mean", "sum", "pna")
@@ -187,29 +191,32 @@ def mpnode(*args: Any, log: Path, clock: dict[str, float] | None = None) -> str:
     return command([sys.executable, "-m", "mpnode_cli.cli.app", *map(str, args)], log, clock)
 
 
-def dataset(args, preset: str) -> Path:
-    return args.data / f"{preset}.h5"
+def gen_id(preset: str) -> str:
+    return f"gen-{preset}"
 
 
-def generate(args, preset: str) -> None:
-    path = dataset(args, preset)
-    if path.is_file():
-        return
-    args.data.mkdir(parents=True, exist_ok=True)
-    mpnode("generate", "--preset", preset, "--out", path, log=args.data / f"{preset}.log")
+def dataset(inputs: dict[str, Any], preset: str) -> Path:
+    """A preset's dataset, in the folder of the job that generated it."""
+    return Path(inputs[gen_id(preset)].folder) / "data.h5"
+
+
+def job_generate(folder: Path, inputs, resumed: bool, preset: str) -> dict[str, Any]:
+    tmp = folder / "partial.h5"
+    mpnode("generate", "--preset", preset, "--out", tmp, "-y", log=folder / "log.txt")
+    tmp.replace(folder / "data.h5")
+    return {"preset": preset}
 
 
 def epochs_for(case: Case, scale: float) -> int:
     return max(1, round(case.epochs * scale))
 
 
-def default_aggregate(args) -> str:
-    """The aggregation `mpnode train` picks for gene-ba-4x4 when none is given (a 1-epoch
-    run resolves the CLI's defaults)."""
-    probe = args.runs / ".probe"
+def default_aggregate(data: Path, probe: Path) -> str:
+    """The aggregation `mpnode train` picks for gene-ba-4x4 (`data`) when none is given (a
+    1-epoch run in `probe` resolves the CLI's defaults)."""
     shutil.rmtree(probe, ignore_errors=True)
     probe.mkdir(parents=True)
-    mpnode("train", dataset(args, "gene-ba-4x4"), "--epochs", 1, "--no-plots", "--run-dir",
+    mpnode("train", data, "--epochs", 1, "--no-plots", "--run-dir",
            probe / "run", log=probe / "log")
     summary = json.loads((probe / "run" / "summary.json").read_text())
     shutil.rmtree(probe, ignore_errors=True)
@@ -223,14 +230,28 @@ def reference(case: Case, aggregate: str) -> str | None:
     return case.equal_time
 
 
-def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[str, Any]:
-    """Train and measure one case (at `ref`'s wall time `budget`, if given); write and
-    return its `result.json`."""
-    folder = args.runs / case.name
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
+def job_case(folder: Path, inputs, resumed: bool, case: str, scale: float,
+             extra: list[str], ref: str | None) -> dict[str, Any]:
+    """Train and measure one case in its job's folder, and return its result: at the wall
+    time of `ref` (the case whose job it needs) where it takes its budget from one, else at
+    its own budget or epochs."""
+    case_ = CASES[case]
+    args = argparse.Namespace(scale=scale, extra=extra)
     log, run = folder / "log.txt", folder / "run"
-    data = dataset(args, case.preset)
+    shutil.rmtree(run, ignore_errors=True)
+    budget = case_.budget * scale if case_.budget is not None else (
+        inputs[step_id(ref)].result["wall_seconds"] if ref else None)
+    if case_.equal_time == "gene-default":  # named for the report: the CLI's default's
+        ref = reference(case_, default_aggregate(dataset(inputs, case_.preset),
+                                                 folder / "probe"))
+    result = run_case(args, case_, ref, budget, inputs, folder, log, run)
+    return result
+
+
+def run_case(args, case: Case, ref: str | None, budget: float | None, inputs,
+             folder: Path, log: Path, run: Path) -> dict[str, Any]:
+    """Train and measure one case (at `ref`'s wall time `budget`, if given) in `run`."""
+    data = dataset(inputs, case.preset)
     started = time.perf_counter()
     common = ("--seed", 0, "--run-dir", run)
     options = [*case.options, *args.extra]
@@ -262,7 +283,7 @@ def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[st
                  "failed": (summary["test"] or {}).get("failed"),
                  **(summary.get("baselines") or {})})
     if case.zeroshot:
-        paths = [dataset(args, p) for p in case.zeroshot]
+        paths = [dataset(inputs, p) for p in case.zeroshot]
         report = json.loads(mpnode("zeroshot", best, *paths, "--json", log=log))
         for preset, row in zip(case.zeroshot, report["datasets"], strict=True):
             rows.append(_row(preset, preset, row["split"], row))
@@ -281,7 +302,6 @@ def run_case(args, case: Case, ref: str | None, budget: float | None) -> dict[st
         "date": datetime.now().isoformat(timespec="seconds"), "commit": git_commit(),
         "rows": rows,
     }  # fmt: skip
-    (folder / "result.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
 
 
@@ -352,40 +372,16 @@ def zeroed_eval(checkpoint: str, data_path: str) -> None:
 # ------------------------------------------------------------------------------- scheduling
 
 
-def priorities(jobs: dict[str, tuple[float, tuple[str, ...]]]) -> dict[str, float]:
-    """A job's seconds plus those of the jobs waiting for it: what it holds up."""
-    return {name: seconds + sum(s for s, deps in jobs.values() if name in deps)
-            for name, (seconds, _) in jobs.items()}
-
-
-def schedule(jobs: dict[str, tuple[float, tuple[str, ...]]], workers: int) -> float:
-    """Makespan of list scheduling, as `run_all` runs: the ready job of highest priority
-    first, on the first free worker.
-
-    Args:
-        jobs: name → (seconds, names it waits for).
-    """
-    done: dict[str, float] = {}
-    free = [0.0] * workers
-    pending = dict(jobs)
-    rank = priorities(jobs)
-    while pending:
-        ready = [(n, s, deps) for n, (s, deps) in pending.items()
-                 if all(d in done or d not in jobs for d in deps)]
-        name, seconds, deps = max(ready, key=lambda job: rank[job[0]])
-        w = min(range(workers), key=free.__getitem__)
-        start = max([free[w], *(done[d] for d in deps if d in done)])
-        done[name] = free[w] = start + seconds
-        del pending[name]
-    return max(done.values(), default=0.0)
+def step_id(case: str) -> str:
+    return f"case-{case}"
 
 
 def per_epoch(args, case: Case) -> tuple[float, str]:
     """Seconds per epoch for the plan, and where the number comes from.
 
-    A cached full-budget result of this case measured it: its seconds per epoch × the share
-    of a core its training got (what it would take alone on a core). Otherwise the `Case`
-    estimate (a smoke run's first epochs are faster than a whole run's).
+    A recorded full-budget result of this case measured it: its seconds per epoch × the
+    share of a core its training got (what it would take alone on a core). Otherwise the
+    `Case` estimate (a smoke run's first epochs are faster than a whole run's).
     """
     cached = read_result(args, case.name)
     if cached and cached.get("train_cpu_seconds") and cached["scale"] >= 0.5:
@@ -394,94 +390,48 @@ def per_epoch(args, case: Case) -> tuple[float, str]:
     return case.s_per_epoch, "estimate"
 
 
-def plan(args, cases: list[Case], presets: list[str], aggregate: str) -> tuple[list[str], float]:
-    """The per-case budget table (lines) and the estimated wall seconds (one core per
-    worker, list scheduling in the order `run_all` uses)."""
+def case_steps(args, names: list[str]) -> tuple[list[CallStep], list[str]]:
+    """The jobs of the cases `names` (and of the cases whose wall time one of them takes as
+    its budget): their datasets, then each case; and the plan's line per case."""
+    chosen = list(names)
+    for name in names:  # a case measured at another's wall time needs that one
+        ref = CASES[name].equal_time
+        if CASES[name].budget is None and ref and ref not in chosen:
+            chosen.append(ref)
+    cases = [CASES[n] for n in chosen]
+    presets = list(dict.fromkeys(p for c in cases for p in (c.preset, *c.zeroshot)))
+    steps = [CallStep(verb="call", id=gen_id(p), target="quality:job_generate",
+                      args={"preset": p}, seconds=GENERATE_SECONDS.get(p, 5.0), group="data")
+             for p in presets]
     lines = [f"{'case':22s} {'epochs':>7s} {'s/epoch':>8s} {'est. s':>8s}  source; options"]
-    jobs = {f"generate {p}": (GENERATE_SECONDS.get(p, 5.0), ())
-            for p in presets if not dataset(args, p).is_file()}
-    gen_deps = tuple(jobs)
     for case in cases:
-        ref = reference(case, aggregate)
+        ref = case.equal_time if case.budget is None else None
         speed, source = per_epoch(args, case)
         if case.budget is not None:
             seconds = case.budget * args.scale
             epochs = f"~{max(1, round(seconds / speed))}"
-            ref = None  # runs on its own budget
         elif ref is not None:
             seconds = epochs_for(CASES[ref], args.scale) * per_epoch(args, CASES[ref])[0]
             epochs = f"~{max(1, round(seconds / speed))}"
         else:
             seconds = epochs_for(case, args.scale) * speed
             epochs = str(epochs_for(case, args.scale))
-        seconds += EVAL_SECONDS
-        deps = (*gen_deps, *((ref,) if ref else ()))
-        jobs[case.name] = (seconds, deps)
+        needs = [gen_id(p) for p in (case.preset, *case.zeroshot)] + (
+            [step_id(ref)] if ref else [])
+        steps.append(CallStep(verb="call", id=step_id(case.name), target="quality:job_case",
+                              args={"case": case.name, "scale": args.scale,
+                                    "extra": args.extra, "ref": ref},
+                              needs=needs, seconds=seconds + EVAL_SECONDS, group="cases"))
         lines.append(f"{case.name:22s} {epochs:>7s} {speed:8.3f} {seconds:8.0f}  {source}; "
                      f"{' '.join([*case.options, *args.extra])}"
                      + (f" (= {ref}'s wall time)" if ref else ""))
-    return lines, schedule(jobs, args.workers)
-
-
-def run_all(args, cases: list[Case], presets: list[str], report: Callable[[str], None]) -> None:
-    """Generate the datasets, then run the cases, `args.workers` at a time, each case as
-    soon as a worker is free and the case it takes its time budget from is done."""
-    with ThreadPoolExecutor(args.workers) as pool:
-        for future in [pool.submit(generate, args, p) for p in presets]:
-            future.result()
-    aggregate = "mean"
-    if any(c.equal_time == "gene-default" for c in cases):
-        aggregate = default_aggregate(args)
-        report(f"the CLI's default aggregation on gene-ba-4x4 is {aggregate}")
-    names = {c.name for c in cases}
-    rank = priorities({c.name: (c.epochs * per_epoch(args, c)[0], tuple(filter(
-        None, [None if c.budget is not None else reference(c, aggregate)]))) for c in cases})
-    pending = sorted(cases, key=lambda c: -rank[c.name])
-    running: dict[Future, Case] = {}
-    failures: list[str] = []
-    with ThreadPoolExecutor(args.workers) as pool:
-        while pending or running:
-            for case in list(pending):
-                if len(running) >= args.workers:
-                    break
-                ref = reference(case, aggregate)
-                if case.budget is None and ref in names and any(
-                        c.name == ref for c in [*pending, *running.values()]):
-                    continue  # its budget is not known yet
-                budget = None
-                if case.budget is not None:
-                    budget = case.budget * args.scale
-                elif ref is not None:
-                    cached = read_result(args, ref)
-                    if cached is None:
-                        failures.append(f"{case.name}: no result for {ref} (its time budget); "
-                                        f"run it too (--only {ref},{case.name})")
-                        pending.remove(case)
-                        continue
-                    budget = cached["wall_seconds"]
-                report(f"start {case.name}" + (f" (budget {budget:.0f} s)" if budget else ""))
-                running[pool.submit(run_case, args, case, ref, budget)] = case
-                pending.remove(case)
-            if not running:
-                continue
-            finished, _ = wait(running, return_when=FIRST_COMPLETED)
-            for future in finished:
-                case = running.pop(future)
-                try:
-                    result = future.result()
-                    test = next(r["mse"] for r in result["rows"] if r["measure"] == "test")
-                    report(f"done  {case.name}: {result['epochs']} epochs, "
-                           f"{result['wall_seconds']:.0f} s, test MSE {_fmt(test)}")
-                except Exception as exc:  # one broken case must not stop the others
-                    failures.append(f"{case.name}: {exc}")
-                    report(f"FAIL  {case.name}: {exc} (log: {args.runs / case.name})")
-    for line in failures:
-        report(f"not run: {line}")
+    return steps, lines
 
 
 def read_result(args, name: str) -> dict[str, Any] | None:
-    path = args.runs / name / "result.json"
-    return json.loads(path.read_text()) if path.is_file() else None
+    """The latest recorded result of case `name` in the work folder."""
+    found = [r for r in jobs.records(args.runs) if r.get("case") == name]
+    return found[-1] if found else None
 
 
 # ---------------------------------------------------------------------------------- verdicts
@@ -633,8 +583,8 @@ def main(argv=None) -> int:
     parser.add_argument("--scale", type=float, default=1.0,
                         help="multiply the epoch budgets (0.003 for a smoke run)")
     parser.add_argument("--workers", type=int, default=2, help="cases run at once")
-    parser.add_argument("--data", type=Path, default=HERE / ".data", help="dataset cache")
-    parser.add_argument("--runs", type=Path, default=HERE / ".runs", help="case folders")
+    parser.add_argument("--runs", type=Path, default=HERE / ".runs" / "quality",
+                        help="the jobs' folders (datasets and cases)")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--plan", action="store_true", help="print the estimate and stop")
     parser.add_argument("--extra", default="", help="options added to every case's `mpnode "
@@ -646,23 +596,20 @@ def main(argv=None) -> int:
     if args.zeroed_eval:
         zeroed_eval(*args.zeroed_eval)
         return 0
-    args.data, args.runs = args.data.resolve(), args.runs.resolve()
+    args.runs = args.runs.resolve()
     args.extra = shlex.split(args.extra)
     names = args.only.split(",") if args.only else list(CASES)
     unknown = [n for n in names if n not in CASES]
     if unknown:
         parser.error(f"unknown case {', '.join(unknown)} (choose from: {', '.join(CASES)})")
-    cases = [CASES[n] for n in names]
-    presets = list(dict.fromkeys(p for c in cases for p in (c.preset, *c.zeroshot)))
 
     def report(line: str) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {line}", file=sys.stderr, flush=True)
 
-    # The plan assumes the default aggregation is mean until the probe says otherwise.
-    lines, estimate = plan(args, cases, presets, "mean")
+    steps, lines = case_steps(args, names)
     print("\n".join(lines), file=sys.stderr)
-    print(f"estimated wall time: {estimate / 60:.0f} min on {args.workers} workers "
-          f"(× {args.scale:g} epochs)", file=sys.stderr)
+    print(jobs.plan(steps, args.runs, args.workers), file=sys.stderr)
+    estimate = jobs.schedule({s.id: (s.seconds, tuple(s.needs)) for s in steps}, args.workers)
     if args.plan:
         return 0
     threads = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads(),"
@@ -680,12 +627,24 @@ def main(argv=None) -> int:
               "load_before": "/".join(f"{x:.2f}" for x in os.getloadavg()),
               "estimate": estimate, "ran": ", ".join(names)}
     start = time.perf_counter()
-    run_all(args, cases, presets, report)
+
+    def event(e: dict[str, Any]) -> None:
+        if e["event"] == "step" and e["status"] in ("ran", "resumed") \
+                and not e.get("worker"):  # a worker's step is reported once done
+            report(f"start {e['id']}")
+        elif e["event"] == "step-done" and e["status"] != "skipped":
+            report(f"done  {e['id']} ({e['seconds']:.0f} s)")
+        elif e["event"] == "step-failed":
+            report(f"FAIL  {e['id']}: {e['error']}")
+
+    failed = jobs.run_jobs(steps, args.runs, args.workers, event)
     header["took"] = time.perf_counter() - start
     header["load_after"] = "/".join(f"{x:.2f}" for x in os.getloadavg())
     write_report(args, header)
     report(f"wrote {args.out} ({header['took'] / 60:.1f} min)")
-    return 0
+    for name, why in failed.items():
+        report(f"not run: {name}: {why}")
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

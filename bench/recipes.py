@@ -23,7 +23,7 @@ are also written beside the table (`recipes.json`, committed with it), and a tab
 where the cache lacks a run takes that run from there: seeds run on different machines or
 days add up. A system known only from the table's own rows (run before the records
 existed) keeps those rows. Datasets are
-generated once into `--data` (bench/.data, shared with bench/quality.py).
+generated once into `--data` (bench/.data).
 
 Usage:
     .venv/bin/python bench/recipes.py --plan                 # what would run, and how long

@@ -12,9 +12,12 @@ Jobs: a source model per (bench, seed); for each target an oracle (the same reci
 on a dataset of the target's kind with as many node-trajectories as the source's, until its
 validation stops improving for `--oracle-patience` epochs and for at least the source's wall
 time) and a zero-shot scoring; both are scored on the target's test split in physical units
-(`transfer_score.score`). Each job writes its record JSON under `--runs`; a rerun skips
-finished jobs; the table (`bench/results/transfer.md`) and the committed copy of the
-records (`bench/results/transfer.json`) are rebuilt from the records alone.
+(`transfer_score.score`). The jobs run on the experiments' engine
+(`mpnode_cli.experiments.jobs`): each in its folder under `--runs`, its record in the
+folder's `step.json`; a rerun skips finished jobs and resumes cut-off trainings; a failed
+job skips those that need it, not the others. The table (`bench/results/transfer.md`) and
+the committed copy of the records (`bench/results/transfer.json`) are rebuilt from the
+records alone.
 
 Usage:
     .venv/bin/python bench/transfer.py --plan                     # core-hours, nothing runs
@@ -29,21 +32,19 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import shutil
 import sys
-import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
-from dataclasses import dataclass, replace
+from dataclasses import asdict, replace
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+sys.path[:0] = [str(HERE), str(HERE.parent)]  # the benches, then this checkout's package
 
-from quality import ROOT, command, git_commit, mpnode, priorities, schedule  # noqa: E402
+from quality import ROOT, command, git_commit, mpnode  # noqa: E402
 from transfer_specs import (  # noqa: E402
     BB,
     EVAL_SECONDS,
@@ -62,7 +63,10 @@ from transfer_specs import (  # noqa: E402
     set_of,
     size_bench,
 )
-from transfer_table import rebuild, write_json  # noqa: E402
+from transfer_table import rebuild  # noqa: E402
+
+from mpnode_cli.experiments import jobs  # noqa: E402
+from mpnode_cli.experiments.spec import CallStep  # noqa: E402
 
 PLUGINS = {"fhn": ROOT / "examples" / "fitzhugh_nagumo.py",  # systems of a plug-in file
            "mutualistic": ROOT / "examples" / "mutualistic.py"}
@@ -71,51 +75,61 @@ MAX_STAGES = 400  # resumes of one oracle at most
 ORACLE_EPOCHS = {"full": 4000, "smoke": 40}  # an oracle's epoch cap (the recipe's epochs)
 
 
-@dataclass
-class Job:
-    """One unit of work: a dataset to generate, or a training or scoring with a record.
-
-    Attributes:
-        name: the record's path under `--runs` without `.json` (a dataset: "gen:<name>").
-        seconds: planning estimate (one core); cap: its upper bound.
-        deps: jobs it waits for. work: does it. done: whether its output exists.
-    """
-
-    name: str
-    system: str
-    seconds: float
-    deps: tuple[str, ...]
-    work: Callable[[], Any]
-    done: Callable[[], bool]
-    cap: float | None = None
+DATA = "data.h5"  # a dataset step's file in its folder
 
 
-# ------------------------------------------------------------------------------ data
+# ------------------------------------------------------------------------------ jobs
+# Each job is a `CallStep` of the experiments' engine (`mpnode_cli.experiments.jobs`): a
+# function below with JSON arguments, run in its own folder under `--runs`, recorded in its
+# `step.json`. A job rebuilds its bench from `bench_spec` and reads its datasets from the
+# folders of the dataset steps it needs.
 
 
-def data_path(args, d: Data) -> Path:
-    return args.data / f"{d.name}.h5"
+def step_id(name: str) -> str:
+    """A job's name as a step id (lower case letters, digits and dashes)."""
+    return re.sub(r"[^a-z0-9]+", "-", name.lower()).strip("-")
 
 
-_GENERATING: dict[str, threading.Lock] = {}  # one lock per dataset: jobs are threads
-_GENERATING_LOCK = threading.Lock()
+def bench_spec(args, bench: Bench, seed: int) -> dict[str, Any]:
+    return {"system": bench.system, "protocol": bench.protocol, "gamma": bench.gamma,
+            "seed": seed, "smoke": args.scale == "smoke", "largest": args.n8192,
+            "targets": sorted(bench.targets)}
 
 
-def generate(args, d: Data) -> None:
-    """Write dataset `d` (to a temporary name, renamed when complete), once even when
-    several jobs ask for it at the same time (a source's coverage data)."""
-    with _GENERATING_LOCK:
-        lock = _GENERATING.setdefault(d.name, threading.Lock())
-    with lock:
-        _generate(args, d)
+def bench_of(spec: dict[str, Any]) -> Bench:
+    if spec["protocol"] == "size":
+        bench = size_bench(spec["system"], spec["smoke"])
+    else:
+        bench = s1_bench(spec["system"], spec["gamma"], spec["seed"], spec["smoke"],
+                         spec["largest"])
+    return replace(bench, targets={k: v for k, v in bench.targets.items()
+                                   if k in spec["targets"]})
 
 
-def _generate(args, d: Data) -> None:
-    path = data_path(args, d)
-    if path.is_file():
-        return
-    args.data.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{d.name}.partial.h5")
+def settings(args) -> dict[str, Any]:
+    """What a job reads of the command line (and its fingerprint hashes)."""
+    return {"variant": args.variant, "scale": args.scale,
+            "oracle_patience": args.oracle_patience, "oracle_cap": args.oracle_cap}
+
+
+def data_of(value: dict[str, Any]) -> Data:
+    params = tuple((k, float(v)) for k, v in value["params"])
+    counts = tuple(value["counts"]) if value["counts"] else None
+    return Data(**{**value, "params": params, "counts": counts})
+
+
+def data_path(inputs: dict[str, Any], d: Data) -> Path:
+    return Path(inputs[gen_id(d)].folder) / DATA
+
+
+def gen_id(d: Data) -> str:
+    return "gen-" + step_id(d.name)
+
+
+def job_generate(folder: Path, inputs, resumed: bool, data: dict[str, Any]) -> dict[str, Any]:
+    """Write a dataset into the job's folder (to a temporary name, renamed when complete)."""
+    d = data_of(data)
+    path, tmp, log = folder / DATA, folder / "partial.h5", folder / "log.txt"
     tmp.unlink(missing_ok=True)
     if d.system == "grid":
         from power_grid import make_dataset
@@ -131,23 +145,13 @@ def _generate(args, d: Data) -> None:
         mpnode("generate", *head, "--nodes", d.nodes, "--topology", d.topology,
                "--trajectories", d.k, "--graphs", d.graphs, "--graph-seed", d.graph_seed,
                "--seed", d.seed, *extra, *split, *hubs, "--threads", 1, "--out", tmp, "-y",
-               log=args.data / f"{d.name}.log")
+               log=log)
     tmp.replace(path)
-
-
-# ------------------------------------------------------------------------------ jobs
+    return {"dataset": d.name}
 
 
 def job_name(args, bench: Bench, seed: int, what: str) -> str:
     return f"{bench.key}/{args.variant}/s{seed}/{what}"
-
-
-def record_path(args, name: str) -> Path:
-    return args.runs / f"{name}.json"
-
-
-def read_record(args, name: str) -> dict[str, Any]:
-    return json.loads(record_path(args, name).read_text())
 
 
 def base_record(args, bench: Bench, seed: int, kind: str, label: str,
@@ -192,43 +196,42 @@ def oracle_chunk(patience: int) -> int:
     return max(2, math.ceil(patience / 4))
 
 
-def train_source(args, bench: Bench, seed: int) -> dict[str, Any]:
-    """Train the source model and write its record. A run cut off before its record was
-    written (it has a last checkpoint) resumes to its epochs, which continues it exactly
-    (one that reached them is only recorded); any other leftover folder starts afresh."""
-    name = job_name(args, bench, seed, "source")
-    run = args.runs / name
-    resume = (run / "checkpoints" / "last.pt").is_file() and (run / "metrics.jsonl").is_file()
+def job_source(folder: Path, inputs, resumed: bool, bench: dict[str, Any], seed: int,
+               run: dict[str, Any]) -> dict[str, Any]:
+    """Train the source model in `folder/run` and return its record. A run cut off before
+    its record was written (it has a last checkpoint) resumes to its epochs, which continues
+    it exactly (one that reached them is only recorded)."""
+    args, bench_ = argparse.Namespace(**run), bench_of(bench)
+    train_dir, log = folder / "run", folder / "log.txt"
+    resume = (train_dir / "checkpoints" / "last.pt").is_file() and \
+        (train_dir / "metrics.jsonl").is_file()
     if not resume:
-        shutil.rmtree(run, ignore_errors=True)
-    run.parent.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(train_dir, ignore_errors=True)
     clock: dict[str, float] = {}
     extra: dict[str, Any] = {}
     options: tuple[Any, ...] = VARIANTS[args.variant]
     if args.variant in FOR_GRAPHS_VARIANTS:  # the CLI makes the coverage data itself
-        options = tuple(x for d in bench.targets.values()
-                        for x in ("--for-graphs", data_path(args, d)))
-    budget: tuple[Any, ...] = ("--epochs", source_epochs(args, bench))
+        options = tuple(x for d in bench_.targets.values()
+                        for x in ("--for-graphs", data_path(inputs, d)))
+    budget: tuple[Any, ...] = ("--epochs", source_epochs(args, bench_))
     if resume:
-        if run_state(run)[0] < budget[1]:
-            mpnode("train", "--resume", run, *budget[:2], "--no-plots",
-                   log=run.parent / "log.txt", clock=clock)
+        if run_state(train_dir)[0] < budget[1]:
+            mpnode("train", "--resume", train_dir, *budget[:2], "--no-plots", log=log,
+                   clock=clock)
     else:
-        mpnode("train", data_path(args, bench.source), *budget, "--seed", seed,
-               "--run-dir", run, "--no-plots", "--threads", 1, *options,
-               log=run.parent / "log.txt", clock=clock)
-    summary = json.loads((run / "summary.json").read_text())
+        mpnode("train", data_path(inputs, bench_.source), *budget, "--seed", seed,
+               "--run-dir", train_dir, "--no-plots", "--threads", 1, *options, log=log,
+               clock=clock)
+    summary = json.loads((train_dir / "summary.json").read_text())
     if args.variant in FOR_GRAPHS_VARIANTS:
-        made = json.loads((run / "config.json").read_text())["coverage"]
+        made = json.loads((train_dir / "config.json").read_text())["coverage"]
         extra = {"coverage": made["dataset"], "coverage_multiplicity": made["multiplicity"],
                  "targets_max_in_degree": made["max_in_degree"]}
-    epochs, best, seconds = run_state(run)
-    record = {**base_record(args, bench, seed, "source", "own", bench.source),
-              "epochs": epochs, "best_epoch": best, "train_seconds": seconds,
-              "cpu_seconds": clock.get("cpu"), "process_seconds": clock.get("wall"),
-              "model": summary["model"], "options": list(VARIANTS[args.variant]), **extra}
-    write_json(record_path(args, name), record)
-    return record
+    epochs, best, seconds = run_state(train_dir)
+    return {**base_record(args, bench_, seed, "source", "own", bench_.source),
+            "epochs": epochs, "best_epoch": best, "train_seconds": seconds,
+            "cpu_seconds": clock.get("cpu"), "process_seconds": clock.get("wall"),
+            "model": summary["model"], "options": list(VARIANTS[args.variant]), **extra}
 
 
 def source_epochs(args, bench: Bench) -> int:
@@ -237,62 +240,62 @@ def source_epochs(args, bench: Bench) -> int:
     return ORACLE_EPOCHS[args.scale] if args.variant in FOR_GRAPHS_VARIANTS else bench.epochs
 
 
-def train_oracle(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
-    """Train the oracle of one target (resuming a run cut off before), score it on the
-    target's test split, and write its record.
+def job_oracle(folder: Path, inputs, resumed: bool, bench: dict[str, Any], seed: int,
+               run: dict[str, Any], label: str, source: str) -> dict[str, Any]:
+    """Train the oracle of one target in `folder/run` (resuming a run cut off before),
+    score it on the target's test split, and return its record.
 
-    It trains for at least the source's wall time, then in chunks of a quarter of the
-    patience, until its best validation is `--oracle-patience` epochs old or a cap is hit
-    (`stop_reason`); `mpnode train --stop-patience` cannot say "not before", so the run
-    itself gets a patience it never reaches. The oracle of a cosine schedule trains in one
-    run, to its epoch cap or its time cap: resuming it with fewer epochs would shorten the
-    schedule."""
-    d, name = bench.targets[label], job_name(args, bench, seed, f"oracle-{label}")
-    floor = read_record(args, job_name(args, bench, seed, "source"))["train_seconds"]
-    run, log = args.runs / name, args.runs / name.rsplit("/", 1)[0] / "log.txt"
+    It trains for at least the source's wall time (`source`: the source job's step), then
+    in chunks of a quarter of the patience, until its best validation is
+    `--oracle-patience` epochs old or a cap is hit (`stop_reason`); `mpnode train
+    --stop-patience` cannot say "not before", so the run itself gets a patience it never
+    reaches. The oracle of a cosine schedule trains in one run, to its epoch cap or its
+    time cap: resuming it with fewer epochs would shorten the schedule."""
+    args, bench_ = argparse.Namespace(**run), bench_of(bench)
+    d = bench_.targets[label]
+    floor = inputs[source].result["train_seconds"]
+    train_dir, log = folder / "run", folder / "log.txt"
     cap_s, cap_e = args.oracle_cap * floor, ORACLE_EPOCHS[args.scale]
     chunk, clock = oracle_chunk(args.oracle_patience), {}
     whole = "cosine" in VARIANTS[args.variant]
     first_limit = cap_s if whole else floor
-    if not (run / "checkpoints" / "last.pt").is_file():
-        shutil.rmtree(run, ignore_errors=True)
-        mpnode("train", data_path(args, d), "--epochs", cap_e, "--time-limit", first_limit,
-               "--stop-patience", NEVER, "--seed", seed, "--run-dir", run, "--no-plots",
-               "--threads", 1, *VARIANTS[args.variant], log=log, clock=clock)
+    if not (train_dir / "checkpoints" / "last.pt").is_file():
+        shutil.rmtree(train_dir, ignore_errors=True)
+        mpnode("train", data_path(inputs, d), "--epochs", cap_e, "--time-limit", first_limit,
+               "--stop-patience", NEVER, "--seed", seed, "--run-dir", train_dir,
+               "--no-plots", "--threads", 1, *VARIANTS[args.variant], log=log, clock=clock)
     reason = None
     for _ in range(MAX_STAGES):
-        epochs, best, seconds = run_state(run)
+        epochs, best, seconds = run_state(train_dir)
         reason = stop_reason(epochs, best, seconds, floor, args.oracle_patience, cap_s, cap_e)
         if reason:
             break
         target = cap_e if seconds < floor or whole else min(epochs + chunk, cap_e)
-        mpnode("train", "--resume", run, "--epochs", target, "--time-limit",
+        mpnode("train", "--resume", train_dir, "--epochs", target, "--time-limit",
                floor if seconds < floor and not whole else cap_s, "--no-plots", log=log,
                clock=clock)
-        if run_state(run)[0] == epochs:
+        if run_state(train_dir)[0] == epochs:
             reason = "stalled"
             break
-    epochs, best, seconds = run_state(run)
-    result = score_in_worker(run / "checkpoints" / "best.pt", data_path(args, d), None, log)
-    record = {**base_record(args, bench, seed, "oracle", label, d), "epochs": epochs,
-              "best_epoch": best, "train_seconds": seconds, "source_seconds": floor,
-              "stopped_by": reason or "stages", "patience": args.oracle_patience,
-              "cap_seconds": cap_s, "cap_epochs": cap_e, "cpu_seconds": clock.get("cpu"),
-              "process_seconds": clock.get("wall"), "score": result}
-    write_json(record_path(args, name), record)
-    return record
+    epochs, best, seconds = run_state(train_dir)
+    result = score_in_worker(train_dir / "checkpoints" / "best.pt", data_path(inputs, d),
+                             None, log)
+    return {**base_record(args, bench_, seed, "oracle", label, d), "epochs": epochs,
+            "best_epoch": best, "train_seconds": seconds, "source_seconds": floor,
+            "stopped_by": reason or "stages", "patience": args.oracle_patience,
+            "cap_seconds": cap_s, "cap_epochs": cap_e, "cpu_seconds": clock.get("cpu"),
+            "process_seconds": clock.get("wall"), "score": result}
 
 
-def zeroshot(args, bench: Bench, seed: int, label: str) -> dict[str, Any]:
-    """Score the source model on a target's test split ("own": its own) and write it."""
-    d = bench.source if label == "own" else bench.targets[label]
-    name = job_name(args, bench, seed, f"zeroshot-{label}")
-    source = args.runs / job_name(args, bench, seed, "source")
-    result = score_in_worker(source / "checkpoints" / "best.pt", data_path(args, d), None,
-                             source.parent / "log.txt")
-    record = {**base_record(args, bench, seed, "zeroshot", label, d), "score": result}
-    write_json(record_path(args, name), record)
-    return record
+def job_zeroshot(folder: Path, inputs, resumed: bool, bench: dict[str, Any], seed: int,
+                 run: dict[str, Any], label: str, source: str) -> dict[str, Any]:
+    """Score the source model (`source`: its job's step) on a target's test split ("own":
+    its own) and return the record."""
+    args, bench_ = argparse.Namespace(**run), bench_of(bench)
+    d = bench_.source if label == "own" else bench_.targets[label]
+    best = Path(inputs[source].folder) / "run" / "checkpoints" / "best.pt"
+    result = score_in_worker(best, data_path(inputs, d), None, folder / "log.txt")
+    return {**base_record(args, bench_, seed, "zeroshot", label, d), "score": result}
 
 
 def score_in_worker(checkpoint: Path, dataset: Path, range_from: Path | None,
@@ -306,47 +309,46 @@ def score_in_worker(checkpoint: Path, dataset: Path, range_from: Path | None,
 # ------------------------------------------------------------------------------ planning
 
 
-def bench_jobs(args, bench: Bench, seed: int) -> list[Job]:
+def bench_steps(args, bench: Bench, seed: int) -> list[CallStep]:
     """The jobs of one bench and seed: its datasets, source, oracles and scorings."""
-    src = bench.source
+    src, spec, run = bench.source, bench_spec(args, bench, seed), settings(args)
     per_epoch, epochs = epoch_seconds(bench.system, src, src), source_epochs(args, bench)
     train_s = epochs * per_epoch * curriculum_share(bench.system, epochs)
-    source = job_name(args, bench, seed, "source")
-    jobs = [Job(f"gen:{d.name}", bench.system, generate_seconds(d), (),
-                lambda d=d: generate(args, d), lambda d=d: data_path(args, d).is_file())
-            for d in (src, *bench.targets.values())]
-
-    def recorded(name: str) -> Callable[[], bool]:
-        return lambda: record_path(args, name).is_file()
-
-    needs = (f"gen:{src.name}",) + (tuple(f"gen:{d.name}" for d in bench.targets.values())
-                                     if args.variant in FOR_GRAPHS_VARIANTS else ())
-    jobs.append(Job(source, bench.system, train_s + PROCESS_SECONDS, needs,
-                    lambda: train_source(args, bench, seed), recorded(source)))
+    source = step_id(job_name(args, bench, seed, "source"))
+    steps = [CallStep(verb="call", id=gen_id(d), target="transfer:job_generate",
+                      args={"data": asdict(d)}, seconds=generate_seconds(d),
+                      group=bench.system)
+             for d in (src, *bench.targets.values())]
+    needs = [gen_id(src)] + ([gen_id(d) for d in bench.targets.values()]
+                             if args.variant in FOR_GRAPHS_VARIANTS else [])
+    steps.append(CallStep(verb="call", id=source, target="transfer:job_source",
+                          args={"bench": spec, "seed": seed, "run": run}, needs=needs,
+                          seconds=train_s + PROCESS_SECONDS, group=bench.system))
     for label, d in {"own": src, **bench.targets}.items():
-        name = job_name(args, bench, seed, f"zeroshot-{label}")
-        jobs.append(Job(name, bench.system, EVAL_SECONDS, (source, f"gen:{d.name}"),
-                        lambda label=label: zeroshot(args, bench, seed, label),
-                        recorded(name)))
+        job = {"bench": spec, "seed": seed, "run": run, "label": label, "source": source}
+        steps.append(CallStep(
+            verb="call", id=step_id(job_name(args, bench, seed, f"zeroshot-{label}")),
+            target="transfer:job_zeroshot", args=job, needs=[source, gen_id(d)],
+            seconds=EVAL_SECONDS, group=bench.system))
         if label == "own" or args.no_oracles:
             continue
-        name = job_name(args, bench, seed, f"oracle-{label}")
         oracle_epoch = epoch_seconds(bench.system, d, src)
         expected = max(train_s, (bench.epochs + args.oracle_patience) * oracle_epoch)
-        chunk = oracle_chunk(args.oracle_patience)
-        stages = math.ceil(max(0.0, expected - train_s) / oracle_epoch / chunk)
+        stages = math.ceil(max(0.0, expected - train_s) / oracle_epoch
+                           / oracle_chunk(args.oracle_patience))
         seconds = expected + (1 + stages) * PROCESS_SECONDS + EVAL_SECONDS
-        jobs.append(Job(name, bench.system, seconds, (source, f"gen:{d.name}"),
-                        lambda label=label: train_oracle(args, bench, seed, label),
-                        recorded(name), cap=max(seconds, args.oracle_cap * train_s
-                                                + (2 + stages) * PROCESS_SECONDS)))
-    return jobs
+        steps.append(CallStep(
+            verb="call", id=step_id(job_name(args, bench, seed, f"oracle-{label}")),
+            target="transfer:job_oracle", args=job, needs=[source, gen_id(d)],
+            seconds=seconds, group=bench.system,
+            cap=max(seconds, args.oracle_cap * train_s + (2 + stages) * PROCESS_SECONDS)))
+    return steps
 
 
-def all_jobs(args) -> dict[str, Job]:
+def all_steps(args) -> list[CallStep]:
     """Every job the filters select, datasets shared between benches once."""
     smoke = args.scale == "smoke"
-    jobs: dict[str, Job] = {}
+    steps: dict[str, CallStep] = {}
     for seed in args.seeds:
         for system in args.systems:
             benches = []
@@ -359,80 +361,14 @@ def all_jobs(args) -> dict[str, Job]:
                     bench = replace(bench, targets={label: d for label, d in
                                                     bench.targets.items()
                                                     if label in args.targets})
-                for job in bench_jobs(args, bench, seed):
-                    jobs.setdefault(job.name, job)
-    return jobs
+                for step in bench_steps(args, bench, seed):
+                    steps.setdefault(step.id, step)
+    return list(steps.values())
 
 
-def plan(args, jobs: dict[str, Job]) -> str:
-    """Core-hours per system, per set and in all (expected; the oracles' caps in
-    brackets), what is left of them, and the wall time on `--jobs` workers."""
-    def hours(selected: list[Job], left: bool = False) -> tuple[float, float]:
-        chosen = [j for j in selected if not (left and j.done())]
-        return (sum(j.seconds for j in chosen) / 3600,
-                sum(j.cap or j.seconds for j in chosen) / 3600)
-
-    lines = [f"{'core-hours':18s} {'jobs':>5s} {'expected':>9s} {'(cap)':>8s} {'left':>8s}"]
-
-    def line(label: str, selected: list[Job]) -> None:
-        exp, cap = hours(selected)
-        lines.append(f"{label:18s} {len(selected):5d} {exp:9.2f} {cap:8.2f} "
-                     f"{hours(selected, left=True)[0]:8.2f}")
-
-    for system in args.systems:
-        line(system, [j for j in jobs.values() if j.system == system])
-    for name, members in SETS.items():
-        line(f"set {name}", [j for j in jobs.values() if j.system in members])
-    line("total", list(jobs.values()))
-    left = {n: (j.seconds, tuple(d for d in j.deps if d in jobs and not jobs[d].done()))
-            for n, j in jobs.items() if not j.done()}
-    lines.append(f"wall time left on {args.jobs} workers (one thread each): about "
-                 f"{schedule(left, args.jobs) / 3600:.2f} h (expected; oracles may run up to "
-                 f"their caps, {args.oracle_cap:g}× their source's wall time)")
-    return "\n".join(lines)
-
-
-# ------------------------------------------------------------------------------ running
-
-
-def run_jobs(args, jobs: dict[str, Job], report: Callable[[str], None]) -> list[str]:
-    """Run the jobs not done yet, `--jobs` at a time, each when its dependencies are done
-    (highest `priorities` first); a failed job's dependents are skipped. Returns the
-    failures."""
-    done = {n for n, j in jobs.items() if j.done()}
-    rank = priorities({n: (j.seconds, j.deps) for n, j in jobs.items()})
-    pending = sorted((n for n in jobs if n not in done), key=lambda n: -rank[n])
-    failed: list[str] = []
-    broken: set[str] = set()
-    running: dict[Any, str] = {}
-    with ThreadPoolExecutor(args.jobs) as pool:
-        while pending or running:
-            for name in list(pending):
-                deps = jobs[name].deps
-                if any(d in broken for d in deps):
-                    pending.remove(name)
-                    broken.add(name)
-                    failed.append(f"{name}: skipped (a dependency failed)")
-                elif len(running) < args.jobs and all(d in done for d in deps):
-                    pending.remove(name)
-                    running[pool.submit(jobs[name].work)] = name
-                    report(f"start {name}")
-            if not running:
-                break
-            finished, _ = wait(running, return_when=FIRST_COMPLETED)
-            for future in finished:
-                name = running.pop(future)
-                try:
-                    future.result()
-                    done.add(name)
-                    report(f"done  {name}")
-                except Exception as exc:  # one broken job must not stop the others
-                    broken.add(name)
-                    failed.append(f"{name}: {exc}")
-                    report(f"FAIL  {name}: {exc}")
-                if not name.startswith("gen:"):
-                    report(write_table(args))
-    return failed
+def plan(args, steps: list[CallStep]) -> str:
+    return (jobs.plan(steps, args.runs, args.jobs, SETS) + f" (oracles may run up to their "
+            f"caps, {args.oracle_cap:g}× their source's wall time)")
 
 
 def write_table(args) -> str:
@@ -464,7 +400,6 @@ def parse(argv) -> argparse.Namespace:
                    "that stop an oracle (default 200, the recipe's --stop-patience; smoke 2)")
     p.add_argument("--oracle-cap", type=float, help="an oracle stops at this many times "
                    "its source's wall time (default 8; smoke 3)")
-    p.add_argument("--data", type=Path)
     p.add_argument("--runs", type=Path)
     p.add_argument("--out", type=Path, help="the table (default bench/results/transfer.md)")
     p.add_argument("--records", type=Path, help="the committed copy of the records")
@@ -480,7 +415,6 @@ def parse(argv) -> argparse.Namespace:
     args = p.parse_args(argv)
     smoke = args.scale == "smoke"
     tail = "transfer-smoke" if smoke else "transfer"
-    args.data = (args.data or HERE / ".data" / tail).resolve()
     args.runs = (args.runs or HERE / ".runs" / tail).resolve()
     results = args.runs if smoke else HERE / "results"  # a smoke run's never replace these
     args.out = args.out or results / "transfer.md"
@@ -515,8 +449,8 @@ def main(argv=None) -> int:
     if args.table_only:
         print(write_table(args))
         return 0
-    jobs = all_jobs(args)
-    print(plan(args, jobs), flush=True)
+    steps = all_steps(args)
+    print(plan(args, steps), flush=True)
     if args.plan:
         return 0
     if git_commit().endswith("+dirty") and not args.allow_dirty and args.scale == "full":
@@ -528,10 +462,21 @@ def main(argv=None) -> int:
     def report(line: str) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {line}", flush=True)
 
-    failed = run_jobs(args, jobs, report)
+    def event(e: dict[str, Any]) -> None:
+        if e["event"] == "step" and e["status"] in ("ran", "resumed") \
+                and not e.get("worker"):  # a worker's step is reported once done
+            report(f"{'start ' if e['status'] == 'ran' else 'resume'} {e['id']}")
+        elif e["event"] == "step-done" and e["status"] != "skipped":
+            report(f"done  {e['id']}")
+            if not e["id"].startswith("gen-"):
+                report(write_table(args))
+        elif e["event"] == "step-failed":
+            report(f"FAIL  {e['id']}: {e['error']}")
+
+    failed = jobs.run_jobs(steps, args.runs, args.jobs, event)
     report(write_table(args))
-    for line in failed:
-        report(f"not done: {line}")
+    for name, why in failed.items():
+        report(f"not done: {name}: {why}")
     return 1 if failed else 0
 
 

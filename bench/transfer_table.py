@@ -30,16 +30,10 @@ def write_json(path: Path, value: Any) -> None:
 
 
 def local_records(runs: Path) -> dict[str, dict[str, Any]]:
-    """Every record under `runs` (files `*.json` with a "job" key), by job."""
-    out = {}
-    for path in sorted(runs.rglob("*.json")):
-        try:
-            record = json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-        if isinstance(record, dict) and "job" in record:
-            out[record["job"]] = record
-    return out
+    """Every job's record in the engine's work folder `runs` (`step.json`), by job."""
+    from mpnode_cli.experiments.jobs import records
+
+    return {r["job"]: r for r in records(runs) if "job" in r}
 
 
 def merged_records(runs: Path, committed: Path) -> dict[str, dict[str, Any]]:

@@ -13,7 +13,8 @@ from __future__ import annotations
 from typing import Any
 
 from mpnode_cli.experiments import members
-from mpnode_cli.experiments.spec import TRAINING, Experiment, parse_claim
+from mpnode_cli.experiments.claim_grammar import parse_claim
+from mpnode_cli.experiments.spec import TRAINING, Experiment
 
 
 def with_derived(result: Any) -> Any:

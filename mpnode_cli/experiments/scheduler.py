@@ -49,7 +49,7 @@ from mpnode_cli.experiments.steps import (
     line,
 )
 
-STEP_JSON, PENDING_JSON = "step.json", "pending.json"
+STEP_JSON, PENDING_JSON, FAILED_JSON = "step.json", "pending.json", "failed.json"
 FINGERPRINT_FORMAT = 1  # bump when what a step writes changes meaning
 _POLL_SECONDS = 0.5
 
@@ -88,17 +88,28 @@ def plan_steps(experiment: Experiment, scale: Scale, recipe: str, work: Path,
     return list(planned.values())
 
 
-def take_steps(steps: list[Planned], token: str, emit: OnEvent) -> dict[str, StepRecord]:
+def take_steps(steps: list[Planned], token: str, emit: OnEvent,
+               failed: dict[str, str] | None = None) -> dict[str, StepRecord]:
     """Run or collect every step: repeatedly the first step, in order, that is not done,
     whose inputs are done and whose lock is free. When none is, other processes hold the
     steps that are ready: say so once (a `waiting` event for the first of them) and look
-    again shortly."""
+    again shortly.
+
+    Args:
+        failed: None: the first step that fails raises `StepFailed`. A dict: keep going;
+            a failed step (by any process of this run: its `FAILED_JSON`) goes in it with
+            its message, and the steps that read it with "skipped"."""
     records: dict[str, StepRecord] = {}
     left = list(steps)
     total = len(steps)
     announced: set[str] = set()
     while left:
         for entry in left:
+            if failed is not None and (why := _failure(entry, token, failed)):
+                failed[entry.step.id] = why
+                emit({"event": "step-failed", "id": entry.step.id, "error": why})
+                left = [e for e in left if e.step.id != entry.step.id]
+                break
             if not all(i in records for i in entry.step.inputs()):
                 continue
             done = _finished_record(entry, token)
@@ -114,8 +125,14 @@ def take_steps(steps: list[Planned], token: str, emit: OnEvent) -> dict[str, Ste
                         emit({"event": "step", "index": entry.index, "total": total,
                               "id": entry.step.id, "verb": entry.step.verb,
                               "status": status, "folder": str(entry.folder)})
-                        record = run_step(entry.step, entry.options, entry.fingerprint,
-                                           entry.folder, records, status, emit, token)
+                        try:
+                            record = run_step(entry.step, entry.options, entry.fingerprint,
+                                              entry.folder, records, status, emit, token)
+                        except StepFailed as exc:
+                            if failed is None:
+                                raise
+                            _write_failure(entry, token, str(exc))
+                            break
                         emit({"event": "step-done", "id": entry.step.id,
                               "status": record.status, "seconds": record.seconds,
                               "line": line(record)})
@@ -141,6 +158,26 @@ def take_steps(steps: list[Planned], token: str, emit: OnEvent) -> dict[str, Ste
     return records
 
 
+def _failure(entry: Planned, token: str, failed: dict[str, str]) -> str | None:
+    """Why `entry` cannot be done in this run: it failed (here or in another process of
+    the run), or a step it reads did."""
+    if bad := next((i for i in entry.step.inputs() if i in failed), None):
+        return f"skipped: step '{bad}' failed"
+    try:
+        mark = json.loads((entry.folder / FAILED_JSON).read_text())
+    except (OSError, ValueError):
+        return None
+    same = mark.get("run_token") == token and mark.get("fingerprint") == entry.fingerprint
+    return str(mark.get("error")) if same else None
+
+
+def _write_failure(entry: Planned, token: str, error: str) -> None:
+    from mpnode_cli.training.run import write_json
+
+    write_json(entry.folder / FAILED_JSON, {"fingerprint": entry.fingerprint, "error": error,
+                                            "run_token": token})
+
+
 def _finished_record(entry: Planned, token: str) -> StepRecord | None:
     """`entry`'s record if its step is done: status as run if a process of this run (the
     same `token`) ran it, else "skipped". Names and the paper's numbers from today's spec."""
@@ -159,9 +196,11 @@ def _finished_record(entry: Planned, token: str) -> StepRecord | None:
                          "reported_in": entry.step.reported_in})
 
 
-def start_workers(steps: list[Planned], token: str, count: int) -> list[Any]:
+def start_workers(steps: list[Planned], token: str, count: int,
+                  keep_going: bool = False) -> list[Any]:
     """`count` worker processes (spawned: a fresh interpreter each, no forked torch
-    state), each taking steps as `take_steps` does, silently."""
+    state), each taking steps as `take_steps` does, silently (past failed steps, with
+    `keep_going`)."""
     if count < 1:
         return []
     import multiprocessing
@@ -169,14 +208,15 @@ def start_workers(steps: list[Planned], token: str, count: int) -> list[Any]:
     import torch
 
     context = multiprocessing.get_context("spawn")
-    workers = [context.Process(target=_worker, args=(steps, token, torch.get_num_threads()),
-                               daemon=True) for _ in range(count)]
+    workers = [context.Process(target=_worker, args=(steps, token, torch.get_num_threads(),
+                                                     keep_going), daemon=True)
+               for _ in range(count)]
     for worker in workers:
         worker.start()
     return workers
 
 
-def _worker(steps: list[Planned], token: str, threads: int) -> None:
+def _worker(steps: list[Planned], token: str, threads: int, keep_going: bool) -> None:
     """A worker process: take steps until every step is done. A step that fails here
     ends the worker; the run reaches that step itself and reports the failure."""
     from mpnode_cli.signals import interrupt_on_signals
@@ -188,7 +228,7 @@ def _worker(steps: list[Planned], token: str, threads: int) -> None:
         # SIGTERM (the run ending early, or gone) interrupts a training as Ctrl-C does: it
         # keeps its last epoch to resume from; a worker waiting for a step stops waiting.
         with interrupt_on_signals():
-            take_steps(steps, token, lambda event: None)
+            take_steps(steps, token, lambda event: None, {} if keep_going else None)
     except (Exception, KeyboardInterrupt):  # the run meets the same error and reports it
         pass
 

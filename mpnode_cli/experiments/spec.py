@@ -22,7 +22,6 @@ place in the paper it comes from; `mpnode_cli.experiments.claims` judges claims 
 
 from __future__ import annotations
 
-import re
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -31,23 +30,17 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from mpnode_cli.experiments import members
+from mpnode_cli.experiments.claim_grammar import parse_claim
+from mpnode_cli.experiments.resolving import (  # noqa: F401 (spec.resolve, spec.DRAW_STRIDE)
+    DRAW_STRIDE,
+    TRAINING,
+    resolve,
+)
 from mpnode_cli.textfiles import read_text
 
 SCALES = ("tiny", "small", "paper")
 Scale = Literal["tiny", "small", "paper"]
 _ID = r"^[a-z0-9][a-z0-9-]*$"
-# Fields of a train config that the runner sets: the data, the run folder, the parent
-# checkpoint, the ensemble's members (from the step's `data`, its folder, `checkpoint`,
-# `--seeds`). The recipe is `--recipe`'s unless the step names its own (`recipe = "paper"`:
-# an experiment that compares recipes pins each step's).
-RUNNER_FIELDS = ("dataset", "run_dir", "init_checkpoint", "seeds")
-# Data draw d (`mpnode experiment run --draw d`) offsets the seed and the graph seed of every
-# generated dataset by d × this: other graphs, initial states, split, and parameters drawn
-# per graph (Kuramoto's ω). Draw 0 is the experiment's own data.
-DRAW_STRIDE = 1000
-TINY_TRAJECTORIES = 24  # per generated dataset at the tiny scale
-TINY_SAMPLES = 5  # sample times per trajectory at the tiny scale
-TINY_EPOCHS = 2
 
 
 class _Step(BaseModel):
@@ -180,9 +173,30 @@ class CompareStep(_Step):
         return list(self.runs)
 
 
+class CallStep(_Step):
+    """A benchmark's job (`mpnode_cli.experiments.jobs`): `target(folder, inputs, **args)`,
+    a function `module:name` importable where the run started, that writes in its folder
+    and returns its record. What the benches run through this engine.
+
+    Attributes:
+        needs: the steps it reads. seconds: its planned seconds on one core; cap: their
+            bound where they may run longer. group: its line in the plan (a system).
+    """
+
+    verb: Literal["call"]
+    target: str = Field(pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$")
+    args: dict[str, Any] = Field(default_factory=dict)
+    needs: list[str] = Field(default_factory=list)
+    seconds: float = Field(0.0, ge=0)
+    cap: float | None = Field(None, ge=0)
+    group: str = ""
+
+    def inputs(self) -> list[str]:
+        return list(self.needs)
+
+
 Step = Annotated[GenerateStep | TrainStep | FinetuneStep | ZeroshotStep | EvaluateStep
-                 | CompareStep, Field(discriminator="verb")]
-TRAINING = ("train", "finetune")
+                 | CompareStep | CallStep, Field(discriminator="verb")]
 
 
 class Claim(BaseModel):
@@ -318,115 +332,11 @@ def check(experiment: Experiment) -> None:
 def _wanted(step: Any, ref: str) -> tuple[str, ...]:
     """The verbs a step's reference `ref` may name."""
     data = getattr(step, "data", None)
+    if step.verb == "call":  # a job reads any step
+        return ("generate", *TRAINING, "zeroshot", "evaluate", "compare", "call")
     if ref == data or (isinstance(data, list) and ref in data):
         return ("generate",)
     return TRAINING
-
-
-# ----------------------------------------------------------------------------- resolving
-
-
-def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
-            draw: int = 0) -> dict[str, Any]:
-    """A step's verb options at `scale`, checked, as plain JSON: what the step does and what
-    its fingerprint hashes (with its inputs' fingerprints).
-
-    - generate: `{"config": GenerateConfig fields}`, the preset merged in (no `out`), its
-      seeds offset by `draw` × `DRAW_STRIDE`.
-    - train / finetune: `{"config": TrainConfig fields given, "recipe": recipe}` (the
-      step's own `recipe` where it names one), with `seeds` when it is over 1 (an
-      ensemble of that many members; left out at 1, so a single model's step keeps the
-      fingerprint and folder it had before seeds).
-    - others: their options.
-
-    Raises:
-        ValueError: an unknown preset, config field or model option, or a bad value.
-    """
-    options = step.options("small" if scale == "tiny" else scale)
-    if step.verb == "generate":
-        from mpnode_cli.config import GenerateConfig
-        from mpnode_cli.data.generate import resolve_generate_config
-        from mpnode_cli.data.presets import get_preset, merge_layers
-
-        preset = options.pop("preset", None)
-        layers = [(f"preset {preset}", get_preset(preset) if preset else {}),
-                  (f"step {step.id}", options)]
-        fields = merge_layers(layers)
-        if "out" in fields:
-            raise ValueError("'out' is the runner's (the step's folder)")
-        if draw:
-            fields = {**fields, **{key: int(fields.get(key, 0)) + draw * DRAW_STRIDE
-                                   for key in ("seed", "graph_seed")}}
-        if scale == "tiny":
-            fields = shrink_generate(fields)
-        config = resolve_generate_config(_validated(GenerateConfig, {**fields, "out": "data.h5"}))
-        return {"config": config.model_dump(mode="json", exclude={"out"})}
-    if step.verb in TRAINING:
-        from mpnode_cli.config import TrainConfig
-        from mpnode_cli.models.registry import OPTIONS, resolve_options
-
-        for key in ("data", "checkpoint"):
-            options.pop(key, None)
-        taken = [k for k in RUNNER_FIELDS if k in options]
-        if taken:
-            raise ValueError(f"'{taken[0]}' is set by the runner, not the step")
-        if scale == "tiny":
-            options = shrink_train(options)
-        if step.verb == "finetune" and ("model" in options or "model_options" in options):
-            raise ValueError("a finetune keeps its checkpoint's model (no model options)")
-        if seeds > 1:
-            options["seeds"] = seeds
-        recipe = options.pop("recipe", recipe)
-        _validated(TrainConfig, {**options, "dataset": "data.h5", "recipe": recipe})
-        model = options.get("model", "mpnode")
-        if model in OPTIONS:
-            resolve_options(model, options.get("model_options", {}))
-        else:
-            raise ValueError(f"unknown model '{model}' (choose from: {', '.join(OPTIONS)})")
-        return {"config": options, "recipe": recipe}
-    if step.verb == "evaluate" and not options["pca"]:
-        # Without a PCA it means nothing; left out, so such a step's fingerprint stays.
-        options.pop("pca_untrained")
-    if scale == "tiny" and step.verb == "evaluate":
-        options["trajectories"] = min(options["trajectories"], 4)
-    return options
-
-
-def _validated(model: type[BaseModel], fields: dict[str, Any]) -> Any:
-    from mpnode_cli.config_file import error_line
-
-    try:
-        return model(**fields)
-    except ValidationError as exc:
-        raise ValueError(error_line(exc)) from None
-
-
-def shrink_generate(fields: dict[str, Any]) -> dict[str, Any]:
-    """The tiny scale of a generate step: a few trajectories of a few samples (a quadrotor
-    flight keeps the horizon it needs to pass the doorway)."""
-    from mpnode_cli.systems.quadrotor_flight import MIN_HORIZON
-    from mpnode_cli.systems.registry import system_class
-
-    defaults = system_class(fields["system"]).data_defaults
-    dt = fields.get("dt", defaults.get("dt", 0.1))
-    t_end = fields.get("t_end", defaults.get("t_end", 1.0))
-    shortest = MIN_HORIZON if fields["system"] == "quadrotor" else 0.0
-    trajectories = fields.get("trajectories", defaults.get("trajectories", 100))
-    return {**fields, "t_end": min(t_end, max((TINY_SAMPLES - 1) * dt, shortest)),
-            "trajectories": max(fields.get("graphs", 1), min(trajectories, TINY_TRAJECTORIES))}
-
-
-def shrink_train(options: dict[str, Any]) -> dict[str, Any]:
-    """The tiny scale of a train or finetune step: two epochs on a few trajectories, and
-    the smallest L2S (it is the slowest model per epoch)."""
-    out = {**options, "epochs": min(options.get("epochs", TINY_EPOCHS), TINY_EPOCHS),
-           "batch_size": 8}
-    if "trajectories" in out:
-        out["trajectories"] = max(2, min(out["trajectories"] // 50, 8))
-    if out.get("model") == "l2s":
-        out["model_options"] = {**out.get("model_options", {}), "latent": 8, "hidden": 8,
-                                "steps": 1}
-    return out
 
 
 def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -438,32 +348,3 @@ def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
         else:
             out[key] = value
     return out
-
-
-# --------------------------------------------------------------------- the claims' grammar
-
-_NUMBER = r"[-+0-9.eE]+"
-_REF = r"[a-z0-9][a-z0-9-]*(?:\.[A-Za-z0-9_-]+)+"  # STEP.PATH
-_SIDE = rf"\s*(?:(?P<{{0}}f>{_NUMBER})\s*\*\s*)?(?P<{{0}}>{_NUMBER}|{_REF})\s*"
-_CLAIM = re.compile(_SIDE.format("a") + r"(?P<op><=|>=|<|>)" + _SIDE.format("b") + "$")
-
-
-def parse_claim(text: str) -> tuple[tuple[float, str | None], str, tuple[float, str | None]]:
-    """`"2 * a.x < b.y"` → `((2.0, "a.x"), "<", (1.0, "b.y"))`; a number side has ref None
-    and the number as its factor.
-
-    Raises:
-        ValueError: text that is not `LEFT OP RIGHT`.
-    """
-    match = _CLAIM.match(text)
-    if not match:
-        raise ValueError(f"claim '{text}' is not LEFT OP RIGHT (e.g. 'a.test.mse < b.test.mse')")
-
-    def side(name: str) -> tuple[float, str | None]:
-        factor, value = match[name + "f"], match[name]
-        try:
-            return float(value) * float(factor or 1), None
-        except ValueError:
-            return float(factor or 1), value
-
-    return side("a"), match["op"], side("b")

@@ -317,8 +317,23 @@ def plot_table2(step, labels: dict[str, str], table2: dict[str, list[float | Non
                      title="Table-2 figure (lower is better)")
 
 
+def _call(step, options, folder: Path, inputs, status, emit):
+    """A benchmark's job (`jobs`): `target(folder=, inputs=, resumed=, **args)` → its record;
+    `inputs`: the records (folder, result) of the steps it reads."""
+    import importlib
+
+    module, name = step.target.split(":")
+    try:  # a job's failure of any kind is the step's (the engine keeps going past it)
+        function = getattr(importlib.import_module(module), name)
+        result = function(folder=folder, inputs=inputs, resumed=status == "resumed",
+                          **step.args)
+    except Exception as exc:
+        raise ValueError(f"{type(exc).__name__}: {exc}") from exc
+    return result, [], [], []
+
+
 VERBS = {"generate": _generate, "train": _train, "finetune": _train, "zeroshot": _zeroshot,
-         "evaluate": _evaluate, "compare": _compare}
+         "evaluate": _evaluate, "compare": _compare, "call": _call}
 
 
 def _member_rows(row: dict[str, Any]) -> list[dict[str, Any]]:

@@ -19,13 +19,13 @@ def test_extra_options_reach_the_training_and_the_table_names_them(tmp_path):
     out = tmp_path / "quality.md"
     cmd = [sys.executable, str(ROOT / "bench" / "quality.py"), "--scale", "0.003",
            "--only", "kuramoto-m3", "--workers", "1", "--extra", "--clip 5",
-           "--data", str(tmp_path / "data"), "--runs", str(tmp_path / "runs"), "--out", str(out)]
+           "--runs", str(tmp_path / "runs"), "--out", str(out)]
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     subprocess.run(cmd, cwd=ROOT, env=env, check=True, capture_output=True, timeout=300)
-    case = tmp_path / "runs" / "kuramoto-m3"
+    (case,) = (tmp_path / "runs").glob("case-kuramoto-m3-*/")  # the engine's step folder
     assert json.loads((case / "run" / "config.json").read_text())["clip"] == 5.0
-    assert json.loads((case / "result.json").read_text())["options"] == [
-        "--message-dim", "3", "--clip", "5"]
+    record = json.loads((case / "step.json").read_text())  # the engine's record
+    assert record["result"]["options"] == ["--message-dim", "3", "--clip", "5"]
     text = out.read_text()
     assert "`mpnode train kuramoto10-ba.h5 --message-dim 3 --clip 5`" in text
     shown = text.split("Command: `", 1)[1].split("`", 1)[0]

@@ -226,7 +226,8 @@ def test_merged_records_prefer_local(tmp_path):
     new = {**old, "score": _score(0.5, 2.0, np.array([1, 2]))}
     committed = tmp_path / "transfer.json"
     tt.save_committed({old["job"]: old}, committed)
-    tt.write_json(tmp_path / "runs" / "a.json", new)
+    tt.write_json(tmp_path / "runs" / "a-0123456789ab" / "step.json",  # the engine's record
+                  {"verb": "call", "result": new})
     merged = tt.merged_records(tmp_path / "runs", committed)
     assert merged[old["job"]]["score"]["mse"] == 0.5
 
@@ -249,11 +250,11 @@ def test_a_row_resting_on_a_dirty_record_is_marked(tmp_path):
 
 def test_a_dirty_tree_is_refused_unless_allowed(monkeypatch, tmp_path, capsys):
     monkeypatch.setattr(transfer, "git_commit", lambda: "abc+dirty")
-    monkeypatch.setattr(transfer, "run_jobs", lambda *a: pytest.fail("jobs ran"))
+    monkeypatch.setattr(transfer.jobs, "run_jobs", lambda *a: pytest.fail("jobs ran"))
     argv = ["--systems", "gene", "--seeds", "0", "--only-protocol", "size",
-            "--runs", str(tmp_path / "runs"), "--data", str(tmp_path / "data")]
+            "--runs", str(tmp_path / "runs")]
     assert transfer.main(argv) == 2
     assert "uncommitted changes" in capsys.readouterr().err
-    monkeypatch.setattr(transfer, "run_jobs", lambda *a: [])
+    monkeypatch.setattr(transfer.jobs, "run_jobs", lambda *a: {})
     monkeypatch.setattr(transfer, "write_table", lambda args: "table")
     assert transfer.main([*argv, "--allow-dirty"]) == 0
