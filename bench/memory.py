@@ -137,7 +137,7 @@ def label(row: dict) -> str:
     return METHODS[row["method"]]
 
 
-def run_all(args) -> list[dict]:
+def measure_all(args) -> list[dict]:
     field = Field()
     rows = []
     for steps in args.steps:
@@ -233,7 +233,7 @@ def main(argv=None) -> int:
     args.command = shlex.join(["python", "bench/memory.py", *(sys.argv[1:] if argv is None
                                                                 else argv)])
     args.load_before = os.getloadavg()
-    rows = run_all(args)
+    rows = measure_all(args)
     args.load_after = os.getloadavg()
     atomic_text(args.out, table(args, rows))
     print(f"wrote {args.out}")

@@ -2,7 +2,7 @@
 
 For each system's training dataset (a preset) and seed, `mpnode train --recipe mpnode` and
 `mpnode train --recipe paper` train side by side, one process each, one torch thread each,
-started together, so that both see the same machine load. Each stops at the budget:
+so that both see the same machine load. Each stops at the budget:
 
 - `time`: `--time-limit` seconds of its own training (default 600, ten minutes of one core;
   the epoch that crosses it finishes);
@@ -17,13 +17,14 @@ graph or another topology, 200 trajectories), where a recipe that wins on its ow
 must also hold. The table gives, per system and recipe, mean ± std over the
 seeds of the validation MSE at the budget and the test MSE, and says which recipe is ahead.
 
-Runs are cached: `--runs`/<budget>/<system>-<recipe>-s<seed>/ keeps its run folder, and a
-run that was cut off resumes (`mpnode train --resume`) where it stopped. Each run's numbers
-are also written beside the table (`recipes.json`, committed with it), and a table rebuilt
-where the cache lacks a run takes that run from there: seeds run on different machines or
-days add up. A system known only from the table's own rows (run before the records
-existed) keeps those rows. Datasets are
-generated once into `--data` (bench/.data).
+Runs are jobs of the experiments' engine (`mpnode_cli.experiments.jobs`), two at a time in
+order, so the two recipes of a system and seed run side by side: each in its folder under
+`--runs`, its numbers in the folder's `step.json`; a run that was cut off resumes
+(`mpnode train --resume`) where it stopped, a finished one is not run again. Each run's
+numbers are also written beside the table (`recipes.json`, committed with it), and a table
+rebuilt where the work folder lacks a run takes that run from there: seeds run on different
+machines or days add up. A system known only from the table's own rows (run before the
+records existed) keeps those rows.
 
 Usage:
     .venv/bin/python bench/recipes.py --plan                 # what would run, and how long
@@ -48,6 +49,11 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))  # this checkout's package, before an installed one
+
+from mpnode_cli.experiments import jobs  # noqa: E402 (the engine the runs go on)
+from mpnode_cli.experiments.spec import CallStep  # noqa: E402
+
 RECIPES = ("mpnode", "paper")
 # Each system's training set, as bench/quality.py trains it.
 SYSTEMS = {"lorenz": "lorenz3", "gene": "gene-ba-4x4", "kuramoto": "kuramoto10-ba",
@@ -81,87 +87,80 @@ def env() -> dict[str, str]:
             "PYTHONPATH": str(ROOT)}
 
 
-def mpnode(*args: str, log: Path) -> subprocess.Popen:
+def mpnode(*args: str, log: Path, out: Path | None = None) -> None:
+    """`mpnode ARGS`, its output appended to `log` (its stdout to `out`, if given)."""
     log.parent.mkdir(parents=True, exist_ok=True)
-    return subprocess.Popen([sys.executable, "-m", "mpnode_cli", *args], cwd=ROOT, env=env(),
-                            stdout=log.open("a"), stderr=subprocess.STDOUT)
+    with log.open("a") as err, (out or log).open("a") as std:
+        code = subprocess.run([sys.executable, "-m", "mpnode_cli", *args], cwd=ROOT,
+                              env=env(), stdout=std, stderr=err).returncode
+    if code:
+        raise RuntimeError(f"mpnode {args[0]} exited {code}: see {log}")
 
 
-def dataset(args, system: str) -> Path:
-    preset = SYSTEMS[system]
-    path = args.data / f"{preset}.h5"
-    if not path.exists():
-        proc = mpnode("generate", "--preset", preset, "--out", str(path),
-                      log=args.runs / "generate.log")
-        if proc.wait():
-            raise SystemExit(f"generating {preset} failed: see {args.runs / 'generate.log'}")
-    return path
+def job_generate(folder: Path, inputs, resumed: bool, preset: str,
+                 trajectories: int | None) -> dict:
+    """A preset's dataset (`trajectories` of them, if given) in the job's folder."""
+    more = ["--trajectories", str(trajectories)] if trajectories else []
+    mpnode("generate", "--preset", preset, *more, "--out", str(folder / "partial.h5"), "-y",
+           log=folder / "log.txt")
+    (folder / "partial.h5").replace(folder / "data.h5")
+    return {"preset": preset}
 
 
-def held_out_data(args, system: str) -> Path | None:
-    """The system's held-out dataset (generated once), or None."""
-    preset = HELD_OUT.get(system)
-    if preset is None:
-        return None
-    path = args.data / f"{preset}-k{HELD_OUT_TRAJECTORIES}.h5"
-    if not path.exists():
-        proc = mpnode("generate", "--preset", preset, "--trajectories",
-                      str(HELD_OUT_TRAJECTORIES), "--out", str(path),
-                      log=args.runs / "generate.log")
-        if proc.wait():
-            raise SystemExit(f"generating {preset} failed: see {args.runs / 'generate.log'}")
-    return path
+def job_train(folder: Path, inputs, resumed: bool, system: str, recipe: str, seed: int,
+              budget: str, seconds: float, data: str, held_out: str | None) -> dict:
+    """Train one recipe on one system in `folder/run` (a cut-off run resumes), run it
+    zero-shot on the held-out graphs, and return its numbers."""
+    run, log = folder / "run", folder / "log.txt"
+    limit = (["--time-limit", str(seconds), "--epochs", str(PAPER_EPOCHS)]
+             if budget == "time" else ["--epochs", str(PAPER_EPOCHS)])
+    if (run / "checkpoints" / "last.pt").exists():
+        mpnode("train", "--resume", str(run), *limit, "--no-plots", log=log)
+    else:
+        mpnode("train", str(Path(inputs[data].folder) / "data.h5"), "--recipe", recipe,
+               "--seed", str(seed), "--run-dir", str(run), "--no-plots", *limit, log=log)
+    s = json.loads((run / "summary.json").read_text())
+    points = curve(run)
+    zero = None
+    if held_out:
+        out = folder / "held-out.json"
+        out.unlink(missing_ok=True)
+        mpnode("zeroshot", str(run), str(Path(inputs[held_out].folder) / "data.h5"), "--json",
+               log=log, out=out)
+        (item,) = json.loads(out.read_text())["datasets"]
+        zero = item["result"]["mse"]
+    return {"system": system, "recipe": recipe, "seed": seed, "budget": budget,
+            "seconds_limit": seconds, "val": points[-1][1] if points else math.nan,
+            "seconds": points[-1][0] if points else 0.0, "epochs": s["epochs"],
+            "test": (s.get("test") or {}).get("mse"), "held_out": zero,
+            "baselines": s.get("baselines") or {}, "curve": points}
 
 
-def held_out(args, system: str, recipe: str, seed: int) -> float | None:
-    """The run's zero-shot MSE on the held-out graphs (cached beside its run folder)."""
-    folder = run_dir(args, system, recipe, seed)
-    data = held_out_data(args, system)
-    cached = folder.parent / f"{folder.name}.held-out.json"
-    if data is None or not (folder / "summary.json").exists():
-        return None
-    if not cached.exists():
-        with cached.open("w") as out:
-            subprocess.run([sys.executable, "-m", "mpnode_cli", "zeroshot", str(folder),
-                            str(data), "--json"], cwd=ROOT, env=env(), stdout=out,
-                           stderr=subprocess.DEVNULL, check=False)
-    try:
-        (item,) = json.loads(cached.read_text())["datasets"]
-        return item["result"]["mse"]
-    except (ValueError, KeyError):
-        return None
-
-
-def run_dir(args, system: str, recipe: str, seed: int) -> Path:
-    return args.runs / args.budget / f"{system}-{recipe}-s{seed}"
-
-
-def start(args, system: str, recipe: str, seed: int) -> subprocess.Popen | None:
-    """Start (or resume) one run; None when it is done."""
-    folder = run_dir(args, system, recipe, seed)
-    if (folder / "summary.json").exists() and json.loads(
-            (folder / "summary.json").read_text()).get("finished", True):
-        return None
-    budget = (["--time-limit", str(args.seconds), "--epochs", str(PAPER_EPOCHS)]
-              if args.budget == "time" else ["--epochs", str(PAPER_EPOCHS)])
-    if (folder / "checkpoints" / "last.pt").exists():
-        return mpnode("train", "--resume", str(folder), *budget, "--no-plots",
-                      log=folder.parent / f"{folder.name}.log")
-    return mpnode("train", str(dataset(args, system)), "--recipe", recipe, "--seed",
-                  str(seed), "--run-dir", str(folder), "--no-plots", *budget,
-                  log=folder.parent / f"{folder.name}.log")
-
-
-def run_all(args) -> None:
-    """Each (system, seed): both recipes at once, one core each."""
+def steps_of(args) -> list[CallStep]:
+    """The datasets, then both recipes of each (system, seed), side by side in order."""
+    steps: dict[str, CallStep] = {}
     for system in args.systems:
-        dataset(args, system)
+        wanted = [(SYSTEMS[system], None)]
+        if system in HELD_OUT:
+            wanted.append((HELD_OUT[system], HELD_OUT_TRAJECTORIES))
+        for preset, k in wanted:
+            sid = f"gen-{preset}" + (f"-k{k}" if k else "")
+            steps[sid] = CallStep(verb="call", id=sid, target="recipes:job_generate",
+                                  args={"preset": preset, "trajectories": k}, seconds=10.0,
+                                  group="data")
+        ids = [s for s in steps if s.startswith(f"gen-{SYSTEMS[system]}")][:1] + (
+            [f"gen-{HELD_OUT[system]}-k{HELD_OUT_TRAJECTORIES}"] if system in HELD_OUT else [])
         for seed in args.seeds:
-            procs = [p for p in (start(args, system, r, seed) for r in RECIPES) if p]
-            for proc in procs:
-                proc.wait()
-            print(f"{system} seed {seed}: done", file=sys.stderr)
-            write_table(args)
+            for recipe in RECIPES:
+                sid = f"{args.budget}-{system}-{recipe}-s{seed}"
+                steps[sid] = CallStep(
+                    verb="call", id=sid, target="recipes:job_train", needs=ids,
+                    args={"system": system, "recipe": recipe, "seed": seed,
+                          "budget": args.budget, "seconds": args.seconds, "data": ids[0],
+                          "held_out": ids[1] if len(ids) > 1 else None},
+                    seconds=args.seconds if args.budget == "time" else 4 * 3600.0,
+                    group=system)
+    return list(steps.values())
 
 
 def curve(folder: Path) -> list[tuple[float, float]]:
@@ -180,16 +179,11 @@ def curve(folder: Path) -> list[tuple[float, float]]:
 
 
 def result(args, system: str, recipe: str, seed: int) -> dict | None:
-    folder = run_dir(args, system, recipe, seed)
-    summary = folder / "summary.json"
-    if not summary.exists():
-        return None
-    s = json.loads(summary.read_text())
-    points = curve(folder)
-    return {"val": points[-1][1] if points else math.nan, "seconds": points[-1][0],
-            "epochs": s["epochs"], "test": (s.get("test") or {}).get("mse"),
-            "held_out": held_out(args, system, recipe, seed),
-            "baselines": s.get("baselines") or {}, "curve": points}
+    """The latest recorded run of (system, recipe, seed) at this budget, if any."""
+    found = [r for r in jobs.records(args.runs)
+             if (r.get("system"), r.get("recipe"), r.get("seed"), r.get("budget"))
+             == (system, recipe, seed, args.budget)]
+    return found[-1] if found else None
 
 
 def _pm(values: list[float], spec: str = ".3g") -> str:
@@ -410,26 +404,24 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--budget", choices=("time", "epochs"), default="time")
     parser.add_argument("--seconds", type=float, default=600.0)
-    parser.add_argument("--data", type=Path, default=HERE / ".data")
     parser.add_argument("--runs", type=Path, default=HERE / ".runs" / "recipes")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--plan", action="store_true")
     parser.add_argument("--table-only", action="store_true")
     args = parser.parse_args(argv)
     args.all_systems, args.all_seeds = list(SYSTEMS), sorted(set(args.seeds) | {0, 1, 2})
+    args.runs = args.runs.resolve()
+    steps = steps_of(args)
+    print(jobs.plan(steps, args.runs, 2), file=sys.stderr)
     if args.plan:
-        pairs = len(args.systems) * len(args.seeds)
-        each = args.seconds if args.budget == "time" else math.nan
-        print(f"{pairs} (system, seed) pairs, two runs each side by side: about "
-              f"{pairs * each / 60:.0f} minutes of wall time on 2 cores"
-              if args.budget == "time" else
-              f"{pairs} pairs of {PAPER_EPOCHS}-epoch runs: hours each (see "
-              "`mpnode experiment list --scale paper`)")
         return 0
-    if not args.table_only:
-        run_all(args)
+    failed = {} if args.table_only else jobs.run_jobs(
+        steps, args.runs, 2, lambda e: e["event"] == "step-done" and e["status"] != "skipped"
+        and print(f"done {e['id']}", file=sys.stderr))
     write_table(args)
-    return 0
+    for name, why in failed.items():
+        print(f"not run: {name}: {why}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
