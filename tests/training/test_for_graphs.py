@@ -83,7 +83,7 @@ def test_for_graphs_trains_on_coverage_that_reaches_the_targets_hubs(tmp_path, d
     assert config["coverage"]["multiplicity"] == w
     assert _file_in_degrees(coverage).max() == w * (N_SOURCE - 1) >= reach
     # The transfer recipe, where nothing was given.
-    assert (config["schedule"], config["clip"]) == ("cosine", 5.0)
+    assert (config["schedule"], config["clip"], config["stop_patience"]) == ("cosine", 5.0, None)
     with h5py.File(coverage, "r") as cov, h5py.File(data["source"], "r") as src:
         made, source = (json.loads(f.attrs["config"]) for f in (cov, src))
     for key in ("system", "params", "nodes", "t_end", "dt", "solver", "topology"):
