@@ -7,15 +7,17 @@
 # Peak memory: /usr/bin/time -v's maximum resident set size. One torch thread per run.
 # Usage: bash bench/memory_training.sh [WORK]   (about 15 minutes of one core)
 set -euo pipefail
-M="$(cd "$(dirname "$0")/.." && pwd)/.venv/bin/mpnode"
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"  # this checkout's package, on its interpreter
+M() { PYTHONPATH="$ROOT" "${PYTHON:-$ROOT/.venv/bin/python}" -m mpnode_cli "$@"; }
 W="${1:-bench/.runs/memory-training}"
 mkdir -p "$W" && cd "$W"
-[ -f sis1024.h5 ] || "$M" generate sis --topology s1 --nodes 1024 -p gamma=2.5 \
+[ -f sis1024.h5 ] || M generate sis --topology s1 --nodes 1024 -p gamma=2.5 \
   --trajectories 12 --t-end 10 --dt 0.1 --seed 3 --graph-seed 3 -o sis1024.h5 -y --threads 1
 run() {  # NAME OPTIONS...: train 2 epochs at batch 8 over the whole horizon, seed 0
   local name=$1; shift
   rm -rf "$name"
-  /usr/bin/time -v "$M" train sis1024.h5 --epochs 2 --batch-size 8 --no-horizon-curriculum \
+  /usr/bin/time -v env PYTHONPATH="$ROOT" "${PYTHON:-$ROOT/.venv/bin/python}" -m mpnode_cli \
+    train sis1024.h5 --epochs 2 --batch-size 8 --no-horizon-curriculum \
     --run-dir "$name" --no-plots --threads 1 --seed 0 "$@" > "$name.log" 2>&1
   python3 - "$name" <<'PY'
 import json, re, sys
