@@ -50,7 +50,8 @@ from pathlib import Path
 
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.ensemble import Ensemble

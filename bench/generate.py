@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate, resolve_generate_config
 from mpnode_cli.data.hdf5 import Dataset, read_dataset
 from mpnode_cli.data.presets import PRESETS, get_preset

@@ -34,7 +34,7 @@ import` takes (states.npz with `states [K, T, N, 2]` and `time [T]`, controls.np
 1]`, adjacency.npy `[K, N, N]`, one graph per trajectory, so a dataset may hold several
 graphs) and runs `python -m mpnode_cli import` on them. Graph g (of `graphs`) is the `ba`
 graph `mpnode generate --topology ba --graph-seed S` builds for seed S + g with m edges per
-new node (`mpnode_cli.topologies.make_graph`), and trajectories are spread over the graphs in
+new node (`mpnode_cli.graphs.topologies.make_graph`), and trajectories are spread over the graphs in
 contiguous blocks, as `mpnode generate --graphs` spreads them. θ is declared periodic
 (`--periodic theta`): the field depends on it only through sin(θ_j − θ_i), so
 `mpnode train --periodic embed` may feed the node networks its sine and cosine. The
@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpnode_cli.topologies import make_graph
+from mpnode_cli.graphs.topologies import make_graph
 
 ROOT = Path(__file__).resolve().parent.parent
 

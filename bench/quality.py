@@ -361,7 +361,7 @@ def zeroed_eval(checkpoint: str, data_path: str) -> None:
     """
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.evaluate import evaluate_checkpoint
+    from mpnode_cli.training.checkpoint_report import evaluate_checkpoint
 
     ckpt = load_checkpoint(checkpoint)
     ckpt.model_config = {**ckpt.model_config, "messages": False}
@@ -615,7 +615,7 @@ def main(argv=None) -> int:
     threads = subprocess.run([sys.executable, "-c", "import torch; print(torch.get_num_threads(),"
                               " torch.__version__)"], capture_output=True, text=True,
                              env=env(), check=True).stdout.split()
-    from mpnode_cli.paths import shown_argv
+    from mpnode_cli.file_records import shown_argv
 
     # Absolute paths are shown relative to the current folder, or as <option>: the
     # results are committed, and the folders of the machine that ran them mean nothing.

@@ -86,7 +86,8 @@ def bench_generate(folder: Path, trajectories: int, rounds: int) -> dict:
 
 
 def bench_train(folder: Path, trajectories: int, epochs: int, rounds: int) -> dict:
-    from mpnode_cli.config import GenerateConfig, TrainConfig
+    from mpnode_cli.config.generate import GenerateConfig
+    from mpnode_cli.config.train import TrainConfig
     from mpnode_cli.data.generate import generate
     from mpnode_cli.training.loop import train
     from mpnode_cli.training.run import read_metrics

@@ -7,7 +7,7 @@ the system's recommended PNA aggregation, small batches, solver not compiled) tr
 them. Each command runs in its own subprocess, and its peak resident set size is that
 process's `ru_maxrss` (`os.wait4`), so the numbers are the CLI's own, imports included.
 
-Graphs above 256 nodes (`mpnode_cli.graphs.DENSE_GRAPH_MAX_NODES`) are held as edge lists
+Graphs above 256 nodes (`mpnode_cli.limits.DENSE_GRAPH_MAX_NODES`) are held as edge lists
 only, so memory should grow with the messages E (≈ 10·N here) and the states, not with N²:
 the table shows what one float32 N×N matrix would take beside each peak (K of them for
 the per-trajectory `[K, N, N]` batch training used to gather).

@@ -51,7 +51,8 @@ from pathlib import Path
 
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.presets import get_preset
@@ -144,11 +145,14 @@ class StepProblem:
         self.x0 = torch.randn(self.B, self.N, self.D, generator=gen)
         self.ts = torch.linspace(0.0, 2.5, self.T, dtype=torch.float64)
         self.target = torch.randn(self.B, self.T, self.N, self.D, generator=gen)
+        # One SolverOptions per variant, as a training run has: the compiled variant's
+        # steps share its compiled step.
+        self.solvers = {name: TrainConfig(dataset="-", **options).solver
+                        for name, (options, _) in VARIANTS.items()}
 
     def states(self, name: str) -> tuple[torch.Tensor, int]:
         """`[B, T, N, D]` predicted states and the RHS evaluations (max over samples)."""
-        options, integrate = VARIANTS[name]
-        solver = TrainConfig(dataset="-", **options).solver
+        solver, integrate = self.solvers[name], VARIANTS[name][1]
         with integrator(integrate):
             out = self.model.rollout(self.x0, self.ts, self.adj, solver=solver)
         return out.states, out.n_f_evals

@@ -31,13 +31,12 @@ A verb that writes a file or a folder checks first that it can (`check_output_fi
 
 from __future__ import annotations
 
-import hashlib
 import os
 import stat
-import tempfile
-import uuid
 from collections.abc import Iterable
 from pathlib import Path
+
+from mpnode_cli.path_limits import NAME_MAX, check_length, check_writable_dir
 
 # Inode flags that forbid replacing a file by a rename (linux/fs.h: FS_IMMUTABLE_FL,
 # FS_APPEND_FL), read with the FS_IOC_GETFLAGS ioctl (`_IOR('f', 1, long)` on 64 bits).
@@ -47,8 +46,6 @@ _IMMUTABLE, _APPEND_ONLY, _GETFLAGS = 0x10, 0x20, 0x80086601
 class OutputError(ValueError):
     """An output that cannot be written where it was asked (one line for the user)."""
 
-# POSIX's limits where the filesystem does not say (`os.pathconf`): one name, one path.
-NAME_MAX, PATH_MAX = 255, 4096
 # Bytes a temporary beside a file may add to its name: `.` + `.<pid>.<8 hex>.tmp`.
 _TEMP_ROOM = 32
 # Room left in a folder's path for what its writer puts inside (a name's worth).
@@ -154,6 +151,10 @@ def output_arg(text: str | Path | None, option: str, *, folder: bool = False
     if not folder and raw.endswith(("/", os.sep)):
         raise OutputError(f"{option} {raw} ends in '/', a folder: give the file's name "
                           f"too, e.g. {raw}data.h5")
+    parts = Path(raw).parts
+    if any(part == ".." and i and not Path(*parts[:i]).exists()
+           for i, part in enumerate(parts)):  # `x/..` of no x: made, it would be left behind
+        return Path(os.path.normpath(raw))
     return Path(raw)
 
 
@@ -285,83 +286,6 @@ def check_not_input(path: str | Path, inputs: Iterable[str | Path | None]) -> No
                              "its inputs, even with --force; choose another output path")
 
 
-def check_length(path: str | Path, *, room: int = 0) -> None:
-    """Refuse a path the filesystem cannot hold: a name longer than its limit for one name
-    (usually 255 bytes), or a whole path (absolute, plus `room` bytes for what the writer
-    adds: a temporary's suffix, the files inside a folder) longer than the system's.
-
-    Raises:
-        ValueError: one line saying which name, or how long, and the limit.
-    """
-    path = Path(path)
-    name_max, path_max = _limits(path)
-    for name in path.parts:
-        size = len(os.fsencode(name))
-        if size > name_max and name != path.anchor:
-            where = f" in {_short(str(path))}" if name != str(path) else ""
-            raise ValueError(f"the name '{_short(name)}'{where} is {size} bytes, longer than "
-                             f"the {name_max} bytes a file or folder name may have here; "
-                             "choose a shorter name")
-    size = len(os.fsencode(os.path.abspath(path)))
-    if size + room >= path_max:
-        raise ValueError(f"cannot write {_short(str(path))}: its full path is {size} bytes, "
-                         f"and mpnode needs it under {path_max - room} (the {path_max} bytes "
-                         "a path may have here, less room for the files written there); "
-                         "choose a shorter path")
-
-
-def temp_beside(path: str | Path) -> Path:
-    """A fresh temporary name beside `path` (same folder, hence same filesystem, so that a
-    rename onto `path` is atomic): `.<name>.<pid>.<random>.tmp`, its name shortened to fit
-    the limit on one name."""
-    path = Path(path)
-    tail = f".{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp"
-    return path.with_name(f".{shorten(path.name, _limits(path)[0] - 1 - len(tail))}{tail}")
-
-
-def shorten(name: str, size: int) -> str:
-    """The longest start of `name`, in whole characters, that is at most `size` bytes on
-    disk (for names mpnode makes from a user's: a temporary's, a run folder's)."""
-    while len(os.fsencode(name)) > size:
-        name = name[:-1]
-    return name
-
-
-def check_writable_dir(path: str | Path) -> None:
-    """Refuse a folder that cannot be written in, or made (without making it).
-
-    A missing folder is judged by its nearest existing ancestor, which must be a folder a
-    file can be created in; a probe file proves it (permission bits alone do not tell:
-    read-only mounts, immutable folders, and the superuser all defy them).
-
-    Raises:
-        ValueError: one line naming the folder and why.
-    """
-    path = Path(path)
-    probe = path
-    while not probe.exists() and not probe.is_symlink() and probe != probe.parent:
-        probe = probe.parent
-    if not probe.is_dir():
-        raise ValueError(f"cannot write in {path}: {probe} is not a folder")
-    try:
-        fd, name = tempfile.mkstemp(dir=probe, prefix=".mpnode-probe-")
-        os.close(fd)
-        os.unlink(name)
-    except OSError as exc:
-        where = path if probe == path else f"{path} (its folder {probe})"
-        raise ValueError(f"cannot write in {where}: {exc.strerror or exc}") from None
-
-
-def file_sha256(path: str | Path) -> str:
-    """Hex sha256 of a file's bytes: a checkpoint's identity (recorded by finetunes and
-    predictions), an imported input's."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _exists(path: Path, foreign: bool = False) -> str:
     """Why an existing output is refused without `--force`: an empty file is most likely
     another run's reservation, and saying so beats a bare "exists"; a `foreign` one is a
@@ -417,51 +341,3 @@ def _same_file(a: Path, b: Path) -> bool:
         return os.path.samefile(a, b)
     except OSError:  # one of them is missing (or unreadable)
         return os.path.realpath(a) == os.path.realpath(b)
-
-
-def _limits(path: Path) -> tuple[int, int]:
-    """The filesystem's limits on one name and on a whole path, in bytes, asked of the
-    nearest existing folder above `path` (POSIX's where it does not say)."""
-    probe = Path(os.path.abspath(path)).parent
-    while not os.path.isdir(probe) and probe != probe.parent:  # isdir: False on any error
-        probe = probe.parent
-    limits = []
-    for name, default in (("PC_NAME_MAX", NAME_MAX), ("PC_PATH_MAX", PATH_MAX)):
-        try:
-            limits.append(int(os.pathconf(probe, name)) or default)
-        except (AttributeError, OSError, ValueError):  # no pathconf (Windows), or no answer
-            limits.append(default)
-    return limits[0], limits[1]
-
-
-def _short(text: str, keep: int = 60) -> str:
-    """`text` as it is, or its start and end around an ellipsis when over `keep` chars."""
-    return text if len(text) <= keep else f"{text[:keep * 2 // 3]}…{text[-keep // 3:]}"
-
-
-# ------------------------------------------------------------------- paths in records
-
-
-def shown_path(path: str | Path, placeholder: str) -> str:
-    """`path` as a committed record shows it: a relative path as given, an absolute one
-    under the current folder relative to it, any other absolute one as `placeholder`
-    (e.g. `<work>`), so records do not carry the folders of the machine that wrote them."""
-    path = Path(path)
-    if not path.is_absolute():
-        return str(path)
-    try:
-        return str(path.relative_to(Path.cwd())) or "."
-    except ValueError:
-        return placeholder
-
-
-def shown_argv(args: list[str]) -> list[str]:
-    """Command-line arguments as a record shows them: each absolute path through
-    `shown_path`, its placeholder named after the option before it (`--runs /tmp/x` →
-    `--runs <runs>`)."""
-    out = []
-    for i, arg in enumerate(args):
-        before = args[i - 1] if i else ""
-        name = before.lstrip("-") if before.startswith("--") else "path"
-        out.append(shown_path(arg, f"<{name}>") if os.path.isabs(arg) else arg)
-    return out

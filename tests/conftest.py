@@ -20,8 +20,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # first and the short files fill in at the end, and both workers finish near together.
 SLOW_FIRST = ("test_experiments", "test_distributed", "test_training", "test_quadrotor",
               "test_readme", "test_signals", "test_ensemble", "test_resume_transactional",
-              "test_solver", "test_solver_compact", "test_solver_dense_numpy",
-              "test_solver_fused", "test_ensemble_reports", "test_predict")
+              "test_solver", "test_solver_compact", "test_solver_fused",
+              "test_ensemble_reports", "test_predict")
 
 
 def pytest_collection_modifyitems(items: list) -> None:
@@ -130,7 +130,7 @@ def synthetic(k: int, t: int, seed: int, dt: float = 0.1, nodes: int = 3) -> Tra
     import numpy as np
 
     from mpnode_cli.data.dataset import TrajectoryData
-    from mpnode_cli.graphs import Graphs
+    from mpnode_cli.graphs.matrices import Graphs
 
     rng = np.random.default_rng(seed)
     states = rng.normal(size=(k, t, nodes, 2)).cumsum(axis=1) * [1.0, 5.0] + [0.0, 2.0]
@@ -205,7 +205,7 @@ def tiny_checkpoint(tmp_path_factory) -> Path:
     from typer.testing import CliRunner
 
     from mpnode_cli.cli.app import app
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
 
     root = tmp_path_factory.mktemp("tiny")
@@ -285,7 +285,7 @@ def gene_data(folder: Path, grid: int = 2, trajectories: int = 48, t_end: float 
               name: str = "gene") -> Path:
     """`folder/<name>.h5`: gene dynamics on a grid × grid ER graph, sampled every 0.1 up to
     `t_end` (48 trajectories split 34 / 7 / 7 by default)."""
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
 
     out = folder / f"{name}.h5"
@@ -303,7 +303,7 @@ def gene_2x2(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def gene_ba4(tmp_path_factory) -> Path:
     """Gene dynamics on a 4-node BA graph: 8 trajectories × 21 samples (seed 1)."""
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
 
     out = tmp_path_factory.mktemp("data") / "gene-ba4.h5"

@@ -35,11 +35,6 @@ import torch
 from mpnode_cli.solver import solve
 from mpnode_cli.solver.tableau import METHODS
 
-try:  # before the numpy namespace was retired: `--torch-on-cpu` switches it off
-    from mpnode_cli.solver import host as _host
-except ImportError:
-    _host = None
-
 SWITCH = 0.37  # where the field's zero-order-hold input jumps (the tstop)
 T_EVAL = [0.0, 0.1, 0.25, 0.5, 0.8, 1.0]
 N_SLOW, N_FAST = 16, 7  # and one sample that blows up
@@ -167,8 +162,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compile", action="store_true", help="add a compiled solve")
     parser.add_argument("--only", default="", help="only the cases whose name contains this "
                         "(e.g. tsit5/adaptive), for a quick look")
-    parser.add_argument("--torch-on-cpu", action="store_true",
-                        help="where the solver still has its numpy namespace, turn it off")
     parser.add_argument("--compare", nargs=2, metavar="JSON", help="compare two fingerprints")
     args = parser.parse_args(argv)
     if args.compare:
@@ -176,8 +169,6 @@ def main(argv: list[str] | None = None) -> int:
     if not args.out:
         parser.error("give the JSON file to write, or --compare A B")
     torch.manual_seed(0)
-    if args.torch_on_cpu and hasattr(_host, "NUMPY_ON_CPU"):
-        _host.NUMPY_ON_CPU = False
     hashes, tensors = fingerprint(args.compile, args.only)
     with open(args.out, "w") as fh:
         json.dump(hashes, fh, indent=1, sort_keys=True)

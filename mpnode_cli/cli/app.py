@@ -101,16 +101,34 @@ class _Threadless(TyperCommand):
 
 def _disk_full_is_one_line(invoke: Any, ctx: typer.Context) -> Any:
     """Run a verb; a full disk that a write of its own meets in a file it names (a folder,
-    a metrics row; the atomic writes say it themselves) is one line and exit 2 too."""
+    a metrics row; the atomic writes say it themselves) is one line and exit 2 too, and so
+    is a disk that fails a read or a write (EIO), wherever it is met (exit 1)."""
     import errno
 
     try:
         return invoke(ctx)
     except OSError as exc:
+        if exc.errno == errno.EIO and (exc.filename is not None or _stdout_writes()):
+            where = f" on {exc.filename}" if exc.filename is not None else ""
+            fail(f"input/output error{where} (errno 5: the disk or the device behind it "
+                 "failed a read or a write); check it and run the command again", code=1)
         if exc.filename is None or exc.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise  # stdout's own (`main`), or not a full disk
         fail(f"no space left on device writing {exc.filename}: free some space and run it "
              "again")
+
+
+def _stdout_writes() -> bool:
+    """Whether standard output still takes writes (its buffered part flushed): an error
+    without a file name is then a file's, not stdout's (which `main` says)."""
+    import sys
+
+    try:
+        if sys.stdout is not None:
+            sys.stdout.flush()
+    except OSError:
+        return False
+    return True
 
 
 # Each verb's module imports only typer at load time; heavy imports live in its function.
@@ -140,6 +158,12 @@ def main() -> None:
     import sys
 
     ascii_fallback()
+    try:  # torch's loader would fail on it, naming a library (Intel oneMKL) instead
+        os.getcwd()
+    except FileNotFoundError:
+        sys.stderr.write("Error: the current folder no longer exists (it was deleted or "
+                         "moved): change to another folder and run it again\n")
+        raise SystemExit(2) from None
     try:
         try:
             app(prog_name="mpnode")

@@ -59,8 +59,9 @@ def check_command(
                             f"{exported['seed']}) as a checkpoint of one model",
                             highlight=False)
     else:
-        for problem in report.problems:
-            typer.echo(f"Error: {report.path}: {problem}", err=True)
+        for problem in report.problems:  # the file named once
+            named = problem.startswith(str(report.path))
+            typer.echo(f"Error: {'' if named else f'{report.path}: '}{problem}", err=True)
     if not report.ok:
         raise typer.Exit(code=2)
 
@@ -72,6 +73,8 @@ def _export(report, member: int, out: Path, force: bool) -> dict:
 
     if report.kind != "checkpoint":
         fail(f"--member: {report.path} is a {report.kind}, not an ensemble checkpoint")
+    if out.suffix.lower() in _HDF5_SUFFIXES:  # every reader would take it for a dataset
+        fail(f"--out {out}: a checkpoint is a .pt file, and {out.suffix} names a dataset")
     try:
         ckpt = export_member(report.path, member, out, overwrite=force)
     except (FileExistsError, FileNotFoundError, ValueError) as exc:

@@ -69,7 +69,7 @@ def error_message(exc: Exception) -> str:
     """One line for a user: pydantic's multi-line errors condensed, others as they are."""
     from pydantic import ValidationError
 
-    from mpnode_cli.config_file import error_line
+    from mpnode_cli.config.file import error_line
 
     return error_line(exc) if isinstance(exc, ValidationError) else str(exc)
 

@@ -74,7 +74,7 @@ def evaluate_command(
 
     from mpnode_cli.paths import check_output_folder, reserve_output
     from mpnode_cli.report.tables import baselines_note, degree_table, metrics_table
-    from mpnode_cli.training.evaluate import plot_paths
+    from mpnode_cli.training.checkpoint_report import plot_paths
 
     _check_batch_size(batch_size)
     ckpt = _load_checkpoint(checkpoint, member)
@@ -219,7 +219,7 @@ def _evaluate(ckpt, dataset: Path, split: str, verb: str, batch_size: int, devic
     from mpnode_cli.cli.common import task_bar
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.devices import torch_device
-    from mpnode_cli.training.evaluate import evaluate_checkpoint
+    from mpnode_cli.training.checkpoint_report import evaluate_checkpoint
     from mpnode_cli.training.predict import PredictionFailed
 
     try:

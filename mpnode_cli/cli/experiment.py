@@ -109,6 +109,9 @@ def report_command(
         experiments = [load(name) for name in (names or shipped())]
         chosen = [e for e in experiments if names or saved_runs(out, e.name)]
         _check_reports(out, None, [])
+        if not chosen:  # a mistyped --out: no index of runs that are not there
+            raise ValueError(f"no saved runs under {out}: nothing to report (mpnode "
+                             "experiment run writes them there)")
         for experiment in chosen:
             if not saved_runs(out, experiment.name):
                 raise ValueError(f"no saved run of {experiment.name} under {out}")
@@ -117,6 +120,9 @@ def report_command(
         typer.echo(f"rebuilt {rebuild_index(out)}")
     except (FileExistsError, ValueError) as exc:
         fail(error_message(exc))
+    except OSError as exc:  # a record that cannot be read, a report the disk cannot take
+        fail(f"cannot rebuild the reports in {out}: "
+             f"{exc.filename or ''}{': ' * bool(exc.filename)}{exc.strerror or exc}")
 
 
 def run_command(
@@ -158,7 +164,7 @@ def run_command(
     """Run (or resume) an experiment and write its report."""
     import shlex
 
-    from mpnode_cli.experiments.saved import run_folder
+    from mpnode_cli.experiments.saved import run_folder, saved_runs
     from mpnode_cli.experiments.spec import load
     from mpnode_cli.paths import check_output_folder
     from mpnode_cli.threads import available_cpus
@@ -182,8 +188,11 @@ def run_command(
         check_output_folder(work)
         check_output_folder(out / experiment.name)
         _check_reports(out, experiment.name, [run_folder(scale, _RECIPES[recipe], draw)])
+        saved_runs(out, experiment.name)  # the records its report is rebuilt from: readable
     except (FileExistsError, ValueError) as exc:
         fail(error_message(exc))
+    except OSError as exc:
+        fail(f"cannot read {exc.filename or out}: {exc.strerror or exc}")
     command = shlex.join(["mpnode", "experiment", "run", name, "--scale", scale, "--recipe",
                           _RECIPES[recipe], "--seeds", str(seeds),
                           *(["--draw", str(draw)] if draw else []), *_given_paths(out, work),
@@ -218,7 +227,7 @@ def _given_paths(out: Path, work: Path) -> list[str]:
     """`--out`/`--work` for the recorded command, when not the defaults: relative to the
     current folder, or `<out>`/`<work>` for a folder outside it (reports are committed,
     and the folders of the machine that ran them mean nothing elsewhere)."""
-    from mpnode_cli.paths import shown_path
+    from mpnode_cli.file_records import shown_path
 
     extra = []
     if out != Path("reports"):
@@ -256,8 +265,9 @@ def _run(experiment, scale: str, recipe: str, out: Path, work: Path, command: st
         raise typer.Exit(code=exit_code(cause)) from None
     try:
         path = write_report(record, experiment, out)
-    except OSError as exc:  # checked first, but the disk may fill or the folder go
-        fail(f"cannot write the report in {out}: {exc.strerror or exc} (the steps are done "
+    except (OSError, ValueError) as exc:  # checked first, but the disk may fill, a folder go
+        said = getattr(exc, "strerror", None) or exc
+        fail(f"cannot write the report in {out}: {said} (the steps are done "
              f"and kept in {work}: run the same command again to write it)")
     ran = sum(step.status != "skipped" for step in record.steps)
     typer.echo(f"{experiment.name}: {ran} of {len(record.steps)} steps ran, "
@@ -288,9 +298,9 @@ class _Steps:
             self.console.print(f"[bold][{event['index']}/{event['total']}] {event['verb']} "
                                f"{event['id']}[/bold]: {verb} ({event['folder']})")
             if event["status"] != "skipped" and event["verb"] in ("train", "finetune"):
-                from mpnode_cli.cli.train import _Display
+                from mpnode_cli.cli.train_display import TrainingDisplay
 
-                self.inner = _Display(self.console).__enter__()
+                self.inner = TrainingDisplay(self.console).__enter__()
             elif event["status"] != "skipped" and event["verb"] == "generate":
                 self.inner = _GenerateBar(self.console).__enter__()
         elif kind == "train" and self.inner is not None:

@@ -23,18 +23,17 @@ from mpnode_cli.cli.common import (
     THREADS,
     YES,
     confirm_size,
-    console,
     output_parser,
     solver_option,
-    split_by_name,
     warn,
     with_bar,
 )
 from mpnode_cli.cli.common import error_message as _message
 from mpnode_cli.cli.common import fail as _usage_error
+from mpnode_cli.cli.generate_summary import print_json, print_summary
 from mpnode_cli.cli.options import field_default, field_parameter, in_panel, with_options
-from mpnode_cli.config import GenerateConfig, generate_solver
-from mpnode_cli.threads import applied_threads
+from mpnode_cli.config.fields import generate_solver
+from mpnode_cli.config.generate import GenerateConfig
 
 
 def _complete_system(incomplete: str) -> list[str]:
@@ -202,8 +201,8 @@ def _layered_config(preset: str | None, config_file: Path | None, system_file: P
         ValueError: a system file, preset or config file that does not load, no system,
             or fields the config refuses.
     """
-    from mpnode_cli.config_file import read_config_file
-    from mpnode_cli.config_upgrade import upgrade_solver_fields
+    from mpnode_cli.config.file import read_config_file
+    from mpnode_cli.config.upgrade import upgrade_solver_fields
     from mpnode_cli.data.presets import get_preset, merge_layers
 
     own = None
@@ -314,9 +313,9 @@ def _run(config: Any, force: bool, yes: bool, json_out: bool,
                        quiet=json_out, stopped=f"nothing written to {output_path(config)}",
                        failures=(GenerateError,), columns=columns, total=config.trajectories)
     if json_out:
-        _print_json(config, summary)
+        print_json(config, summary)
     else:
-        _print_summary(config, summary)
+        print_summary(config, summary)
 
 
 def _confirm_size(config: Any, yes: bool) -> None:
@@ -330,50 +329,6 @@ def _confirm_size(config: Any, yes: bool) -> None:
     start, stop = trajectory_range(config)
     confirm_size(estimate(config), f"{stop - start} trajectories × {config.num_steps + 1} "
                  f"samples × {config.nodes} nodes", yes)
-
-
-def _print_json(config: Any, summary: Any) -> None:
-    import json
-
-    typer.echo(json.dumps({
-        "path": str(summary.path), "system": config.system, "num_nodes": config.nodes,
-        "topology": config.topology, "graphs": config.graphs,
-        "trajectories": summary.trajectories, "split": split_by_name(summary.split_counts),
-        "samples": config.num_steps + 1, "dt": config.dt, "t_end": config.t_end,
-        "failed": summary.failed, "rejected": summary.rejected,
-        "n_f_evals": summary.n_f_evals, "seconds": summary.seconds,
-        "solve_seconds": summary.solve_seconds,
-        "shard": None if config.shard is None else list(config.shard),
-    }))
-
-
-def _print_summary(config: Any, summary: Any) -> None:
-    from mpnode_cli.report.tables import titled
-
-    train, val, test = summary.split_counts
-    table = titled(f"wrote {summary.path}", show_header=False)
-    table.add_column(style="bold")
-    table.add_column(justify="right")
-    rows = [
-        ("system", f"{config.system} on {config.graphs} × {config.topology}"),
-        ("nodes", str(config.nodes)),
-        ("trajectories", f"{summary.trajectories} ({train} train / {val} val / {test} test)"),
-        ("samples", f"{config.num_steps + 1} (dt {config.dt:g}, t_end {config.t_end:g})"),
-        ("failed / rejected", f"{summary.failed} / {summary.rejected} (redrawn)"),
-        ("RHS evaluations", f"{summary.n_f_evals:,}"),
-        ("seconds", f"{summary.seconds:.2f} ({summary.solve_seconds:.2f} solving)"),
-    ]
-    if config.shard is not None:
-        from mpnode_cli.data.generate import trajectory_range
-
-        (index, count), (start, stop) = config.shard, trajectory_range(config)
-        rows.insert(3, ("shard", f"{index} of {count}: trajectories {start}–{stop - 1} of "
-                                 f"{config.trajectories}"))
-    for row in rows:
-        table.add_row(*row)
-    console().print(table)
-    if threads := applied_threads():
-        typer.echo(f"threads: {threads.describe()}")
 
 
 def _whole(text: str, option: str) -> int:

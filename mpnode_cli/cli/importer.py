@@ -15,7 +15,7 @@ import typer
 
 from mpnode_cli.cli.common import FORCE, JSON_OUT, console, output_parser, warn
 from mpnode_cli.cli.options import field_default, field_parameter, with_options
-from mpnode_cli.config import ImportConfig
+from mpnode_cli.config.importer import ImportConfig
 from mpnode_cli.terminal import suggested
 
 DATA, WRITTEN = "Your data", "The dataset written"

@@ -86,9 +86,9 @@ def _facts(header: dict[str, Any]) -> dict[str, Any]:
     """The summary as JSON-able facts (what `--json` prints and the table shows)."""
     import numpy as np
 
-    from mpnode_cli.config import generate_solver
-    from mpnode_cli.config_upgrade import stored_solver
-    from mpnode_cli.graphs import degree_range
+    from mpnode_cli.config.fields import generate_solver
+    from mpnode_cli.config.upgrade import stored_solver
+    from mpnode_cli.graphs.matrices import degree_range
 
     attrs, shapes, config = header["attrs"], header["shapes"], header["attrs"]["config"]
     (k, t, n, d), states_dtype = shapes["states"]

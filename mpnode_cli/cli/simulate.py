@@ -2,7 +2,7 @@
 a trained node model on graphs nobody has data for.
 
 The command parses, builds a `SimulateConfig` and calls
-`mpnode_cli.training.predict.simulate`, which writes the predictions as an
+`mpnode_cli.training.simulate.simulate`, which writes the predictions as an
 `mpnode-dataset` file (docs/dataset-format.md, "Predictions"). Before a big rollout it
 prints the size and memory it will take and asks to go on, as `generate` does (`--yes`
 answers for a script). Exit 2 for anything the user can fix, 1 when rollouts did not
@@ -31,7 +31,7 @@ from mpnode_cli.cli.common import (
     output_parser,
 )
 from mpnode_cli.cli.options import field_default, field_parameter, with_options
-from mpnode_cli.config import SimulateConfig
+from mpnode_cli.config.simulate import SimulateConfig
 
 INPUTS, ROLLOUT = "Model, initial states and graph", "Rollout and output"
 _PANELS = {
@@ -58,7 +58,8 @@ def simulate_command(
     from mpnode_cli.cli.common import config_from, with_bar
     from mpnode_cli.cli.evaluate import extrapolated_nodes
     from mpnode_cli.devices import torch_device
-    from mpnode_cli.training.predict import PredictionFailed, simulate
+    from mpnode_cli.training.predict import PredictionFailed
+    from mpnode_cli.training.simulate import simulate
 
     config = config_from(SimulateConfig, {**options, "checkpoint": checkpoint,
                                            "member": member})

@@ -34,7 +34,6 @@ from mpnode_cli.cli.common import (
     output_parser,
     solver_option,
     speaks,
-    warn,
 )
 from mpnode_cli.cli.options import (
     choices,
@@ -45,7 +44,9 @@ from mpnode_cli.cli.options import (
     shown,
     with_options,
 )
-from mpnode_cli.config import TrainConfig, train_solver
+from mpnode_cli.cli.train_display import TrainingDisplay, TrainingStep
+from mpnode_cli.config.fields import train_solver
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.terminal import suggested
@@ -165,8 +166,8 @@ def train_config_from(config_file: Path | None, options: dict[str, Any],
     """The train config: the file's fields (upgraded if written by an earlier version),
     beneath the options given; model options and solver options are merged into the file's
     `[model_options]` and `[solver]` tables one by one."""
-    from mpnode_cli.config_file import read_config_file
-    from mpnode_cli.config_upgrade import upgrade_train_fields
+    from mpnode_cli.config.file import read_config_file
+    from mpnode_cli.config.upgrade import upgrade_train_fields
 
     fields = upgrade_train_fields(read_config_file(config_file)) if config_file else {}
     solver = {k: v for k, v in options.items() if k in _SOLVER}
@@ -300,10 +301,10 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
     from mpnode_cli.training.run import add_to_summary, read_summary
 
     display_console = console(stderr=True)
-    step = _TrainingStep()
+    step = TrainingStep()
     try:
         # Under torchrun: join the other processes; only rank 0 reports (and returns a summary).
-        with interrupt_on_signals(), process_group(config.device) as world, _Display(
+        with interrupt_on_signals(), process_group(config.device) as world, TrainingDisplay(
                 display_console, world.main) as display, naming_memory(
                 step, None, "lower --batch-size, or train on fewer samples or nodes"):
             summary = train(config, resume=resume, progress=step.told(display.on_event))
@@ -320,8 +321,11 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
         raise typer.Exit(code=exit_code(exc.cause)) from None
     except KeyboardInterrupt as exc:
         if speaks():
-            typer.echo(f"Interrupted ({signal_name(exc)}) before training started: nothing to "
-                       "resume", err=True)
+            said = (f"the run folder is intact: continue it with "  # its epochs may be the new
+                    f"{suggested('train', '--resume', Path(config.run_dir))}" if resume
+                    else "nothing to resume")
+            typer.echo(f"Interrupted ({signal_name(exc)}) before training started: {said}",
+                       err=True)
         raise typer.Exit(code=exit_code(exc)) from None
     if summary is None:  # a torchrun process other than rank 0
         return
@@ -331,126 +335,3 @@ def _run(config: Any, resume: bool, json_out: bool = False) -> None:
         typer.echo(json.dumps(read_summary(summary.run_dir)))
         return
     console().print(train_table(asdict(summary)))
-
-
-class _TrainingStep:
-    """Where training is, from the loop's events: what a line names if memory runs out."""
-
-    def __init__(self) -> None:
-        self.now = "loading the data and building the model"
-
-    def told(self, on_event):
-        """`on_event`, after noting each event's step."""
-        def seen(event: dict[str, Any]) -> None:
-            kind = event.get("event")
-            if kind == "start":
-                self.now = f"training epoch {event['first_epoch']}"
-            elif kind == "epoch":  # the next one starts (or the test, after the last)
-                self.now = f"training epoch {event['epoch'] + 1}"
-            elif kind == "batch":
-                self.now = (f"training epoch {event['epoch']}, past batch {event['batch']} "
-                            f"of {event['batches']}")
-            elif kind == "test":
-                self.now = "testing the best checkpoint"
-            on_event(event)
-        return seen
-
-    def __str__(self) -> str:
-        return self.now
-
-
-class _Display:
-    """A rich progress display fed by the loop's events; epoch lines go above the bars."""
-
-    def __init__(self, out, shown: bool = True):
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        self.console = out
-        # No bars when stderr is not a terminal (pipes, logs, tests); epoch lines remain.
-        self.bar = Progress(TextColumn("{task.description}"), BarColumn(),
-                            MofNCompleteColumn(), TimeElapsedColumn(), TimeRemainingColumn(),
-                            TextColumn("{task.fields[info]}"), console=out,
-                            transient=True, disable=not (shown and out.is_terminal))
-        self.epochs = self.bar.add_task("epochs", total=None, info="")
-        self.batches = self.bar.add_task("batches", total=None, info="")
-        self.every, self.last_epoch, self.best = 1, 0, float("inf")
-
-    def __enter__(self):
-        self.bar.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        return self.bar.__exit__(*exc)
-
-    def on_event(self, event: dict[str, Any]) -> None:
-        kind = event["event"]
-        if kind == "start":
-            self.last_epoch = event["epochs"]
-            self.every = max(1, event["epochs"] // 20)
-            self.bar.update(self.epochs, total=event["epochs"], completed=event["first_epoch"] - 1)
-            self.bar.update(self.batches, total=event["batches"], completed=0)
-            self.console.print(f"run {event['run_dir']}: {event['parameters']:,} parameters, "
-                               f"epochs {event['first_epoch']}–{event['epochs']}")
-            if threads := applied_threads():
-                self.console.print(f"threads: {threads.describe()}")
-            if "solver" in event:
-                self.console.print(f"solver: {event['solver']}")
-            if event.get("in_degree"):
-                lo, hi = event["in_degree"]
-                self.console.print(f"in-degree covered by training: {lo}–{hi}")
-            if event.get("stream"):
-                self.console.print("data: streamed from the file, two batches read ahead")
-            if event.get("processes", 1) > 1:
-                self.console.print(f"processes: {event['processes']} ({event['backend']}), "
-                                   "each training its slice of every batch")
-        elif kind == "batch":
-            self.bar.update(self.batches, completed=event["batch"],
-                            info=f"loss {event['loss']:.4g}")
-        elif kind == "epoch":
-            self._epoch(event)
-        elif kind == "skip":
-            self.console.print(f"[yellow]epoch {event['epoch']} batch {event['batch']}: "
-                               f"update skipped ({event['reason']})")
-        elif kind == "restore":
-            self.console.print(f"[yellow]epoch {event['epoch']}: rolled back to the last "
-                               f"good epoch, lr now {event['lr']:.3g}")
-        elif kind == "test":
-            self.bar.update(self.batches, description="testing", completed=0)
-        elif kind == "warning":
-            warn(event["text"])
-        elif kind == "coverage":
-            self.console.print(
-                f"coverage: simulating {event['trajectories']} trajectories on "
-                f"{event['nodes']}-node graphs whose {event['hubs']} hubs hear every other "
-                f"node up to {event['multiplicity']} times (in-degree up to "
-                f"{event['multiplicity'] * (event['nodes'] - 1)}, for {event['reach']}) "
-                f"into {event['path']}")
-
-    def _epoch(self, row: dict[str, Any]) -> None:
-        from mpnode_cli.report.tables import fmt
-
-        epoch, val = row["epoch"], row["val_loss"]
-        self.best = min(self.best, val) if val is not None else self.best
-        info = f"val {fmt(val)} · best {fmt(self.best)} · lr {row['lr']:.2g}"
-        self.bar.update(self.epochs, completed=epoch, info=info)
-        self.bar.update(self.batches, completed=0)
-        if epoch % self.every == 0 or epoch == self.last_epoch:
-            each = "".join(f" {name} {fmt(mse)}"  # several datasets: each one's MSE
-                           for name, mse in row.get("val_mse_by_dataset", {}).items())
-            self.console.print(f"epoch {epoch:>4}  train {fmt(row['train_loss']):>7}  "
-                               f"val {fmt(val):>7} (MSE {fmt(row['val_mse']):>7}{each})  "
-                               f"lr {row['lr']:.2g}  {row['seconds']:.2f}s  "
-                               f"{row['rhs_evals']} evals{_per_sample(row)}")
-
-
-def _per_sample(row: dict[str, Any]) -> str:
-    """` (12.5 per sample)`: the epoch's right-hand-side evaluations per trajectory sample."""
-    per = row.get("rhs_evals_per_sample")
-    return f" ({per:.3g} per sample)" if per else ""

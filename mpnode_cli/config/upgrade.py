@@ -14,7 +14,7 @@ import json
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from mpnode_cli.config import over_defaults
+from mpnode_cli.config.fields import over_defaults
 from mpnode_cli.solver.options import SolverOptions
 
 # TrainConfig fields that held model options before each model declared its own (written

@@ -23,6 +23,8 @@ from typing import Any
 
 import numpy as np
 
+from mpnode_cli.data.reads import block_rows
+
 _NPY_MAGIC = b"\x93NUMPY"
 _ZIP_MAGIC = b"PK"
 # The longest line of a CSV table's header (a column per state: a few hundred characters).
@@ -88,6 +90,9 @@ def read_table(path: str | Path) -> tuple[list[str], np.ndarray]:
     columns = [name.strip() for name in header]
     if not columns:
         return [], np.zeros((0, 0))
+    if len(columns) == 1 and ";" in columns[0]:  # a spreadsheet's export in some locales
+        raise ValueError(f"{path}: its columns are separated by ';', mpnode reads ',' (export "
+                         "it as comma-separated CSV, with '.' for decimals)")
     try:
         with warnings.catch_warnings():
             # loadtxt warns of a table without rows, which the caller reports in its words.
@@ -225,7 +230,7 @@ def nonfinite(array: Any, axes: tuple[str, ...], *, values: int = BLOCK_VALUES,
         the first at trajectory k, sample t, ...)".
     """
     k = len(array)
-    rows = max(1, values // max(1, int(np.prod(array.shape[1:]))))
+    rows = block_rows(array, values)
     bad, first = 0, None
     for start in range(0, k, rows):
         mask = ~np.isfinite(array[start:start + rows])

@@ -1,7 +1,7 @@
 """Files that appear whole at their path or not at all: the one atomic write.
 
 A file is written under a temporary name (`.<name>.<pid>.<random>.tmp`,
-`mpnode_cli.paths.temp_beside`) beside its target, on the same filesystem so that the final
+`mpnode_cli.path_limits.temp_beside`) beside its target, on the same filesystem so that the final
 rename is atomic, and renamed when the block ends without an error. Any exception, an
 interrupt included, removes the temporary. Libraries that write from C (h5py, torch.save)
 would swallow an interrupt raised inside their calls and finish the file, so SIGINT and
@@ -57,7 +57,7 @@ def atomic_path(path: str | Path) -> Iterator[tuple[Path, Callable[[], None]]]:
             raised it first).
         mpnode_cli.paths.OutputError: the rename was refused (the temporary is removed).
     """
-    from mpnode_cli.paths import temp_beside
+    from mpnode_cli.path_limits import temp_beside
     from mpnode_cli.signals import deferred_signals
 
     path = Path(path)

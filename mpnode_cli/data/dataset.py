@@ -25,7 +25,7 @@ import torch
 from mpnode_cli.data.fingerprint import fingerprint
 from mpnode_cli.data.hdf5 import NodeSizes, read_dataset
 from mpnode_cli.data.validate import require_valid
-from mpnode_cli.graphs import EdgeBatch, Graphs
+from mpnode_cli.graphs.matrices import EdgeBatch, Graphs
 
 SPLITS = {"train": 0, "validation": 1, "test": 2}
 _STD_FLOOR = 1e-8  # a constant feature is centred, not divided by zero

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.graphs.matrices import Graphs
 from mpnode_cli.progress import Progress
 
 

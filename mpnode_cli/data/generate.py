@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.shards import (
     SHARD_ATTR,
     redraw_seed,
@@ -45,8 +45,9 @@ from mpnode_cli.data.size import SizeEstimate, check_disk, check_job, generate_e
 from mpnode_cli.data.solve_rounds import Draws, Solved, solve_and_redraw, solver_chunks
 from mpnode_cli.data.solve_rounds import GenerateError as GenerateError  # part of this API
 from mpnode_cli.data.splits import split_trajectories
-from mpnode_cli.edge_files import read_edges
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
+from mpnode_cli.graphs.edge_files import read_edges
+from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES, EdgeList, Graphs
+from mpnode_cli.graphs.topologies import hubs_tag, join_hubs, spread_multiplicity
 from mpnode_cli.memory import naming_memory
 from mpnode_cli.progress import Progress
 from mpnode_cli.systems.contract import CheckedSystem
@@ -57,7 +58,6 @@ from mpnode_cli.systems.registry import (
     sparse_systems,
     system_class,
 )
-from mpnode_cli.topologies import hubs_tag, join_hubs, spread_multiplicity
 
 if TYPE_CHECKING:
     import torch
@@ -301,7 +301,8 @@ def _write(system: CheckedSystem, config: GenerateConfig, out: Path, ts: torch.T
            params: dict[str, np.ndarray], draws: Draws, solved: Solved,
            start: float) -> GenerateSummary:
     """Step 5: split by trajectory and write the file; what `generate` did."""
-    from mpnode_cli.data.hdf5 import Dataset, write_dataset
+    from mpnode_cli.data.hdf5 import Dataset
+    from mpnode_cli.data.hdf5_write import write_dataset
 
     split = split_trajectories(config.trajectories, config.split, config.seed)[draws.lo:draws.hi]
     sharding = {}

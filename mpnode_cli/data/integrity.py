@@ -24,6 +24,8 @@ import h5py
 import numpy as np
 from h5py import h5z
 
+from mpnode_cli.data.reads import block_rows, unwritten
+
 CHECKSUM_ATTR = "checksum"
 HDF5_ERRORS = (OSError, RuntimeError, KeyError)
 # Values per read in a pass over a whole array: memory stays bounded whatever its size.
@@ -44,7 +46,7 @@ def blocks(array: h5py.Dataset) -> Iterator[np.ndarray]:
     if array.ndim == 0 or array.size == 0:
         yield array[()]
         return
-    rows = max(1, _BLOCK_VALUES // max(1, array.size // array.shape[0]))
+    rows = block_rows(array, _BLOCK_VALUES)
     for start in range(0, array.shape[0], rows):
         yield array[start:start + rows]
 
@@ -138,8 +140,9 @@ def name_damage(f: h5py.File, exc: BaseException) -> str:
 
 def preflight(path: Any) -> None:
     """Read every attribute of the file at `path` through `_Guard` (a global heap that
-    would hang HDF5 raises instead) and every chunk index (`_chunks`), before any reader
-    reads through HDF5 alone: what is left for HDF5 to meet, it reports.
+    would hang HDF5 raises instead), every array's declared size against the file's
+    (`reads.unwritten`) and every chunk index (`_chunks`), before any reader reads through
+    HDF5 alone: what is left for HDF5 to meet, it reports.
 
     Raises:
         Damaged, OSError, RuntimeError, KeyError: a damaged file (`HDF5_ERRORS`).
@@ -147,14 +150,20 @@ def preflight(path: Any) -> None:
     with _Guard(path) as raw, h5py.File(raw, "r") as f:
         end = os.fstat(raw.fileno()).st_size
 
-        def visit(name: str, obj: Any) -> None:
+        def visit(name: str | bytes, obj: Any) -> None:
+            if isinstance(name, bytes):  # h5py's name for one that is not UTF-8 text
+                raise Damaged(f"the file is damaged: it holds an object named {name!r}, "
+                              "not text; restore the file from a copy or write it again")
             for key in obj.attrs:
                 try:
                     obj.attrs[key]
                 except (TypeError, ValueError):  # a type h5py does not read: no heap read
                     pass
-            if isinstance(obj, h5py.Dataset) and obj.chunks and not obj.is_virtual:
-                _chunks(name, obj, end)
+            if isinstance(obj, h5py.Dataset) and not obj.is_virtual:
+                if (line := unwritten(name, obj, end)) is not None:
+                    raise Damaged(line)
+                if obj.chunks:
+                    _chunks(name, obj, end)
 
         visit("/", f)
         f.visititems(visit)

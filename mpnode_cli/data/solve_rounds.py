@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mpnode_cli.config import GenerateConfig
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.graphs.matrices import Graphs
 from mpnode_cli.progress import Progress
 from mpnode_cli.systems.contract import CheckedSystem
 

@@ -35,8 +35,9 @@ import torch
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData, _recipe, split_subset
 from mpnode_cli.data.fingerprint import file_identity, fingerprint, same_file
 from mpnode_cli.data.hdf5 import open_dataset, read_graphs, read_header
+from mpnode_cli.data.reads import block_rows
 from mpnode_cli.data.validate import require_valid
-from mpnode_cli.graphs import EdgeBatch, Graphs
+from mpnode_cli.graphs.matrices import EdgeBatch, Graphs
 
 _STD_FLOOR = 1e-8  # as `Normalizer.fit`: a constant feature is centred, not divided by zero
 # Values per read in whole-file passes (normalizer, fingerprint): about 32 MiB of float32.
@@ -83,7 +84,7 @@ class StreamedTrajectories:
             states = f["states"]
             graph_index = f["graph_index"][()].astype(np.int64)
             time = f["time"][()]
-            rows = max(1, _BLOCK_VALUES // int(np.prod(states.shape[1:])))
+            rows = block_rows(states, _BLOCK_VALUES)
             graphs = read_graphs(f)
             digest = fingerprint(states, graphs, f["graph_index"][()], time, rows=rows,
                                  controls=f["controls"] if "controls" in f else None)
@@ -162,9 +163,10 @@ class StreamedTrajectories:
             fingerprint=self.fingerprint, attrs=self.attrs)
 
     def blocks(self, values: int = _BLOCK_VALUES) -> Iterator[TrajectoryData]:
-        """All these trajectories in order, about `values` state values at a time."""
-        per = max(1, values // int(np.prod(self.shape)))
+        """All these trajectories in order, about `values` state values at a time (fewer
+        where they span many chunks: `block_rows`)."""
         with self.file() as f:
+            per = block_rows(f["states"], values)
             for index in torch.arange(len(self)).split(per):
                 yield self.take(index, f)
 

@@ -26,7 +26,6 @@ import numpy as np
 from mpnode_cli.data import integrity
 from mpnode_cli.data.arrays import BLOCK_VALUES, nonfinite
 from mpnode_cli.data.hdf5 import (
-    DENSE_GRAPH_MAX_NODES,
     FORMAT,
     FORMAT_VERSION,
     OPTIONAL_ATTRS,
@@ -35,9 +34,9 @@ from mpnode_cli.data.hdf5 import (
     DatasetFormatError,
     _py,
 )
+from mpnode_cli.data.reads import block_rows
+from mpnode_cli.data.validate_graphs import FileChecks, is_int
 from mpnode_cli.data.virtual import virtual_source_problems
-from mpnode_cli.graphs import Graphs, degree_range
-from mpnode_cli.limits import MULTIPLICITY_MAX
 from mpnode_cli.terminal import suggested
 
 # Relative slack when comparing sample spacing with `dt` (float32 time in hand-made files).
@@ -112,16 +111,8 @@ def check_dataset(path: str | Path, *, deep: bool = False) -> Report:
     return report
 
 
-class _Checker:
+class _Checker(FileChecks):
     """One pass over an open file; each method adds problems and summary facts."""
-
-    def __init__(self, f: h5py.File, report: Report):
-        self.f, self.report = f, report
-        self.problems, self.summary = report.problems, report.summary
-        self.edge_graphs: Graphs | None = None  # version 2's edge lists, once checked
-
-    def problem(self, text: str) -> None:
-        self.problems.append(text)
 
     def run(self) -> None:
         attrs = {key: _py(value) for key, value in self.f.attrs.items()}
@@ -169,10 +160,9 @@ class _Checker:
         from mpnode_cli.data.fingerprint import fingerprint
         from mpnode_cli.data.hdf5 import read_graphs
 
-        per_row = max(1, int(np.prod(states.shape[1:])))
         controls = self.f["controls"] if "controls" in self.f else None
         arrays = (states, read_graphs(self.f), self.f["graph_index"][()], self.f["time"][()])
-        rows = max(1, BLOCK_VALUES // per_row)
+        rows = block_rows(states, BLOCK_VALUES)
         have = fingerprint(*arrays, controls=controls, rows=rows)
         self.summary["fingerprint"] = have
         # Written before controls counted, a file with controls recorded the digest of
@@ -199,29 +189,6 @@ class _Checker:
                          f"{FORMAT_VERSION}): upgrade mpnode")
         return True
 
-    def _array(self, name: str, *, required: bool) -> h5py.Dataset | None:
-        if name not in self.f:
-            if required:
-                self.problem(f"missing dataset '{name}'")
-            return None
-        obj = self.f[name]
-        if not isinstance(obj, h5py.Dataset):
-            self.problem(f"'{name}' must be a dataset, not a group")
-            return None
-        if obj.dtype.kind not in "biuf":
-            self.problem(f"'{name}' must hold numbers, not {obj.dtype}")
-            return None
-        return obj
-
-    def _shape(self, name: str, obj: h5py.Dataset, want: tuple, meaning: str) -> bool:
-        """Shape `want` (None: any size on that axis); a problem if it differs."""
-        ok = len(obj.shape) == len(want) and all(
-            w is None or s == w for s, w in zip(obj.shape, want, strict=True))
-        if not ok:
-            shown = ", ".join("*" if w is None else str(w) for w in want)
-            self.problem(f"{name} has shape {list(obj.shape)}, expected [{shown}] {meaning}")
-        return ok
-
     def _names(self, attrs: dict[str, Any], key: str, size: int, dim: str) -> list[str]:
         raw = attrs.get(key)
         try:
@@ -234,6 +201,10 @@ class _Checker:
             return []
         if len(names) != size:
             self.problem(f"{key} has {len(names)} names but {dim} is {size}")
+        repeated = sorted({x for x in names if names.count(x) > 1})
+        if repeated:  # written before mpnode refused them: columns no one can tell apart
+            self.problem(f"{key} {names} repeats {', '.join(map(repr, repeated))}: each "
+                         "needs its own name; rename them in the file's attribute")
         return names
 
     def _periodic(self, attrs: dict[str, Any], state_names: list[str]) -> None:
@@ -271,15 +242,18 @@ class _Checker:
             value = attrs.get(key)
             if value is None:
                 continue
-            if not _is_int(value):
+            if not is_int(value):
                 self.problem(f"attribute {key} must be an integer, got {value!r}")
             elif value != have:
                 self.problem(f"attribute {key} is {value} but the arrays have {have}")
         system = attrs.get("system")
         if system is not None and (not isinstance(system, str) or not system):
             self.problem(f"attribute system must be a non-empty string, got {system!r}")
+        elif isinstance(system, str) and not system.isprintable():  # echoed to terminals
+            self.problem(f"attribute system {system!a} holds characters that are not "
+                         "printable (control or direction marks)")
         seed = attrs.get("seed")
-        if seed is not None and not _is_int(seed):
+        if seed is not None and not is_int(seed):
             self.problem(f"attribute seed must be an integer, got {seed!r}")
         config = attrs.get("config")
         try:
@@ -288,94 +262,6 @@ class _Checker:
             parsed = None
         if not isinstance(parsed, dict):
             self.problem(f"attribute config must be a JSON object, got {config!r:.60}")
-
-    def _graph(self, k: int, n: int, version: Any) -> int:
-        """The graphs: edge lists (version 2) and the matrices (required in version 1,
-        optional in version 2, where they must agree with the edges; version 4 allows a
-        multigraph: an edge of multiplicity w is w messages, and w in the matrix); returns G."""
-        v1 = version == 1
-        multi = _is_int(version) and version >= 4
-        before, in_degree = len(self.problems), None
-        g = self._edges(n, multi) if not v1 else None
-        adjacency = self._array("graph/adjacency", required=v1)
-        if adjacency is not None and self._shape("graph/adjacency", adjacency, (None, n, n),
-                                                  "[G, N, N]"):
-            if g is not None and adjacency.shape[0] != g:
-                self.problem(f"graph/adjacency holds {adjacency.shape[0]} graphs but "
-                             f"graph/num_edges {g}")
-            g = adjacency.shape[0]
-            if g < 1:
-                self.problem("graph/adjacency holds no graph (G = 0)")
-            # Above the threshold a matrix is only scanned, one graph at a time; the same
-            # pass sums its rows: the in-degrees of version 1, which has no edge lists.
-            in_degree, bad = np.zeros((g, n), np.int64), False
-            for i in range(g):
-                matrix = adjacency[i]
-                if not _counts(matrix, multi):
-                    bad = True
-                    break
-                in_degree[i] = matrix.sum(axis=1)
-            if bad:
-                self.problem("graph/adjacency must hold only 0 and 1 "
-                             "(A[g, i, j] = 1 iff node j sends to node i)" if not multi else
-                             "graph/adjacency must hold whole numbers 0–255 (A[g, i, j] the "
-                             "edges from node j to node i)")
-            elif self.edge_graphs is not None and n <= DENSE_GRAPH_MAX_NODES and (
-                    len(self.edge_graphs) == g):
-                stored = adjacency[()] if multi else adjacency[()] != 0
-                if not np.array_equal(self.edge_graphs.dense(), stored):
-                    self.problem("graph/adjacency and graph/edges hold different graphs")
-        g = g or 0
-        self.summary["graphs"] = g
-        if self.edge_graphs is not None:
-            in_degree = self.edge_graphs.in_degree()  # [G, N], parallel edges w times
-        if g and in_degree is not None and len(self.problems) == before:
-            self.summary["in_degree"] = degree_range(in_degree)
-        index = self._array("graph_index", required=True)
-        if index is not None and self._shape("graph_index", index, (k,), "[K]"):
-            if index.dtype.kind not in "iu":
-                self.problem(f"graph_index must be integers, not {index.dtype}")
-            elif k and g and not (0 <= int(np.min(index)) and int(np.max(index)) < g):
-                self.problem(f"graph_index points outside the graphs: values "
-                             f"{int(np.min(index))}..{int(np.max(index))}, graphs 0..{g - 1}")
-        return g
-
-    def _edges(self, n: int, multi: bool = False) -> int | None:
-        """`graph/edges [2, E]` and `graph/num_edges [G]`: ids in 0..N−1, counts that add
-        up, no message twice within a graph unless `multi` (format version 4: a multigraph).
-        Returns G (None when unreadable)."""
-        edges = self._array("graph/edges", required=True)
-        counts = self._array("graph/num_edges", required=True)
-        if edges is None or counts is None:
-            return None
-        ok = self._shape("graph/edges", edges, (2, None), "[2, E] (senders, receivers)")
-        ok &= self._shape("graph/num_edges", counts, (None,), "[G]")
-        if not ok:
-            return None
-        if edges.dtype.kind not in "iu" or counts.dtype.kind not in "iu":
-            self.problem("graph/edges and graph/num_edges must be integers")
-            return None
-        g, ids, per_graph = counts.shape[0], edges[()].astype(np.int64), counts[()]
-        if g < 1:
-            self.problem("graph/num_edges holds no graph (G = 0)")
-        if (per_graph < 0).any() or int(per_graph.sum()) != ids.shape[1]:
-            self.problem(f"graph/num_edges adds up to {int(per_graph.sum())} but graph/edges "
-                         f"holds {ids.shape[1]} edges")
-            return g
-        if ids.size and (ids.min() < 0 or ids.max() >= n):
-            self.problem(f"graph/edges holds node ids {int(ids.min())}..{int(ids.max())}; "
-                         f"they must lie in 0..{n - 1}")
-            return g
-        graph_of_edge = np.repeat(np.arange(g, dtype=np.int64), per_graph)
-        key = (graph_of_edge * n + ids[1]) * n + ids[0]
-        if not multi and len(np.unique(key)) != len(key):
-            self.problem("graph/edges holds a message twice within a graph (graphs are "
-                         "unweighted: each sender → receiver pair at most once, unless "
-                         "format_version 4 says it is a multigraph)")
-        else:
-            self.edge_graphs = Graphs.from_concatenated(n, ids[0], ids[1], per_graph)
-        self.summary["edges"] = int(ids.shape[1])
-        return g
 
     def _time(self, attrs: dict[str, Any], t: int) -> None:
         time = self._array("time", required=True)
@@ -482,16 +368,3 @@ def _json_list(raw: Any) -> list:
     except ValueError:
         value = None
     return value if isinstance(value, list) else []
-
-
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _counts(matrix: np.ndarray, multi: bool) -> bool:
-    """Whether an adjacency matrix holds 0 and 1, or (`multi`) whole numbers 0–255."""
-    if not multi:
-        return bool(np.isin(matrix, (0, 1)).all())
-    values = np.asarray(matrix)
-    return bool(((values >= 0) & (values <= MULTIPLICITY_MAX)
-                 & (values == np.round(values))).all())

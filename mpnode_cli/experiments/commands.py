@@ -50,7 +50,7 @@ def from_work(line: str, work: Path) -> str:
 def generate_line(step, options: dict[str, Any], out: Path) -> str:
     """`mpnode generate --preset P` and the fields where the resolved config differs from
     the preset's (the scale's sizes included)."""
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import resolve_generate_config
     from mpnode_cli.data.presets import get_preset
 

@@ -39,6 +39,7 @@ from mpnode_cli.experiments.saved import (
     step_results,
 )
 from mpnode_cli.jsonable import jsonable
+from mpnode_cli.paths import OutputError
 
 
 def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> Path:
@@ -49,20 +50,26 @@ def write_report(record: RunRecord, experiment: spec.Experiment, out: Path) -> P
     folders are named relative to the work folder, commands are as run from it, and the
     work folder itself is shown relative to the current folder, or as `<work>`."""
     folder = Path(out) / experiment.name / run_folder(record.scale, record.recipe, record.draw)
-    tmp = folder.with_name(folder.name + ".tmp")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     data = kept_facts(portable(record.to_dict(), Path(record.work)), folder / RESULTS)
-    for step in data["steps"]:
-        names = []
-        for figure in step["figures"]:
-            name = Path(figure).name
-            shutil.copyfile(figure, tmp / name)
-            names.append(name)
-        step["figures"] = names
     results = {r["id"]: r["result"] for r in data["steps"]}
     data["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
-    (tmp / RESULTS).write_text(json.dumps(jsonable(data), indent=2, default=str) + "\n")
+    tmp = folder.with_name(folder.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:  # the folder whole beside the old one, then in its place
+        tmp.mkdir(parents=True)
+        for step in data["steps"]:
+            names = []
+            for figure in step["figures"]:
+                name = Path(figure).name
+                shutil.copyfile(figure, tmp / name)
+                names.append(name)
+            step["figures"] = names
+        atomic_text(tmp / RESULTS, json.dumps(jsonable(data), indent=2, default=str) + "\n")
+    except (OSError, OutputError) as exc:  # a full disk, most likely: nothing half-written
+        shutil.rmtree(tmp, ignore_errors=True)
+        said = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise OutputError(f"cannot write {folder}: {said} (the record there is as it "
+                          "was)") from None
     shutil.rmtree(folder, ignore_errors=True)
     os.replace(tmp, folder)
     path = rebuild_report(experiment, Path(out))
@@ -98,9 +105,16 @@ def rebuild_report(experiment: spec.Experiment, out: Path) -> Path:
     runs = saved_runs(out, experiment.name)
     for run in runs:
         # Claims judged anew from the spec, so a claim added later is judged on old results.
-        results = step_results(run)
-        run["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
-        lines += run_section(run)
+        try:
+            results = step_results(run)
+            run["claims"] = [_claim(claim, results, experiment) for claim in experiment.claims]
+            lines += run_section(run)
+        except (KeyError, TypeError, AttributeError, IndexError) as exc:  # a record edited
+            record = out / experiment.name / run_folder(run["scale"], run["recipe"],
+                                                        run.get("draw", 0)) / RESULTS
+            raise ValueError(f"{record} is not a run record mpnode wrote (it lacks or "
+                             f"mistypes {exc}): restore it from a copy, or move its "
+                             "folder away") from None
     lines += draws_sections(runs, [(c.claim, c.holds) for c in experiment.claims])
     path = out / experiment.name / REPORT
     path.parent.mkdir(parents=True, exist_ok=True)

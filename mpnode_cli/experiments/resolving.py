@@ -44,7 +44,7 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
         return {"target": step.target, "args": step.args}
     options = step.options("small" if scale == "tiny" else scale)
     if step.verb == "generate":
-        from mpnode_cli.config import GenerateConfig
+        from mpnode_cli.config.generate import GenerateConfig
         from mpnode_cli.data.generate import resolve_generate_config
         from mpnode_cli.data.presets import get_preset, merge_layers
 
@@ -62,7 +62,7 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
         config = resolve_generate_config(_validated(GenerateConfig, {**fields, "out": "data.h5"}))
         return {"config": config.model_dump(mode="json", exclude={"out"})}
     if step.verb in TRAINING:
-        from mpnode_cli.config import TrainConfig
+        from mpnode_cli.config.train import TrainConfig
         from mpnode_cli.models.registry import OPTIONS, resolve_options
 
         for key in ("data", "checkpoint"):
@@ -93,7 +93,7 @@ def resolve(step: Any, scale: Scale, recipe: str, seeds: int = 1,
 
 
 def _validated(model: type[BaseModel], fields: dict[str, Any]) -> Any:
-    from mpnode_cli.config_file import error_line
+    from mpnode_cli.config.file import error_line
 
     try:
         return model(**fields)

@@ -68,7 +68,7 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
     Args:
         work: the folder of step folders (shared by experiments).
         command: the command line to record (default: the `mpnode experiment run` that
-            does the same; an absolute path in it is shown as `mpnode_cli.paths.shown_path`
+            does the same; an absolute path in it is shown as `mpnode_cli.file_records.shown_path`
             shows it, since reports are committed).
         jobs: processes that run steps side by side (this one and `jobs - 1` workers, one
             torch pool each of this process's size). A step runs once its inputs are done;
@@ -90,7 +90,8 @@ def run_experiment(experiment: Experiment, *, scale: Scale, recipe: str, work: P
         TrainingInterrupted, KeyboardInterrupt: Ctrl-C; finished steps stay reusable and a
             training resumes from its last epoch on the next run.
     """
-    from mpnode_cli.paths import check_output_folder, shown_path
+    from mpnode_cli.file_records import shown_path
+    from mpnode_cli.paths import check_output_folder
 
     emit = progress or (lambda event: None)
     command = command or (f"mpnode experiment run {experiment.name} --scale {scale} "

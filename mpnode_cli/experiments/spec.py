@@ -273,7 +273,7 @@ def load(name_or_path: str | Path) -> Experiment:
     try:
         experiment = Experiment(**fields)
     except ValidationError as exc:
-        from mpnode_cli.config_file import error_line
+        from mpnode_cli.config.file import error_line
 
         raise ValueError(f"{path.name}: {error_line(exc)}") from None
     check(experiment)

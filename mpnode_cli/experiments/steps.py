@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from mpnode_cli.experiments import commands, curves, members
+from mpnode_cli.experiments.call_verb import call
 from mpnode_cli.experiments.spec import TRAINING
 from mpnode_cli.jsonable import jsonable
 
@@ -53,7 +54,7 @@ class StepRecord:
 
 
 def _generate(step, options, folder: Path, inputs, status, emit):
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
 
     config = GenerateConfig(**{**options["config"], "out": folder / DATA_FILE})
@@ -70,7 +71,7 @@ def _generate(step, options, folder: Path, inputs, status, emit):
 
 
 def _train(step, options, folder: Path, inputs, status, emit):
-    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.config.train import TrainConfig
     from mpnode_cli.training.loop import TrainingDiverged, train
     from mpnode_cli.training.run import read_config
 
@@ -107,8 +108,9 @@ def training_result(run_dir: Path, data: Path) -> dict[str, Any]:
     """What the report needs of a finished run: its summary's numbers, the lowest training
     loss, and the best checkpoint's validation MSE beside the naive predictors."""
     from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.training.baselines import baseline_mse
     from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.evaluate import baseline_mse, checkpoint_angles, train_reference
+    from mpnode_cli.training.checkpoint_report import checkpoint_angles, train_reference
     from mpnode_cli.training.run import read_config, read_metrics, read_summary
 
     summary = read_summary(run_dir)
@@ -169,7 +171,7 @@ def _member_training(result: dict[str, Any], member: dict[str, Any],
 def _zeroshot(step, options, folder: Path, inputs, status, emit):
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.evaluate import evaluate_checkpoint
+    from mpnode_cli.training.checkpoint_report import evaluate_checkpoint
 
     ckpt = load_checkpoint(_best(inputs[step.checkpoint]))
     result: dict[str, Any] = {}
@@ -197,7 +199,7 @@ def _evaluate(step, options, folder: Path, inputs, status, emit):
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.checkpoint import load_checkpoint
     from mpnode_cli.training.checkpoint_members import member_checkpoint
-    from mpnode_cli.training.evaluate import evaluate_checkpoint
+    from mpnode_cli.training.checkpoint_report import evaluate_checkpoint
 
     best = _best(inputs[step.checkpoint])
     ckpt = load_checkpoint(best)
@@ -317,23 +319,8 @@ def plot_table2(step, labels: dict[str, str], table2: dict[str, list[float | Non
                      title="Table-2 figure (lower is better)")
 
 
-def _call(step, options, folder: Path, inputs, status, emit):
-    """A benchmark's job (`jobs`): `target(folder=, inputs=, resumed=, **args)` → its record;
-    `inputs`: the records (folder, result) of the steps it reads."""
-    import importlib
-
-    module, name = step.target.split(":")
-    try:  # a job's failure of any kind is the step's (the engine keeps going past it)
-        function = getattr(importlib.import_module(module), name)
-        result = function(folder=folder, inputs=inputs, resumed=status == "resumed",
-                          **step.args)
-    except Exception as exc:
-        raise ValueError(f"{type(exc).__name__}: {exc}") from exc
-    return result, [], [], []
-
-
 VERBS = {"generate": _generate, "train": _train, "finetune": _train, "zeroshot": _zeroshot,
-         "evaluate": _evaluate, "compare": _compare, "call": _call}
+         "evaluate": _evaluate, "compare": _compare, "call": call}
 
 
 def _member_rows(row: dict[str, Any]) -> list[dict[str, Any]]:
@@ -358,8 +345,8 @@ def _rollout_figure(ckpt, data, split: str, path: Path) -> str:
     paper's Fig. 2, 3b and 11)."""
     import torch
 
-    from mpnode_cli.config import train_solver
-    from mpnode_cli.config_upgrade import stored_solver
+    from mpnode_cli.config.fields import train_solver
+    from mpnode_cli.config.upgrade import stored_solver
     from mpnode_cli.report.plots import plot_rollout
     from mpnode_cli.training.evaluate import predict
 

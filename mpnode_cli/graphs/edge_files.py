@@ -2,7 +2,7 @@
 an optional weight column of 0 or 1, read into an `EdgeList` or a matrix.
 
 What a file may hold, and what is refused in one line, is in `read_edges`; the graph
-conventions are `mpnode_cli.graphs`'.
+conventions are `mpnode_cli.graphs.matrices`'.
 """
 
 from __future__ import annotations
@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mpnode_cli.graphs import EdgeList
+from mpnode_cli.graphs.matrices import EdgeList
 from mpnode_cli.textfiles import text_lines
 
 # The largest graph read from a file (`read_edges`): ids 0..MAX_EDGE_FILE_NODES − 1. Ids are
 # checked as they are read, so a stray number (a timestamp, a hash, a typo of 20 digits) is
 # refused before anything is sized by it. 2²⁴ nodes is far beyond the graphs mpnode
 # simulates: one float32 state per node is 64 MiB per sample, and at mean degree 10 one
-# trajectory's messages alone are 40 × `mpnode_cli.graphs.EDGE_ROWS`.
+# trajectory's messages alone are 40 × `mpnode_cli.graphs.matrices.EDGE_ROWS`.
 MAX_EDGE_FILE_NODES = 2**24
 # The longest line of an edge list: `i j w` lines are short, so a longer one (a binary file
 # without newlines) is refused without reading it whole.

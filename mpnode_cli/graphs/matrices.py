@@ -16,8 +16,8 @@ is 10⁵ messages, against 10⁸ matrix entries). Three types carry graphs:
 - `EdgeBatch`: the graphs of B trajectories for torch (systems' and models' neighbour sums),
   each distinct graph's edges once plus which graph each trajectory runs on.
 
-The random topologies that make these graphs are `mpnode_cli.topologies`; a user's graph
-as a text file is read by `mpnode_cli.edge_files`.
+The random topologies that make these graphs are `mpnode_cli.graphs.topologies`; a user's
+graph as a text file is read by `mpnode_cli.graphs.edge_files`.
 """
 
 from __future__ import annotations

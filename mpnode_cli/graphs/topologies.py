@@ -1,9 +1,9 @@
 """Graph topologies: complete, chain, Erdős–Rényi, Barabási–Albert, Watts–Strogatz and S¹,
 as an adjacency matrix (`make_graph`) or an edge list (`make_edges`), in the convention of
-`mpnode_cli.graphs` (`A[i, j] = 1` iff j sends to i; undirected, zero diagonal).
+`mpnode_cli.graphs.matrices` (`A[i, j] = 1` iff j sends to i; undirected, zero diagonal).
 
 Random graphs come from networkx with an explicit integer seed, except `s1`, which
-`mpnode_cli.s1_graph` draws with numpy (`np.random.default_rng(seed)`), in blocks of node
+`mpnode_cli.graphs.s1` draws with numpy (`np.random.default_rng(seed)`), in blocks of node
 pairs, so that neither networkx nor an N×N matrix is involved. The authors' graphs came
 from LightGraphs.jl (MersenneTwister streams) and cannot be reproduced from Python, which
 is why every dataset stores its adjacency (docs/systems.md).
@@ -18,9 +18,9 @@ import math
 
 import numpy as np
 
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList
+from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES, EdgeList
+from mpnode_cli.graphs.s1 import s1_edges
 from mpnode_cli.limits import MULTIPLICITY_MAX
-from mpnode_cli.s1_graph import s1_edges
 
 TOPOLOGIES: tuple[str, ...] = ("complete", "chain", "er", "ba", "ws", "s1")
 
@@ -44,9 +44,9 @@ def make_graph(topology: str, n: int, seed: int, **kw: float) -> np.ndarray:
             `ba` Barabási–Albert with `m` edges per new node; `ws` Watts–Strogatz with
             ring degree `k` (k // 2 neighbours per side) and rewiring probability `p`;
             `s1` the S¹ model (Serrano, Krioukov & Boguñá, PRL 100, 078701 (2008);
-            `mpnode_cli.s1_graph`) with degree exponent `gamma` > 2, clustering `beta` > 1
+            `mpnode_cli.graphs.s1`) with degree exponent `gamma` > 2, clustering `beta` > 1
             and mean hidden degree `mean_degree` = E[κ] in (0, n − 1) (near γ = 2 the
-            mean degree falls short of it at finite n; see `mpnode_cli.s1_graph`).
+            mean degree falls short of it at finite n; see `mpnode_cli.graphs.s1`).
         n: number of nodes, at least 1.
         seed: seed of the random generators (ignored by deterministic topologies).
         **kw: the topology's parameters, as above.

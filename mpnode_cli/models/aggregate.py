@@ -16,7 +16,7 @@ from typing import ClassVar, get_args
 import torch
 from torch import nn
 
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch
+from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES, EdgeBatch
 from mpnode_cli.models.backend import Graph, Strategy, strategy_for
 from mpnode_cli.models.options import Aggregate
 

@@ -15,7 +15,7 @@ Two strategies, each giving the sum and the mean over in-neighbours, tested equa
   O(E) rather than O(B·N²), for large sparse graphs. `auto` picks dense up to
   `DENSE_MAX_NODES` nodes.
 
-A batch's graphs come as `[B, N, N]` matrices or as an `EdgeBatch` (`mpnode_cli.graphs`;
+A batch's graphs come as `[B, N, N]` matrices or as an `EdgeBatch` (`mpnode_cli.graphs.matrices`;
 what training and evaluation pass above `DENSE_GRAPH_MAX_NODES` nodes). From an
 `EdgeBatch`, the scatter backend uses the edges directly; no `[N, N]` matrix is built
 unless the dense backend is chosen for a graph small enough to hold one.
@@ -29,7 +29,7 @@ from typing import get_args
 
 import torch
 
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeBatch
+from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES, EdgeBatch
 from mpnode_cli.models.options import Backend
 
 BACKENDS: tuple[str, ...] = get_args(Backend)

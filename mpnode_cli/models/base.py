@@ -47,6 +47,23 @@ class Rollout:
     status: torch.Tensor
     n_f_evals: int
 
+    # A model is an ensemble of one: its one member's trajectories are `states` (an
+    # ensemble's rollout, `mpnode_cli.models.ensemble.EnsembleRollout`, holds S of them).
+    @property
+    def members(self) -> torch.Tensor:
+        """`[S, B, T, N, D]` each member's predicted states (S = 1: `states`)."""
+        return self.states.unsqueeze(0)
+
+    @property
+    def member_status(self) -> torch.Tensor:
+        """`[S, B]` each member's solver status (S = 1: `status`)."""
+        return self.status.unsqueeze(0)
+
+    @property
+    def spread(self) -> torch.Tensor:
+        """`[B, T, N, D]` the members' standard deviation (population, over S)."""
+        return self.members.std(dim=0, correction=0)
+
 
 @dataclass
 class BatchLoss:
@@ -191,10 +208,22 @@ class NeuralModel(nn.Module, metaclass=abc.ABCMeta):
         return self.rollout(x[:, 0], ts, adjacency, controls, **options, **extra)
 
     @property
-    def members(self) -> tuple[NeuralModel, ...]:
+    def members(self) -> Sequence[NeuralModel]:
         """The models trained: a single model is an ensemble of one, itself (an ensemble's
         are its S members, `mpnode_cli.models.ensemble`)."""
         return (self,)
+
+    def member_prefix(self, k: int) -> str:
+        """Where member k's weights are in this model's `state_dict`: all of it here, the
+        model being its one member (an ensemble's are under `members.k.`)."""
+        return ""
+
+    def member_state(self, state_dict: Mapping[str, torch.Tensor], k: int
+                     ) -> dict[str, torch.Tensor]:
+        """Member k's weights in a `state_dict` of this model, named as the member's own."""
+        prefix = self.member_prefix(k)
+        return {name.removeprefix(prefix): value for name, value in state_dict.items()
+                if name.startswith(prefix)}
 
     def training_losses(self, xs: torch.Tensor, ts: torch.Tensor, graphs: Sequence,
                         controls: torch.Tensor | None,

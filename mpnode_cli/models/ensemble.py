@@ -32,7 +32,7 @@ import torch
 from torch import nn
 from torch.func import functional_call
 
-from mpnode_cli.graphs import EdgeBatch
+from mpnode_cli.graphs.matrices import EdgeBatch
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout
 from mpnode_cli.models.stacked import StackedMembers
 from mpnode_cli.solver.options import SolverOptions
@@ -69,17 +69,6 @@ def stack_graphs(graphs: Sequence[Graph]) -> Graph:
                      torch.cat(index), graphs[0].num_nodes)
 
 
-class _FromFirst:
-    """A read-only attribute of the `NeuralModel` interface that an ensemble's members share,
-    read from member 0 (named one by one: unknown names are not forwarded)."""
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
-
-    def __get__(self, ensemble: Any, owner: type | None = None) -> Any:
-        return self if ensemble is None else getattr(ensemble.members[0], self.name)
-
-
 @dataclass
 class EnsembleRollout(Rollout):
     """An ensemble's rollout: `states` is the members' mean, `members` each member's.
@@ -89,59 +78,55 @@ class EnsembleRollout(Rollout):
         member_status: `[S, B]` each member's solver status (`status` is the worst).
     """
 
-    members: torch.Tensor | None = None
-    member_status: torch.Tensor | None = None
-
-    @property
-    def spread(self) -> torch.Tensor:
-        """`[B, T, N, D]` the members' standard deviation (population, over S)."""
-        return self.members.std(dim=0, correction=0)
+    # Fields in place of `Rollout`'s properties of one member (always given).
+    members: torch.Tensor = None  # type: ignore[assignment]
+    member_status: torch.Tensor = None  # type: ignore[assignment]
 
 
-class Ensemble(nn.Module):
+class Ensemble(NeuralModel):
     """S models of one kind and config, each with its own weights.
 
     Args:
         members: the models (at least two), built with the same kind and config.
 
-    The ensemble reads as one model to evaluation and simulation: `rollout` returns the
-    members' mean, with each member's trajectories and their spread beside it
+    The ensemble is a `NeuralModel` of its members' kind, sizes and options: `rollout`
+    returns the members' mean, with each member's trajectories and their spread beside it
     (`EnsembleRollout`). Training uses `training_losses`, one loss per member on the
-    member's own batch.
+    member's own batch (a single model is the ensemble of one, `NeuralModel.members`).
     """
 
     def __init__(self, members: Sequence[NeuralModel]):
-        super().__init__()
         if len(members) < 2:
             raise ValueError("an ensemble needs at least two members")
         kinds = {(m.kind, repr(sorted(m.config.items()))) for m in members}
         if len(kinds) != 1:
             raise ValueError("an ensemble's members must share one kind and config")
-        self.members = nn.ModuleList(members)
+        first = members[0]
+        # The contract's class attributes are the members' kind's (one for all of them).
+        self.kind, self.Options = first.kind, first.Options
+        self.transferable = first.transferable
+        self.statistics_need_states = first.statistics_need_states
+        self._initial_states = first.initial_states
+        super().__init__(first.node_dim, first.control_dim, first.num_nodes, first.options)
+        self.members = nn.ModuleList(members)  # a submodule: the `members.k.` weights
 
-    # The `NeuralModel` interface, each name explicit: the members share kind and config.
     @property
-    def size(self) -> int:
-        """S, the number of members."""
-        return len(self.members)
+    def members(self) -> nn.ModuleList:
+        """The S members."""
+        return self._modules["members"]
 
-    # Alike in every member (one kind and config), so read from the first.
-    kind = _FromFirst()
-    transferable = _FromFirst()
-    statistics_need_states = _FromFirst()
-    options = _FromFirst()
-    node_dim = _FromFirst()
-    control_dim = _FromFirst()
-    num_nodes = _FromFirst()
-    initial_states = _FromFirst()
+    @property
+    def initial_states(self) -> int:
+        return self._initial_states
 
     @property
     def config(self) -> dict[str, Any]:
-        """A member's config, with `members`: S (what `build_model` reads back)."""
-        return self.members[0].config | {"members": self.size}
+        """The members' one config (a model kind may add to the sizes and options, as
+        MP-NODE's `periodic_dims`), with `members`: S (what `build_model` reads back)."""
+        return self.members[0].config | {"members": len(self.members)}
 
-    def check_states(self, x0: torch.Tensor) -> None:
-        self.members[0].check_states(x0)
+    def member_prefix(self, k: int) -> str:
+        return f"members.{k}."
 
     @property
     def stackable(self) -> bool:
@@ -207,7 +192,7 @@ class Ensemble(nn.Module):
 
         Same arguments as `NeuralModel.rollout`; `messages` are the first member's.
         """
-        s = self.size
+        s = len(self.members)
         history = extra.get("history")
         outs = self.member_rollouts(
             x0.expand(s, *x0.shape), ts, [adjacency] * s,
@@ -221,13 +206,10 @@ class Ensemble(nn.Module):
                                n_f_evals=max(o.n_f_evals for o in outs), members=members,
                                member_status=status)
 
-    def rollout_from_data(self, x: torch.Tensor, ts: torch.Tensor, adjacency: Graph,
-                          controls: torch.Tensor | None = None, **options: Any
-                          ) -> EnsembleRollout:
-        """As `NeuralModel.rollout_from_data`, for every member."""
-        c = self.initial_states
-        extra = {"history": x[:, :c]} if c > 1 else {}
-        return self.rollout(x[:, 0], ts, adjacency, controls, **options, **extra)
+    def training_loss(self, *args: Any, **kwargs: Any) -> BatchLoss:
+        """Refused: each member trains on its own batch (`training_losses`), never the
+        members' mean on one."""
+        raise TypeError("an ensemble's members train each on its own batch: training_losses")
 
     def training_losses(self, xs: torch.Tensor, ts: torch.Tensor, graphs: Sequence[Graph],
                         controls: torch.Tensor | None,
@@ -251,6 +233,12 @@ class Ensemble(nn.Module):
             history=xs[:, :, :c] if c > 1 else None)
         return [BatchLoss(loss_fn(o.states, x) if bool((o.status == 0).all()) else None,
                           o.status, o.n_f_evals) for o, x in zip(outs, xs, strict=True)]
+
+
+def ensemble_of(members: Sequence[NeuralModel]) -> NeuralModel:
+    """`members` as one model: the one model itself (its own ensemble of one), or the
+    `Ensemble` of several. The one place that tells one member from several."""
+    return members[0] if len(members) == 1 else Ensemble(members)
 
 
 def spread_error_correlation(spread: torch.Tensor, error: torch.Tensor) -> float:

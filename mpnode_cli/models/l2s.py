@@ -27,7 +27,7 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-from mpnode_cli.graphs import EdgeBatch
+from mpnode_cli.graphs.matrices import EdgeBatch
 from mpnode_cli.models.aggregate import full_graph
 from mpnode_cli.models.backend import EdgeIndex, Graph, as_graph
 from mpnode_cli.models.base import BatchLoss, NeuralModel, Rollout, mlp

@@ -26,7 +26,7 @@ from collections.abc import Callable
 
 import torch
 
-from mpnode_cli.graphs import EdgeBatch
+from mpnode_cli.graphs.matrices import EdgeBatch
 from mpnode_cli.models.backend import Graph, as_graph
 from mpnode_cli.models.base import NeuralModel, Rollout
 from mpnode_cli.models.stacked import StackedMembers

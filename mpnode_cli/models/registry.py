@@ -64,8 +64,8 @@ def resolve_options(kind: str, given: Mapping[str, Any]) -> ModelOptions:
 def build_model(kind: str, config: Mapping[str, Any]) -> NeuralModel:
     """Build a model from its kind and `model.config` (data sizes and options, one flat dict).
 
-    A config with `members` S > 1 (an ensemble's, `mpnode_cli.models.ensemble`) builds S
-    members of that config; their weights come from the checkpoint that holds them.
+    A config with `members` S (an ensemble's, `mpnode_cli.models.ensemble`; 1 if left out)
+    builds S members of that config; their weights come from the checkpoint that holds them.
 
     Raises:
         ValueError: unknown kind, missing sizes, or an option the model refuses.
@@ -74,8 +74,6 @@ def build_model(kind: str, config: Mapping[str, Any]) -> NeuralModel:
     config = {k: v for k, v in config.items() if k != "members"}
     if members < 1:
         raise ValueError(f"an ensemble has at least one member, not {members}")
-    if members == 1:
-        return model_class(kind).from_config(config)
-    from mpnode_cli.models.ensemble import Ensemble
+    from mpnode_cli.models.ensemble import ensemble_of
 
-    return Ensemble([model_class(kind).from_config(config) for _ in range(members)])
+    return ensemble_of([model_class(kind).from_config(config) for _ in range(members)])

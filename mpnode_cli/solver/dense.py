@@ -4,15 +4,6 @@ interpolant y(t + θh) = y + Σ_i b_i(θ)·h·k_i, b(θ) = [θ, θ², ..., θ^K]
 Steps are never shortened to hit output times; each step writes the ≤ W outputs it crossed
 as W lanes per sample, with a bounded, static-shape scatter (no `nonzero`); masked-out
 lanes write to a spare row.
-
-On the CPU, without `compile`, two pieces run in numpy on the tensors' memory (no copy):
-- the weights b_i(θ) (`interpolant_numpy`), because the solver's numbers are numpy's
-  there: its matmul and torch's round the K-term sums differently in the last bit;
-- where autograd does not record the step, the lanes' sums themselves (`host_lanes`), one
-  small product per sample on a strided view of the stages: 5× faster than torch's copy
-  and `bmm` for one lane a sample (B = 512, F = 30, float64) and 1.4× for 13 (B = 128,
-  F = 18, float32), measured with `bench/host_ops.py`.
-Everything else of the step, its control and the dense output runs in torch.
 """
 
 from __future__ import annotations
@@ -20,20 +11,9 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 from mpnode_cli.solver.runge_kutta import StageTableau
-
-# Tests and bench/host_ops.py set this to False to run the dense output in torch on the CPU
-# too, and compare.
-NUMPY_ON_CPU = True
-
-
-def on_host(device: torch.device, compile: bool) -> bool:
-    """Whether a solve on `device` takes the dense output's numpy form: on the CPU
-    uncompiled (the compiled step is tensor code, and CUDA's numpy would need a copy)."""
-    return NUMPY_ON_CPU and device.type == "cpu" and not compile
 
 
 class OutputTimes(NamedTuple):
@@ -42,11 +22,10 @@ class OutputTimes(NamedTuple):
     ts: torch.Tensor  # [T] float64 output times
     arange: torch.Tensor  # [T] int64 0, 1, ..., T − 1
     interp_t: torch.Tensor  # [s, K] float64 the interpolant's coefficients (`StageTableau`)
-    numpy: bool  # the weights in numpy (`on_host`)
 
     @classmethod
-    def of(cls, ts: torch.Tensor, tab: StageTableau, numpy: bool) -> OutputTimes:
-        return cls(ts, torch.arange(ts.numel(), device=ts.device), tab.interp_t, numpy)
+    def of(cls, ts: torch.Tensor, tab: StageTableau) -> OutputTimes:
+        return cls(ts, torch.arange(ts.numel(), device=ts.device), tab.interp_t)
 
 
 def dense_weights(out: OutputTimes, t: torch.Tensor, h: torch.Tensor, out_idx: torch.Tensor,
@@ -70,8 +49,7 @@ def dense_weights(out: OutputTimes, t: torch.Tensor, h: torch.Tensor, out_idx: t
         h_safe = torch.where(h > 0, h, 1.0)
         theta = (torch.take(ts, cols.clamp(None, ts.shape[0] - 1)) - t[:, None]) / h_safe[:, None]
         theta = theta.clamp(0.0, 1.0)  # (B, W)
-        interpolant = interpolant_numpy if out.numpy else interpolant_weights
-        coef = interpolant(theta, out.interp_t)  # (B, W, s): b_i(θ)
+        coef = interpolant_weights(theta, out.interp_t)  # (B, W, s): b_i(θ)
     return cols, valid, coef
 
 
@@ -84,19 +62,6 @@ def interpolant_weights(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Te
     return coef.permute(1, 2, 0)
 
 
-def interpolant_numpy(theta: torch.Tensor, interp_t: torch.Tensor) -> torch.Tensor:
-    """`interpolant_weights` in numpy (CPU tensors), as the solver always computed it there."""
-    x = theta.numpy().reshape(-1)
-    # (K, B·W): θ, ..., θ^K, a power a row, each the row above times θ (cumprod's
-    # products; numpy's cumprod along a short last axis took ~30 µs for 256 rows).
-    powers = np.empty((interp_t.shape[1], x.size))
-    powers[0] = x
-    for k in range(1, powers.shape[0]):
-        np.multiply(powers[k - 1], x, out=powers[k])
-    # (B·W, K) @ (K, s): one product, already in the (B, W, s) layout.
-    return torch.from_numpy((powers.T @ interp_t.numpy().T).reshape(*theta.shape, -1))
-
-
 def lanes(coef: torch.Tensor, hk: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     """`[B, W, F]` the dense-output lanes y + Σ_i coef[b, w, i]·hk[i, b], differentiable.
 
@@ -105,27 +70,14 @@ def lanes(coef: torch.Tensor, hk: torch.Tensor, y: torch.Tensor) -> torch.Tensor
     return y.unsqueeze(1) + torch.einsum("bwi,ibf->bwf", coef, hk)
 
 
-def host_lanes(coef: torch.Tensor, hk: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """`lanes` in numpy, for a step that autograd does not record (CPU tensors; not
-    differentiable); the same to rounding."""
-    coef, hk, y = (x.detach().numpy() for x in (coef, hk, y))
-    # One small product per sample on the strided (B, s, F) view of the stages, no copy.
-    values = np.matmul(coef, hk.transpose(1, 0, 2))  # (B, W, F)
-    values += y[:, None]
-    return torch.from_numpy(values)
-
-
 def write_lanes(out: torch.Tensor, rows: torch.Tensor, coef: torch.Tensor, hk: torch.Tensor,
-                y: torch.Tensor, numpy: bool) -> None:
+                y: torch.Tensor) -> None:
     """`out[rows] = lanes(coef, hk, y)` (`out`: `[R, F]`, rows `[B·W]` int64), in place,
-    outside autograd; the sums in numpy (`host_lanes`) where `numpy`."""
-    if numpy:
-        values = host_lanes(coef, hk, y)
-    else:
-        # (B, s, F): a sample-major copy of the stages, against bmm's slow path for a
-        # batch stride smaller than the row stride (measured: ~0.1 ms a training step).
-        values = torch.bmm(coef, hk.transpose(0, 1).contiguous())  # (B, W, F)
-        values += y[:, None]
+    outside autograd."""
+    # (B, s, F): a sample-major copy of the stages, against bmm's slow path for a batch
+    # stride smaller than the row stride (measured: ~0.1 ms a training step).
+    values = torch.bmm(coef, hk.transpose(0, 1).contiguous())  # (B, W, F)
+    values += y[:, None]
     out.index_copy_(0, rows, values.view(-1, out.shape[1]))
 
 

@@ -54,15 +54,12 @@ class StepTape:
         out: `[B·T + 1, F]` the dense outputs, NaN until written; the spare last row takes
             the writes of masked-out lanes (None for a solve without dense output).
         g_out: `[B·T + 1, F]` the outputs' gradient (last row 0), set by `_Outputs`' backward.
-        host_sums: write the dense outputs' sums in numpy (`dense.host_lanes`; never where
-            autograd records the steps).
     """
 
     def __init__(self, tab: StageTableau, y: torch.Tensor, shape: tuple[int, ...],
-                 record: bool, n_out: int | None = None, host_sums: bool = False):
+                 record: bool, n_out: int | None = None):
         batch, feat = y.shape
         self.tab, self.shape, self.feat, self.record = tab, shape, feat, record
-        self.host_sums = host_sums and not record
         self.hk = torch.empty(tab.stages, batch, feat, dtype=y.dtype, device=y.device)
         hk_t = self.hk.view(tab.stages, -1).T  # (B·F, s)
         self.cols = [hk_t[:, :i] for i in range(tab.stages + 1)]
@@ -211,7 +208,7 @@ def _end(rec: TapeRecord, k_last: torch.Tensor):
     y_next = torch.where(rec.accept, rec.y_new, rec.y)
     k1_next = torch.where(rec.accept, k_last.reshape(rec.y.shape), rec.k1)
     if rec.rows is not None:
-        write_lanes(tape.out, rec.rows, rec.coef, tape.hk, rec.y, tape.host_sums)
+        write_lanes(tape.out, rec.rows, rec.coef, tape.hk, rec.y)
     rec.y = rec.k1 = rec.y_new = rec.y_flat = rec.last = None  # not needed past the step
     return y_next, k1_next
 

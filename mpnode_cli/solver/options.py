@@ -3,7 +3,8 @@
 The generate and train configs each hold one as their `solver` field (with their own
 defaults, `mpnode_cli.config`), and the layers between pass it on unchanged until
 `solve(f, y0, t_eval, **options.solve_kwargs())`, which builds the step-size controller
-from `controller`, `rtol` and `atol`. The field defaults are declared once: the method's and
+from `controller`, `rtol` and `atol`, and gives a compiled solve the options' own
+`CompileCache`. The field defaults are declared once: the method's and
 `max_steps`' here (`solve` takes them from here), the tolerances' and the controller's in
 `controller.py`. Torch-free, like `tableau` and `controller`, so that configs and the CLI's
 help can be built without importing torch.
@@ -13,9 +14,10 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, model_validator
 
 from mpnode_cli.limits import EPS, RTOL_ULPS
+from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import ATOL, CONTROLLER, CONTROLLERS, RTOL, controller_for
 from mpnode_cli.solver.tableau import METHODS, get_method
 
@@ -48,6 +50,11 @@ class SolverOptions(BaseModel):
         checkpoints: backpropagate keeping at most this many solver states, the steps
             recomputed from them (`mpnode_cli.solver.checkpoint`): memory that does not
             grow with the steps, the same gradient, 1.5–2× the time; None: keep every step.
+
+    Besides the fields, the options keep the compiled step of the solves run with them (and
+    with their `model_copy`s): made on the first compiled solve, it is shared by the later
+    ones, which reuse its graphs and, after a failed compile, its eager fallback. It is no
+    part of their value: not stored, not compared, empty in a deep copy or a pickle.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -70,6 +77,7 @@ class SolverOptions(BaseModel):
     checkpoints: int | None = Field(
         None, ge=1, description="Backpropagate through the solve keeping at most this many "
         "solver states, recomputing the steps between (none: keep every step).")
+    _compiled: CompileCache = PrivateAttr(default_factory=CompileCache)
 
     @model_validator(mode="after")
     def _check_method(self) -> SolverOptions:
@@ -91,7 +99,8 @@ class SolverOptions(BaseModel):
 
     def solve_kwargs(self) -> dict[str, Any]:
         """The keyword arguments of `solve` these options stand for: the controller built
-        from its name and the tolerances ("auto" compile: no)."""
+        from its name and the tolerances; `compile`, the options' own cache or False
+        ("auto": False)."""
         kwargs = self.model_dump(exclude={"rtol", "atol"})
-        return kwargs | {"compile": self.compile is True,
+        return kwargs | {"compile": self._compiled if self.compile is True else False,
                          "controller": controller_for(self.controller, self.rtol, self.atol)}

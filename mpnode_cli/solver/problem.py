@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import torch
 
+from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import StepController
 from mpnode_cli.solver.runge_kutta import RHS, StageTableau
 
@@ -35,7 +36,8 @@ class Problem:
         order: p, the error estimate's order + 1, which the controller and the first
             step's heuristic take.
         dt0: the first step size, scalar or `[B]`, or None for Hairer's heuristic.
-        compile: run the adaptive step through `torch.compile`.
+        compiler: run the adaptive step through `torch.compile`, with this cache of its
+            compiled graphs and its eager fallback (None: eagerly).
         restrict: `restrict(index) -> f'`, the right-hand side of the samples `index` alone
             (compaction; None: none).
         block: compaction keeps or drops whole blocks of this many samples (0: no
@@ -57,7 +59,7 @@ class Problem:
     controller: StepController | None = None
     order: int = 0
     dt0: float | torch.Tensor | None = None
-    compile: bool = False
+    compiler: CompileCache | None = None
     restrict: Callable[[torch.Tensor], RHS] | None = None
     block: int = 0
     fixed_dt: float | None = None

@@ -10,9 +10,10 @@ go on.
 This module checks the arguments, flattens each sample's state to `[F]`, gathers the
 solve's settings into one `Problem` (`problem.py`), and hands over to one of two loops over
 the same Runge–Kutta step (`runge_kutta.py`, recorded op by op by autograd, or `fused.py`,
-with a backward written for the tableau): `adaptive.py` (error control, dense output in
-`dense.py`, an optional compiled step) or `fixed.py` (`fixed_dt`). The result types are in
-`solution.py`, the step-size controllers, which own the tolerances, in `controller.py`.
+with a backward written for the tableau): `adaptive.py` (error control in
+`adaptive_step.py`, dense output in `dense.py`, an optional compiled step) or `fixed.py`
+(`fixed_dt`). The result types are in `solution.py`, the step-size controllers, which own
+the tolerances, in `controller.py`.
 Given `restrict`, the adaptive solve compacts (`_adaptive`): once most samples are done it
 restarts on the running ones, each from its own state, and merges their later outputs back.
 """
@@ -25,6 +26,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from mpnode_cli.solver.adaptive import solve_adaptive
+from mpnode_cli.solver.compile_cache import CompileCache
 from mpnode_cli.solver.controller import ATOL, CONTROLLER, RTOL, StepController, controller_for
 from mpnode_cli.solver.fixed import solve_fixed
 from mpnode_cli.solver.options import MAX_STEPS, METHOD
@@ -48,7 +50,7 @@ def solve(
     max_steps: int = MAX_STEPS,
     fixed_dt: float | None = None,
     tstops: torch.Tensor | Sequence[float] | None = None,
-    compile: bool = False,
+    compile: bool | CompileCache = False,
     controller: str | StepController = CONTROLLER,
     progress: Callable[[float], None] | None = None,
     fused: bool = True,
@@ -81,6 +83,9 @@ def solve(
         compile: run the adaptive step through `torch.compile` (inductor): ~10 s to compile
             for a new `f`, shape or dtype, then about 2× faster on CPU
             (bench/results/solver.md); for long or repeated solves; ignored with `fixed_dt`.
+            True compiles for this solve alone; a `CompileCache` shares its compiled graphs,
+            and its fallback to the eager step after a failed compile, with every solve
+            given the same one (`SolverOptions.solve_kwargs` gives the options' own).
         controller: adaptive step-size control, "pi" (proportional-integral, the default)
             or "i" (integral; fewer steps at loose tolerances on smooth solutions), or a
             controller object with its own tolerances and coefficients, e.g.
@@ -130,7 +135,8 @@ def solve(
     if checkpoints is not None and not fused:
         raise ValueError("checkpoints reruns the fused steps: leave fused=True (fused=False "
                          "records every op, for higher derivatives, which checkpoints lack)")
-    compile = compile and checkpoints is None
+    compiler = None if not compile or checkpoints is not None else (
+        compile if isinstance(compile, CompileCache) else CompileCache())
     tableau = get_method(method, fixed_dt)
     ctrl = _controller(controller, rtol, atol)
 
@@ -146,9 +152,9 @@ def solve(
         tab=stage_tableau(tableau, y.dtype, y0.device), ts=ts, stops=_stop_times(ts, tstops),
         shape=tuple(shape), dtype=y0.dtype, max_steps=max_steps, fused=fused,
         report=_Reporter(progress, ts), controller=ctrl,
-        order=tableau.controller_order if adaptive else 0, dt0=dt0, compile=compile,
+        order=tableau.controller_order if adaptive else 0, dt0=dt0, compiler=compiler,
         restrict=restrict, fixed_dt=fixed_dt, checkpoints=checkpoints,
-        block=_compaction_block(adaptive and compact and not compile, restrict,
+        block=_compaction_block(adaptive and compact and compiler is None, restrict,
                                 restrict_block, batch))
     if adaptive:
         ys, status, stats = _adaptive(problem, fun, shaped, y)

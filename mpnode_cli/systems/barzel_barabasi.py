@@ -57,12 +57,13 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, NeighbourSum, System
+from mpnode_cli.systems.base import RHS, System
+from mpnode_cli.systems.neighbour_sum import NeighbourSum
 
 if TYPE_CHECKING:
     import torch
 
-    from mpnode_cli.graphs import EdgeBatch
+    from mpnode_cli.graphs.matrices import EdgeBatch
 
 # The graph's parameters, shared by the five systems: S¹ degree exponent γ (scale-free,
 # heterogeneous hubs for 2 < γ < 3), inverse temperature β > 1 (clustering grows with β),

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mpnode_cli.graphs import EdgeList
+from mpnode_cli.graphs.matrices import EdgeList
 from mpnode_cli.systems.plugin_calls import (
     PluginError,
     call,

@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 
-from mpnode_cli.systems.base import RHS, NeighbourSum, Option, System
+from mpnode_cli.systems.base import RHS, Option, System
+from mpnode_cli.systems.neighbour_sum import NeighbourSum
 
 if TYPE_CHECKING:
     import torch

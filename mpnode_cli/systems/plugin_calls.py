@@ -8,7 +8,10 @@ These are the pieces of the plug-in contract (`mpnode_cli.systems.contract`) tha
 
 from __future__ import annotations
 
+import contextlib
 import inspect
+import os
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 from mpnode_cli.memory import is_out_of_memory
@@ -19,6 +22,31 @@ if TYPE_CHECKING:
 
 class PluginError(ValueError):
     """A system's method broke its contract or raised: one line naming where."""
+
+
+class HardExit(SystemExit):
+    """`os._exit(code)` called by a plug-in's code (`no_hard_exit`)."""
+
+    def __str__(self) -> str:
+        return f"it called os._exit({self.code}), which would end mpnode without a word"
+
+
+@contextlib.contextmanager
+def no_hard_exit() -> Iterator[None]:
+    """While a plug-in's code runs (its file imported, a method called), `os._exit` raises
+    `HardExit` instead of ending the process at once (which would skip every message,
+    leave an output file empty and exit 0); a plug-in has no reason to end mpnode. An exit
+    from C code cannot be caught this way."""
+    real = os._exit
+
+    def refuse(code: int = 0) -> None:
+        raise HardExit(code)
+
+    os._exit = refuse
+    try:
+        yield
+    finally:
+        os._exit = real
 
 
 def where(system: Any, method: str) -> str:
@@ -42,6 +70,8 @@ def named(system: Any, method: str, exc: BaseException) -> BaseException:
     if isinstance(exc, ValueError):
         if not _through_plugin(system, exc):
             return exc
+        return PluginError(f"{where(system, method)}: {exc}")
+    if isinstance(exc, HardExit):
         return PluginError(f"{where(system, method)}: {exc}")
     if isinstance(exc, SystemExit):
         return PluginError(f"{where(system, method)} called sys.exit({exc.code!r})")
@@ -68,7 +98,8 @@ def _through_plugin(system: Any, exc: BaseException) -> bool:
 def call(system: Any, method: str, *args: Any, **kwargs: Any) -> Any:
     """`system.method(*args, **kwargs)`, whose errors are `named` after it."""
     try:
-        return getattr(system, method)(*args, **kwargs)
+        with no_hard_exit():
+            return getattr(system, method)(*args, **kwargs)
     except BaseException as exc:  # a plug-in's sys.exit is an error too
         raise named(system, method, exc) from None
 
@@ -91,7 +122,8 @@ def checked_rhs(system: System, f: Any) -> RHS:
     def checked(t: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         nonlocal first
         try:
-            dy = f(t, y)
+            with no_hard_exit():
+                dy = f(t, y)
         except BaseException as exc:
             raise named(system, "rhs", exc) from None
         if not (isinstance(dy, torch.Tensor) and dy.shape == y.shape and dy.dtype == y.dtype

@@ -15,13 +15,11 @@ built-in ones. A plug-in cannot take a built-in system's name.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import importlib.util
 import inspect
 import json
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -31,6 +29,8 @@ from mpnode_cli.systems.gene import Gene
 from mpnode_cli.systems.kuramoto import Kuramoto
 from mpnode_cli.systems.lorenz import Lorenz
 from mpnode_cli.systems.pendulum import Pendulum
+from mpnode_cli.systems.plugin_calls import HardExit as _HardExit
+from mpnode_cli.systems.plugin_calls import no_hard_exit as _no_hard_exit
 from mpnode_cli.systems.quadrotor import Quadrotor
 
 ENTRY_POINT_GROUP = "mpnode.systems"
@@ -115,29 +115,6 @@ def entry_point_systems() -> dict[str, type[System]]:
     return found
 
 
-class _HardExit(SystemExit):
-    """`os._exit(code)` called by a plug-in while it is imported."""
-
-    def __str__(self) -> str:
-        return f"it called os._exit({self.code}), which would end mpnode without a word"
-
-
-@contextlib.contextmanager
-def _no_hard_exit():
-    """While a plug-in file is imported, `os._exit` raises `_HardExit` instead of ending the
-    process at once (which would skip every message and leave exit code 0); a plug-in has
-    no reason to end mpnode. An exit from C code cannot be caught this way."""
-    real = os._exit
-
-    def refuse(code: int = 0) -> None:
-        raise _HardExit(code)
-
-    os._exit = refuse
-    try:
-        yield
-    finally:
-        os._exit = real
-
 
 def load_system_file(path: str | Path) -> type[System]:
     """Import a Python file and register the one `System` subclass it defines.
@@ -212,6 +189,9 @@ def _check_class(cls: object, where: str) -> None:
     if cls.name in SYSTEMS and SYSTEMS[cls.name] is not cls:
         raise ValueError(f"{where}: '{cls.name}' is a built-in system; give yours another "
                          "name")
+    if cls.name == "custom":  # what a dataset of `mpnode import` says its system is
+        raise ValueError(f"{where}: 'custom' names the data mpnode import makes (of no "
+                         "known system); give yours another name")
     if cls.default_topology not in cls.topologies:
         raise ValueError(f"{where}: default_topology '{cls.default_topology}' is not among "
                          f"its topologies ({', '.join(cls.topologies)})")

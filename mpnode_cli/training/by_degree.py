@@ -25,8 +25,9 @@ import torch
 
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.jsonable import jsonable
+from mpnode_cli.report.members import shown
 from mpnode_cli.training.baselines import time_mean_prediction
-from mpnode_cli.training.extrapolation import NodeExtrapolation
+from mpnode_cli.training.extrapolation_nodes import NodeExtrapolation
 from mpnode_cli.training.losses import Angles, difference
 
 
@@ -66,12 +67,12 @@ class DegreeSums:
         self.time_mean = time_mean_prediction(train, time, physical)  # (T, D) or None
         keys = ("nodes", "failed", "mse", "mse_normalized", "time_mean", "hold_x0")
         self.sums = {key: np.zeros(self.size) for key in keys}
-        self.members: list[dict[str, np.ndarray]] | None = None
+        self.members: list[dict[str, np.ndarray]] = []  # each member's, from the first batch
 
     def add(self, batch: TrajectoryData, x: torch.Tensor, out: Any, good: torch.Tensor) -> None:
         """One batch as `evaluate` rolls it out: `batch` its trajectories (physical),
-        `x: [B, T, N, D]` their states normalized, `out` the rollout (`states`, and an
-        ensemble's `members`, `member_status`), `good: [B]` bool (CPU) the rollouts that
+        `x: [B, T, N, D]` their states normalized, `out` the rollout (`states`, and each
+        member's, `members` and `member_status`), `good: [B]` bool (CPU) the rollouts that
         succeeded."""
         bins = self.bins[batch.graph_index.numpy()]  # (B, N)
         ok = good.numpy()
@@ -88,8 +89,6 @@ class DegreeSums:
             self._add("mse_normalized", bins[ok], _node_sq(out.states[keep], x[keep],
                                                            self.angles))
             self._add("mse", bins[ok], self._physical_sq(out.states[keep], x[keep]))
-        if getattr(out, "members", None) is None:
-            return
         self.members = self.members or [{"nodes": np.zeros(self.size),
                                          "mse": np.zeros(self.size)} for _ in out.members]
         for sums, pred, status in zip(self.members, out.members, out.member_status,
@@ -130,12 +129,10 @@ class DegreeSums:
             row["skill"] = (row["mse"] / row["time_mean"]
                             if row["time_mean"] and row["mse"] is not None else None)
             row["states_outside"] = None if share is None else float(share[b])
-            if self.members:
-                each = np.array([m["mse"][b] / (m["nodes"][b] * self.values)
-                                 if m["nodes"][b] * self.values else np.nan
-                                 for m in self.members])
-                row |= {"members_mean": float(each.mean()),
-                        "members_std": float(each.std())}
+            each = np.array([m["mse"][b] / (m["nodes"][b] * self.values)
+                             if m["nodes"][b] * self.values else np.nan for m in self.members])
+            row |= shown(len(each), {"members_mean": float(each.mean()),
+                                     "members_std": float(each.std())}) or {}
             rows.append(jsonable(row))
         return rows
 

@@ -2,7 +2,7 @@
 
 The file must be an mpnode checkpoint of a version this mpnode reads (see
 `mpnode_cli.training.checkpoint`), and its contents must pass
-`mpnode_cli.training.checkpoint.checkpoint_problems`, the one checkpoint check, which
+`mpnode_cli.training.checkpoint_contents.checkpoint_problems`, the one checkpoint check, which
 `load_checkpoint` runs for every other reader: the model builds from its kind and config,
 its weights fit that model and are finite, its normalization fits the model's sizes with
 finite means and positive standard deviations, an optimizer state fits the model's
@@ -16,17 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from mpnode_cli.data.validate import Report
+from mpnode_cli.report.members import shown
 
 
 def check_checkpoint(path: str | Path) -> Report:
     """Every problem `checkpoint_problems` finds, and a summary; a run folder means its
     `checkpoints/best.pt`."""
-    from mpnode_cli.training.checkpoint import (
-        FORMAT,
-        FORMAT_VERSION,
-        checkpoint_problems,
-        read_checkpoint,
-    )
+    from mpnode_cli.training.checkpoint import FORMAT, FORMAT_VERSION, read_checkpoint
+    from mpnode_cli.training.checkpoint_contents import checkpoint_problems
 
     report = Report(Path(path), "checkpoint")
     try:
@@ -35,20 +32,20 @@ def check_checkpoint(path: str | Path) -> Report:
         report.problems.append(str(exc))
         return report
     report.path = ckpt.path or report.path
-    shown = f"{FORMAT} v{FORMAT_VERSION}"
+    version = f"{FORMAT} v{FORMAT_VERSION}"
     if ckpt.format_version != FORMAT_VERSION:  # read as stored, then upgraded
-        shown += f" (upgraded from v{ckpt.format_version} on reading)"
-    report.summary.update({"format": shown, "model": ckpt.model_kind,
+        version += f" (upgraded from v{ckpt.format_version} on reading)"
+    report.summary.update({"format": version, "model": ckpt.model_kind,
                            "epoch": ckpt.epoch, "trained_on": _trained_on(ckpt.dataset),
                            "checksum": "sha256 of the contents, verified" if ckpt.digest else
                            "none (saved before mpnode recorded one)"})
     report.problems += checkpoint_problems(ckpt)
     if report.ok:
         report.summary["parameters"] = sum(p.numel() for p in ckpt.build_model().parameters())
-        if ckpt.members > 1:  # the K that `--member K` takes
-            seed = int(ckpt.train_config.get("seed", 0))
-            report.summary["members"] = (f"{ckpt.members} (members 0–{ckpt.members - 1}, "
-                                         f"seeds {seed}–{seed + ckpt.members - 1})")
+        seed, s = int(ckpt.train_config.get("seed", 0)), ckpt.members
+        # The K that `--member K` takes, for an ensemble.
+        report.summary |= shown(s, {"members": f"{s} (members 0–{s - 1}, seeds "
+                                               f"{seed}–{seed + s - 1})"}) or {}
     return report
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from mpnode_cli.config_upgrade import (
+from mpnode_cli.config.upgrade import (
     RetiredOptionError,
     pin_stored_solver,
     upgrade_solver_fields,
@@ -54,7 +54,7 @@ def upgrade_payload(payload: dict[str, Any], version: int) -> None:
 
 
 def drop_retired(payload: dict[str, Any]) -> None:
-    """The retired options (`mpnode_cli.config_upgrade.RETIRED`) out of an upgraded
+    """The retired options (`mpnode_cli.config.upgrade.RETIRED`) out of an upgraded
     checkpoint's model config and train config, in place; an asinh scale in its
     normalizer is the retired `normalize = "asinh"`.
 

@@ -21,7 +21,7 @@ import torch
 from mpnode_cli.signals import deferred_signals, signal_name
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from mpnode_cli.training.setup import Run
+from mpnode_cli.training.run_state import Run
 
 
 class Checkpointer:
@@ -31,21 +31,18 @@ class Checkpointer:
     def __init__(self, run: Run):
         self.run = run
         self.snapshot = self._copy()
-        # An ensemble's best.pt holds each member's best weights, which may be of different
-        # epochs: they are kept here (a resumed run's from its best.pt).
-        self.best_weights: dict[str, torch.Tensor] | None = None
-        if run.ensemble:
-            best = runs.checkpoint_path(run.run_dir, "best")
-            self.best_weights = (load_checkpoint(best).state_dict
-                                 if run.resumed and best.exists()
-                                 else copy.deepcopy(run.model.state_dict()))
+        # best.pt holds each member's best weights, which may be of different epochs (an
+        # ensemble's): they are kept here (a resumed run's from its best.pt).
+        best = runs.checkpoint_path(run.run_dir, "best")
+        self.best_weights: dict[str, torch.Tensor] = (
+            load_checkpoint(best).state_dict if run.resumed and best.exists()
+            else copy.deepcopy(run.model.state_dict()))
 
     def checkpoint(self, metrics: dict[str, Any] | None = None) -> Checkpoint:
         """The run as it is now (its tensors shared with the model and optimizer)."""
         run = self.run
-        rng = {"torch": torch.get_rng_state(), "shuffle": run.shuffle.get_state()}
-        if run.ensemble:
-            rng["member_shuffles"] = torch.stack([g.get_state() for g in run.shuffles])
+        rng = {"torch": torch.get_rng_state(), "shuffle": run.shuffle.get_state(),
+               "member_shuffles": torch.stack([g.get_state() for g in run.shuffles])}
         return Checkpoint(
             model_kind=run.kind, model_config=run.model_config,
             state_dict=run.model.state_dict(), normalizer=run.normalizer.to_dict(),
@@ -54,20 +51,17 @@ class Checkpointer:
             loop=run.state.to_dict(), parent_sha256=run.parent_sha, metrics=metrics or {},
         )  # fmt: skip
 
-    def save_epoch(self, row: dict[str, Any], *, best: bool,
-                   improved: list[int] | None = None) -> None:
+    def save_epoch(self, row: dict[str, Any]) -> None:
         """Take the snapshot of the epoch just done (with its metrics `row`), and write its
-        files: the row, then `last.pt`, then `best.pt` if it improved (`best`).
+        files: the row, then `last.pt`, then `best.pt` if a member improved (its best
+        epoch is this one; each member that did has its weights replace its own there).
 
         Signals are held for the whole of it, the snapshot included, so an interrupt comes
         after all three writes or before any; the interrupt handler (`save_interrupted`)
         then saves the snapshot it has.
-
-        Args:
-            improved: an ensemble's members whose validation loss is their best so far
-                (their weights replace theirs in `best.pt`).
         """
         run = self.run
+        improved = [k for k, m in enumerate(run.state.members) if m.best_epoch == run.state.epoch]
         with deferred_signals():
             self.snapshot = self._copy()
             self.snapshot.metrics = copy.deepcopy(row)
@@ -75,9 +69,9 @@ class Checkpointer:
                 return
             runs.append_metrics(run.run_dir, row)
             save_checkpoint(runs.checkpoint_path(run.run_dir, "last"), self.snapshot)
-            if best:
+            if improved:
                 save_checkpoint(runs.checkpoint_path(run.run_dir, "best"),
-                                self._best(row, improved or []))
+                                self._best(row, improved))
 
     def save_interrupted(self, exc: KeyboardInterrupt) -> None:
         """Save the snapshot as `last.pt` and an interrupted `summary.json` (rank 0), for
@@ -92,13 +86,11 @@ class Checkpointer:
             pass  # it came during the save, which finished: stop, as both signals asked
 
     def _best(self, row: dict[str, Any], improved: list[int]) -> Checkpoint:
-        """The checkpoint `best.pt` takes: the run as it is now; for an ensemble, with
-        each member's best weights (the `improved` members' current ones)."""
+        """The checkpoint `best.pt` takes: the run as it is now, with each member's best
+        weights (the `improved` members' current ones)."""
         ckpt = self.checkpoint(row)
-        if self.best_weights is None:
-            return ckpt
         for k in improved:
-            prefix = f"members.{k}."
+            prefix = self.run.model.member_prefix(k)
             for name, value in ckpt.state_dict.items():
                 if name.startswith(prefix):
                     self.best_weights[name] = value.detach().clone()

@@ -24,7 +24,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.limits import MULTIPLICITY_MAX
 
 if TYPE_CHECKING:
@@ -63,7 +64,7 @@ def in_degrees(path: str | Path) -> np.ndarray:
                              f"numbers, got shape {list(a.shape)}")
         return np.rint(a.reshape(-1, a.shape[-1], a.shape[-1]).sum(axis=-1)).astype(
             np.int64).reshape(-1)
-    from mpnode_cli.edge_files import read_edges
+    from mpnode_cli.graphs.edge_files import read_edges
 
     edges = read_edges(path)
     return np.bincount(edges.receivers, minlength=edges.num_nodes)

@@ -7,10 +7,11 @@ from dataclasses import asdict
 from typing import Any
 
 from mpnode_cli.data.dataset import SPLITS
+from mpnode_cli.report.members import shown
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint
-from mpnode_cli.training.evaluate import evaluate_datasets
-from mpnode_cli.training.setup import Run
+from mpnode_cli.training.checkpoint_report import evaluate_datasets
+from mpnode_cli.training.run_state import Run
 
 
 def finish(run: Run) -> runs.TrainSummary:
@@ -42,7 +43,7 @@ def finish(run: Run) -> runs.TrainSummary:
         parent_sha256=run.parent_sha, world_size=run.world.size,
         by_dataset=_summary_by_dataset(run.names, run.facts, best, test),
         stopped_early=state.epoch if state.epoch < config.epochs else None,
-        members=_summary_members(run, test) if len(members) > 1 else None,
+        members=shown(len(members), _summary_members(run, test)),
     )  # fmt: skip
     runs.write_json(run.run_dir / runs.SUMMARY, asdict(summary))
     return summary

@@ -15,8 +15,9 @@ A run is five stages, each a named piece:
 2. the learning rate, one policy (`mpnode_cli.training.lr_schedule.LRSchedule`);
 3. the checkpointer (`mpnode_cli.training.checkpointer.Checkpointer`): each epoch's files,
    all or none, and the snapshot a rollback and an interrupt go back to;
-4. the epochs: `train_epoch` (one pass of optimizer steps, `train_step`), validation,
-   `_record`;
+4. the epochs: `train_epoch` (one pass of optimizer steps,
+   `mpnode_cli.training.step.train_step`), validation and the metrics row
+   (`mpnode_cli.training.epoch_record`);
 5. the best checkpoint on the test split, and `summary.json`
    (`mpnode_cli.training.finish`).
 
@@ -54,30 +55,30 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.pooled import epoch_batches, taken
+from mpnode_cli.report.members import about_member, shown
 from mpnode_cli.signals import raise_if_interrupted
-from mpnode_cli.solver import Status
 from mpnode_cli.training import coverage, distributed
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint
 from mpnode_cli.training.checkpointer import Checkpointer
-from mpnode_cli.training.eval_result import EvalResult, by_dataset, pooled
-from mpnode_cli.training.evaluate import evaluate
+from mpnode_cli.training.epoch_record import record, validate
 from mpnode_cli.training.finish import count_parameters, finish
 from mpnode_cli.training.losses import LOSSES, run_angles
 from mpnode_cli.training.lr_schedule import LRSchedule
 from mpnode_cli.training.memory_guard import EpochPeaks, stop_if_outgrowing
 from mpnode_cli.training.recipe import describe_solver, resolve_compile, resolve_train_config
 from mpnode_cli.training.run_folder import RunFolder
-from mpnode_cli.training.setup import OnEvent, Run, load_data, member_state, set_up
+from mpnode_cli.training.run_state import OnEvent, Run
+from mpnode_cli.training.setup import load_data, set_up
+from mpnode_cli.training.step import train_step
 from mpnode_cli.training.stiffness import Stiffness
 
 # What other modules use; `resolve_train_config` lives in the recipe module and is named
@@ -101,16 +102,6 @@ class TrainingInterrupted(Exception):
 
 class TrainingDiverged(RuntimeError):
     """Bad steps kept coming after the lr was halved down to `min_lr`."""
-
-
-class StepResult(NamedTuple):
-    """One member's optimizer step: the global batch's loss, the gradient norm, this
-    rank's RHS evaluations, and why the step was skipped (None: it was taken)."""
-
-    loss: float
-    grad_norm: float
-    n_f_evals: int
-    skip: str | None
 
 
 def train(config: TrainConfig, *, resume: bool = False,
@@ -173,9 +164,9 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
     try:
         if state.epoch == 0 and not runs.checkpoint_path(run.run_dir, "best").exists():
             runs.truncate_metrics(run.run_dir, -1)  # again, if interrupted before
-            val, each = _validate(run)
-            row = _record(run, schedules, 0, val, each, None, val.seconds)
-            saver.save_epoch(row, best=True, improved=list(range(len(schedules))))
+            val, each = validate(run)
+            row = record(run, schedules, 0, val, each, None, val.seconds)
+            saver.save_epoch(row)
             emit({"event": "epoch", **row})
         peaks, emit = EpochPeaks(run.device.type, config.memory_budget), Stiffness(emit).emit
         for epoch in range(state.epoch + 1, config.epochs + 1):
@@ -185,10 +176,10 @@ def _train(config: TrainConfig, resume: bool, progress: OnEvent | None, folder: 
             start = time.perf_counter()
             peaks.begin()
             steps = train_epoch(run, schedules, saver, epoch)
-            val, each = _validate(run)
+            val, each = validate(run)
             state.epoch = epoch
-            row = _record(run, schedules, epoch, val, each, steps, time.perf_counter() - start)
-            saver.save_epoch(row, best=row["improved"], improved=row.get("improved_members"))
+            row = record(run, schedules, epoch, val, each, steps, time.perf_counter() - start)
+            saver.save_epoch(row)
             emit({"event": "epoch", **row})
             stop_if_outgrowing(run, saver.snapshot.epoch, peaks)
     except KeyboardInterrupt as exc:
@@ -293,9 +284,8 @@ def _after_step(run: Run, schedules: list[LRSchedule], saver: Checkpointer, epoc
 
 
 def _of_member(run: Run, k: int, text: str, sep: str = ": ") -> str:
-    """`text` about member k, as the run's messages say it: after the member's number in
-    an ensemble's; as it is for one model (whose messages never named a member)."""
-    return f"member {k}{sep}{text}" if len(run.state.members) > 1 else text
+    """`text` about member k, as the run's messages say it (`about_member`)."""
+    return about_member(k, len(run.state.members), text, sep)
 
 
 def _mean(values: list[float]) -> float:
@@ -323,108 +313,29 @@ def _inputs(run: Run, batch, size: int, horizon: int, generator: torch.Generator
 def _roll_back(run: Run, schedule: LRSchedule, snapshot: Checkpoint, epoch: int,
                reason: str, k: int) -> None:
     """After `max_bad_steps` bad batches in a row: member k (the model, for one) back to the
-    last completed epoch's weights and moments (`snapshot`), on at half the lr.
+    last completed epoch's weights and moments (`snapshot`), on at half the lr. Where half
+    the lr is below `min_lr`, the member stops at its best weights and the others go on.
 
     Raises:
-        TrainingDiverged: half the lr is below `min_lr` (an ensemble's member then stops
-            at its best weights instead, and the others go on).
+        TrainingDiverged: the member that stops was the last one training.
     """
-    lr, several = schedule.retry_lr(), len(run.state.members) > 1
-    if lr is None and several:
+    lr, members = schedule.retry_lr(), len(run.state.members)
+    if lr is None:
         run.state.members[k].stopped = epoch
+        if not run.active():
+            raise TrainingDiverged(_of_member(
+                run, k, f"{schedule.state.bad_run} bad steps in a row at lr "
+                f"{schedule.lr:.3g} ({reason}); try a smaller --lr, looser --rtol/--atol or "
+                "--fixed-dt"))
         run.emit({"event": "warning", "text": f"member {k} kept failing down to lr "
                   f"{schedule.lr:.3g} ({reason}); it stops at its best epoch"})
         return
-    if lr is None:
-        raise TrainingDiverged(
-            f"{schedule.state.bad_run} bad steps in a row at lr {schedule.lr:.3g} ({reason}); "
-            "try a smaller --lr, looser --rtol/--atol or --fixed-dt")
-    run.members[k].load_state_dict(member_state(snapshot.state_dict, k, len(run.members)))
+    run.members[k].load_state_dict(run.model.member_state(snapshot.state_dict, k))
     run.optimizer.load_group_state(snapshot.optimizer, k)
     schedule.restart(lr)
     schedule.state.bad_run, run.state.restores = 0, run.state.restores + 1
-    run.emit({"event": "restore", "epoch": epoch, "lr": lr} | ({"member": k} if several else {}))
-
-
-def train_step(model, optimizer, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
-               config: TrainConfig, world: distributed.World, active: Sequence[int] = (0,),
-               share: float = 1.0) -> list[StepResult]:
-    """One update of each active member of `model` (one model: its one member, itself)
-    from its own `(x: [B_r, H, N, D], u)` in `inputs` and its graphs, the fraction
-    `share` = B_r / B of the global batch. A member's bad batch (failed solves, non-finite
-    loss or gradient) leaves its weights and moments as they are; the others update.
-
-    Returns each active member's `StepResult`.
-    """
-    members = model.members
-    optimizer.zero_grad(set_to_none=True)
-    batches = (_losses(model, inputs, ts, graphs, loss_fn, active, config.solver)
-               if len(inputs[0][0]) else None)
-    # Summed over ranks, so that every rank takes the same decision: failed solves per
-    # status, non-finite losses, and the batch's mean loss (each rank's weighted by share).
-    verdict = torch.zeros(len(active), len(Status) + 2, dtype=torch.float64)
-    for j, batch in enumerate(batches or []):
-        value = None if batch.loss is None else batch.loss.item()
-        if value is not None and not math.isfinite(value):
-            verdict[j, -2] = 1
-        elif value is not None:
-            verdict[j, -1] = value * share
-        else:
-            verdict[j, :len(Status)] = torch.bincount(batch.status.cpu(), minlength=len(Status))
-    verdict = world.sum(verdict)
-    reasons = [_skip_reason(v) for v in verdict]
-    good = [b.loss for b, r in zip(batches or [], reasons, strict=False)
-            if r is None and b.loss is not None]
-    if good:
-        sum(good).backward()
-    for j, k in enumerate(active):
-        if reasons[j] is not None:  # a stacked solve gives a skipped member zeros: none
-            members[k].zero_grad(set_to_none=True)
-    world.sum_gradients(list(model.parameters()), share)  # the global batch's gradient
-    out = []
-    for j, k in enumerate(active):
-        evals = batches[j].n_f_evals if batches else 0
-        if reasons[j] is not None:
-            out.append(StepResult(math.nan, math.nan, evals, reasons[j]))
-            continue
-        norm = float(torch.nn.utils.clip_grad_norm_(members[k].parameters(), config.clip))
-        if not math.isfinite(norm):
-            members[k].zero_grad(set_to_none=True)
-            out.append(StepResult(math.nan, norm, evals, "non-finite gradient"))
-            continue
-        out.append(StepResult(float(verdict[j, -1]), norm, evals, None))
-    optimizer.step()
-    return out
-
-
-def _losses(model, inputs: list, ts: torch.Tensor, graphs: list, loss_fn,
-            active: Sequence[int], solver) -> list:
-    """Each active member's `BatchLoss` on its own batch (an ensemble's in one solve)."""
-    xs = torch.stack([x for x, _ in inputs])  # (S', B_r, H, N, D)
-    us = None if inputs[0][1] is None else torch.stack([u for _, u in inputs])
-    return model.training_losses(xs, ts, graphs, us, loss_fn, active, solver=solver)
-
-
-def _skip_reason(verdict: torch.Tensor) -> str | None:
-    """Why a member's step is skipped, from its summed verdict; None: it is good."""
-    failed = int(verdict[1:len(Status)].sum())
-    if failed:
-        worst = Status(int(verdict[:len(Status)].nonzero().max())).name
-        return f"solver {worst} on {failed} trajectories"
-    if verdict[-2] > 0:
-        return "non-finite loss"
-    return None
-
-
-def _validate(run: Run) -> tuple[EvalResult, list[EvalResult]]:
-    """The pooled validation result (the loss that selects the best epoch) and each
-    dataset's; each rank rolls out its part, and the error sums are added over ranks."""
-    world = run.world
-    angles = run_angles(run.config.wrap_angles, run.facts, run.normalizer.x_std)
-    each = [evaluate(run.model, part, run.normalizer, batch_size=run.config.val_batch_size,
-                     solver=run.config.solver, device=run.device, angles=angles,
-                     combine=world.sum if world.size > 1 else None) for part in run.val_parts]
-    return pooled(each, [d.num_nodes for d in run.datas], run.loss_scale), each
+    run.emit({"event": "restore", "epoch": epoch, "lr": lr} | (shown(members, {"member": k})
+                                                               or {}))
 
 
 def _scaled(loss_fn, scale: list[float] | None, i: int):
@@ -432,56 +343,6 @@ def _scaled(loss_fn, scale: list[float] | None, i: int):
     if scale is None:
         return loss_fn
     return lambda pred, target: loss_fn(pred, target) * scale[i]
-
-
-def _record(run: Run, schedules: list[LRSchedule], epoch: int, val: EvalResult,
-            each: list[EvalResult], steps: dict | None, seconds: float) -> dict[str, Any]:
-    """Update each member's best epoch from the validation result, set its next epoch's lr
-    and stop it early where `stop_patience` says; return the metrics row (`lr`: the one
-    this epoch ran at; an ensemble's: the members' mean, each member's under `members`)."""
-    config, state = run.config, run.state
-    results = val.members or [val]
-    lrs, improved = [s.lr for s in schedules], []
-    for k, (member, schedule, result) in enumerate(zip(state.members, schedules, results,
-                                                       strict=True)):
-        if member.stopped:
-            continue
-        loss = result.loss(config.loss)
-        if loss < member.best_val:
-            member.best_val, member.best_epoch = loss, epoch
-            improved.append(k)
-        schedule.end_epoch(epoch, k in improved)
-        if config.stop_patience and epoch - member.best_epoch >= config.stop_patience:
-            member.stopped = epoch
-    state.seconds += seconds
-    steps = steps or {"train_loss": None, "horizon": None, "grad_norm": None,
-                      "rhs_evals": 0, "skipped": 0, "skip_reasons": [], "train_seconds": 0.0}
-    by_member = steps.pop("by_member", {})
-    row = {"epoch": epoch, **steps, "val_loss": val.loss(config.loss), "val_mse": val.mse,
-           "val_failed": val.failed, "val_rhs_evals": val.n_f_evals, "lr": lrs[0],
-           "seconds": seconds, "improved": bool(improved),
-           "backprop_checkpoints": config.solver.checkpoints} | by_dataset(
-               run.names, each, config.loss)
-    if len(results) > 1:
-        row |= _member_rows(run, val, lrs, improved, by_member)
-    return row
-
-
-def _member_rows(run: Run, val: EvalResult, lrs: list[float], improved: list[int],
-                 by_member: dict[int, dict]) -> dict[str, Any]:
-    """An ensemble's metrics: the members' mean ± std (population) of the validation loss
-    and MSE, the members' mean prediction's MSE, each member's row, and who improved."""
-    config, results = run.config, val.members
-    losses = torch.tensor([r.loss(config.loss) for r in results], dtype=torch.float64)
-    mses = torch.tensor([r.mse for r in results], dtype=torch.float64)
-    members = [{"member": k, "seed": config.seed + k, "val_loss": float(losses[k]),
-                "val_mse": float(mses[k]), "lr": lrs[k], "improved": k in improved,
-                "best_epoch": m.best_epoch, "stopped": m.stopped, **by_member.get(k, {})}
-               for k, m in enumerate(run.state.members)]
-    return {"val_loss": float(losses.mean()), "val_loss_std": float(losses.std(correction=0)),
-            "val_mse": float(mses.mean()), "val_mse_std": float(mses.std(correction=0)),
-            "ensemble_val_mse": val.mse, "lr": sum(lrs) / len(lrs), "members": members,
-            "improved_members": improved}
 
 
 def epoch_horizon(config: TrainConfig, epoch: int, t: int) -> int:

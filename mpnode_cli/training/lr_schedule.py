@@ -21,9 +21,9 @@ import math
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.config.train import TrainConfig
     from mpnode_cli.training.optim import Adam
-    from mpnode_cli.training.setup import MemberState
+    from mpnode_cli.training.run_state import MemberState
 
 
 class LRSchedule:

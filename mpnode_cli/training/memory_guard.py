@@ -43,7 +43,7 @@ from mpnode_cli.terminal import suggested
 from mpnode_cli.training import run as runs
 
 if TYPE_CHECKING:
-    from mpnode_cli.training.setup import Run
+    from mpnode_cli.training.run_state import Run
 
 # How many epoch-to-epoch rises the projection looks back over, and ahead.
 LOOKBACK = 3

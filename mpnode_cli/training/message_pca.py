@@ -74,8 +74,8 @@ def _messages(ckpt, model, subset, n: int):
     trajectories of `subset`, with the checkpoint's normalization and training solver."""
     import torch
 
-    from mpnode_cli.config import train_solver
-    from mpnode_cli.config_upgrade import stored_solver
+    from mpnode_cli.config.fields import train_solver
+    from mpnode_cli.config.upgrade import stored_solver
     from mpnode_cli.training.evaluate import predict
 
     pred = predict(model, subset, ckpt.build_normalizer(), torch.arange(n),

@@ -1,5 +1,5 @@
-"""A trained model's predictions as an `mpnode-dataset` file: what `mpnode simulate` and
-`mpnode evaluate --save-predictions` write.
+"""A trained model's predictions as an `mpnode-dataset` file: what `mpnode simulate`
+(`mpnode_cli.training.simulate`) and `mpnode evaluate --save-predictions` write.
 
 `roll_out` predicts trajectories from initial states in physical units, on any graphs, with
 the checkpoint's normalization and solver, in batches. `write_predictions` stores them in
@@ -17,7 +17,7 @@ any h5py reader take them as they take data:
 - `extrapolation [K, N]` (simulate, for a checkpoint that records its training range):
   uint8 per-node flags, bit 0 (`STATE_OUTSIDE`) a predicted state outside the training
   range at some sample, bit 1 (`IN_DEGREE_OUTSIDE`) an in-degree outside the training
-  in-degrees (`mpnode_cli.training.extrapolation.NodeExtrapolation.flags`);
+  in-degrees (`mpnode_cli.training.extrapolation_nodes.NodeExtrapolation.flags`);
 - `system`, `state_names` and `control_names` are those of the checkpoint's training data,
   so that `evaluate` takes the file without `--allow-other-system`;
 - the root attribute `prediction` (JSON) says what made the file: the checkpoint's path and
@@ -40,17 +40,16 @@ from typing import Any, TypeVar, cast
 import numpy as np
 import torch
 
-from mpnode_cli.config import train_solver
-from mpnode_cli.config_upgrade import stored_solver
+from mpnode_cli.config.fields import train_solver
+from mpnode_cli.config.upgrade import stored_solver
 from mpnode_cli.data.fingerprint import fingerprint
-from mpnode_cli.data.hdf5 import BLOCK_VALUES, Dataset, write_dataset
-from mpnode_cli.data.size import SizeEstimate, check_job, simulate_estimate
-from mpnode_cli.graphs import Graphs
-from mpnode_cli.memory import naming_memory
+from mpnode_cli.data.hdf5 import Dataset
+from mpnode_cli.data.hdf5_write import write_dataset
+from mpnode_cli.file_records import file_sha256
+from mpnode_cli.graphs.matrices import Graphs
 from mpnode_cli.models.base import model_dtype
-from mpnode_cli.models.ensemble import EnsembleRollout
-from mpnode_cli.paths import file_sha256
 from mpnode_cli.progress import Progress
+from mpnode_cli.report.members import shown
 from mpnode_cli.solver.options import SolverOptions
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -109,7 +108,7 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
         ValueError: sizes that do not fit the model (one line).
     """
     model, normalizer = ckpt.build_model().to(device), ckpt.build_normalizer()
-    dtype = model_dtype(model)
+    dtype, s = model_dtype(model), len(model.members)
     x0 = torch.as_tensor(np.asarray(x0), dtype=torch.float32)
     ts = torch.as_tensor(np.asarray(ts), dtype=torch.float64)
     graph_index = np.asarray(graph_index, dtype=np.int64)
@@ -146,16 +145,16 @@ def roll_out(ckpt, x0: np.ndarray, ts: np.ndarray, graphs: Graphs, graph_index: 
             states.append(normalizer.denorm_x(out.states).double().cpu())  # (B, T, N, D)
             if out.messages is not None:
                 messages.append(out.messages.double().cpu())  # (B, T, N, M)
-            if isinstance(out, EnsembleRollout):
-                spreads.append(normalizer.denorm_spread(out.spread).double().cpu())  # (B, T, N, D)
+            spreads.append(shown(s, normalizer.denorm_spread(out.spread).double().cpu()))
             status[idx.numpy()] = out.status.cpu().numpy()
             n_f_evals[idx.numpy()] = out.n_f_evals
             if progress is not None:
                 progress(int(idx[-1]) + 1, k)
+    spread = shown(s, spreads)  # (K, T, N, D) in batches: an ensemble's members' std
     return Predicted(states=torch.cat(states).numpy(),
                      messages=torch.cat(messages).numpy() if messages else None,
                      status=status, n_f_evals=n_f_evals,
-                     spread=torch.cat(spreads).numpy() if spreads else None)
+                     spread=None if spread is None else torch.cat(spread).numpy())
 
 
 def _batch_graph(graphs: Graphs, graph_index: np.ndarray, device):
@@ -178,14 +177,6 @@ def check_finished(pred: Predicted) -> None:
             f"{len(failed)} of {len(pred.status)} rollouts did not finish (the first: "
             f"trajectory {int(failed[0])}{why}); their predictions are not finite, so no "
             "file was written")
-
-
-def _in_blocks(states: np.ndarray):
-    """`[K, T, N, D]` predictions as tensors of a few trajectories each (views, no copy),
-    for `mpnode_cli.training.extrapolation.extrapolation`."""
-    rows = max(1, BLOCK_VALUES // max(int(np.prod(states.shape[1:])), 1))
-    return (torch.from_numpy(states[start:start + rows])
-            for start in range(0, len(states), rows))
 
 
 def _names_memory_errors(step: str) -> Callable[[F], F]:
@@ -275,129 +266,3 @@ def write_predictions(path: str | Path, ckpt, pred: Predicted, *, time: np.ndarr
                                                 controls=controls)},
     )
     return write_dataset(path, dataset, overwrite=overwrite)
-
-
-@dataclass(frozen=True)
-class SimulateSummary:
-    """What `simulate` wrote.
-
-    Attributes:
-        path: the prediction file. trajectories, samples, nodes: K, T, N.
-        graphs: distinct graphs. n_f_evals: vector-field evaluations, summed over
-            trajectories. seconds: wall time of the rollouts.
-        extrapolation: the graphs and the predicted states against the checkpoint's
-            training range, as a whole and node by node
-            (`mpnode_cli.training.extrapolation.Extrapolation.to_dict`), or None for a
-            checkpoint without one.
-        members: S of an ensemble whose mean was written (with `hidden/ensemble_std`);
-            None for one model (a single model's checkpoint, or `member`).
-    """
-
-    path: Path
-    trajectories: int
-    samples: int
-    nodes: int
-    graphs: int
-    n_f_evals: int
-    seconds: float
-    extrapolation: dict[str, Any] | None = None
-    members: int | None = None
-
-
-def simulate(config, *, overwrite: bool = False,
-             confirm: Callable[[SizeEstimate, str], None] | None = None,
-             progress: Progress | None = None) -> SimulateSummary:
-    """Roll a checkpoint's model out from a user's initial states on a user's graph, and
-    write the predictions (`mpnode simulate`). No ground truth is needed.
-
-    Args:
-        config: a `mpnode_cli.config.SimulateConfig`.
-        overwrite: replace an existing regular file at the output path.
-        confirm: called as `confirm(estimate, "K trajectories × T samples × N nodes")`
-            once the inputs are read and before anything is sized by the horizon; it
-            raises `ValueError` to stop (the CLI asks about big jobs there).
-        progress: called after each batch of rollouts with the trajectories done and K.
-
-    Raises:
-        FileNotFoundError, ValueError: a checkpoint, input or output that cannot be used,
-            or a job larger than this machine's memory (one line; all checked before any
-            rollout; the output is checked and reserved before any rollout, and may be none
-            of the inputs, `mpnode_cli.paths.reserve_output`).
-        FileExistsError: the output exists and `overwrite` is False.
-        PredictionFailed: rollouts that did not finish (nothing written).
-        KeyboardInterrupt: SIGINT or SIGTERM (nothing written).
-    """
-    from mpnode_cli.paths import reserve_output
-    from mpnode_cli.training.checkpoint import resolve_path
-
-    out = simulate_output(config)
-    try:
-        checkpoint = resolve_path(config.checkpoint)  # a run folder's best.pt
-    except FileNotFoundError:  # load_checkpoint says so, once the output is checked
-        checkpoint = config.checkpoint
-    inputs = (checkpoint, config.x0, config.adjacency, config.edge_list, config.controls)
-    with reserve_output(out, overwrite=overwrite, inputs=inputs):
-        return _simulate(config, out, confirm, progress)
-
-
-def _simulate(config, out: Path, confirm, progress: Progress | None) -> SimulateSummary:
-    """`simulate` once its output is reserved: load, roll out, write."""
-    import time as clock
-
-    from mpnode_cli.data.importers import load_controls, load_graph, load_initial_states
-    from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.checkpoint_members import member_checkpoint
-    from mpnode_cli.training.extrapolation import extrapolation
-
-    ckpt = load_checkpoint(config.checkpoint)
-    if config.member is not None:
-        ckpt = member_checkpoint(ckpt, config.member)
-    x0 = load_initial_states(config.x0)
-    k, n, _ = x0.shape
-    graphs, graph_index = load_graph(config.adjacency, config.edge_list, k, n,
-                                     directed=config.directed)
-    size = simulate_estimate(ckpt, k, config.num_steps + 1, n, config.dtype,
-                             batch_size=config.batch_size, solver=rollout_solver(ckpt),
-                             dt=config.dt)
-    check_job(size, "this simulation", "lower --t-end or the number of initial states, "
-              "or raise --dt", solver=rollout_solver(ckpt))
-    if confirm is not None:
-        confirm(size, f"{k} trajectories × {config.num_steps + 1} samples × {n} nodes")
-    ts = np.arange(config.num_steps + 1) * config.dt  # [T]
-    controls = None
-    if config.controls is not None:
-        controls = load_controls(config.controls, (k, len(ts), n))
-    start = clock.perf_counter()
-    with naming_memory(f"rolling out {k} trajectories in batches of {config.batch_size}",
-                       size.memory_bytes, "lower --batch-size, --t-end or the number of "
-                       "initial states"):
-        pred = roll_out(ckpt, x0, ts, graphs, graph_index, controls,
-                        batch_size=config.batch_size, device=config.device, progress=progress)
-    seconds = clock.perf_counter() - start
-    check_finished(pred)
-    beyond = extrapolation(ckpt, graphs, graph_index, _in_blocks(pred.states), predicted=True)
-    sources = {name: {"path": str(Path(path).resolve()), "sha256": file_sha256(path)}
-               for name in ("x0", "adjacency", "edge_list", "controls")
-               if (path := getattr(config, name)) is not None}
-    resolved = config.model_copy(update={"out": out}).model_dump(mode="json")
-    write_predictions(out, ckpt, pred, time=ts, graphs=graphs, graph_index=graph_index,
-                      controls=controls, config={"verb": "simulate", **resolved,
-                                                 "topology": _topology(config)},
-                      source=sources, dtype=config.dtype,
-                      overwrite=True,  # over the reservation `simulate` made
-                      node_flags=None if beyond is None else beyond.nodes.flags)
-    return SimulateSummary(path=out, trajectories=k, samples=len(ts), nodes=n,
-                           graphs=len(graphs), n_f_evals=int(pred.n_f_evals.sum()),
-                           seconds=seconds,
-                           extrapolation=None if beyond is None else beyond.to_dict(),
-                           members=ckpt.members if ckpt.members > 1 else None)
-
-
-def simulate_output(config) -> Path:
-    """`config.out`, or `predictions/<x0 file stem>.h5`."""
-    return Path(config.out) if config.out is not None else Path(
-        "predictions", f"{Path(config.x0).stem}.h5")
-
-
-def _topology(config) -> str:
-    return "edgelist" if config.edge_list is not None else "adjacency"

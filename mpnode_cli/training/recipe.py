@@ -25,7 +25,7 @@ import shutil
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.models.registry import OPTIONS, resolve_options
 
 if TYPE_CHECKING:
@@ -160,12 +160,16 @@ def resolve_train_config(config: TrainConfig, data: TrajectoryData) -> TrainConf
 # costs 10–60 s on 2 CPU cores (less from inductor's on-disk cache) and saves about 30% of
 # each training step (bench/results/train.md), so it pays from a few thousand steps on.
 COMPILE_MIN_STEPS = 3000
+# The least --time-limit a compiled run is worth: its first epochs compile for tens of
+# seconds on a CPU (18 s for a 3-node Lorenz run), which a shorter budget would overrun.
+COMPILE_MIN_SECONDS = 300
 
 
 def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
     """Settle `solver.compile = "auto"` for a run over `n_train` trajectories.
 
-    Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps), its steps are
+    Compile when the run is long (≥ `COMPILE_MIN_STEPS` optimizer steps, and no
+    `--time-limit` under `COMPILE_MIN_SECONDS`, which compiling would overrun), its steps are
     adaptive (compiling does not apply to `fixed_dt`), it trains one model (not an
     ensemble), backpropagates without checkpoints and a C++ compiler is there for
     inductor on CPU. Shapes that change (a smaller last batch, the horizon curriculum's
@@ -179,6 +183,7 @@ def resolve_compile(config: TrainConfig, n_train: int) -> TrainConfig:
     # (`mpnode_cli.models.ensemble`), which the compiled step is not traced for.
     # A checkpointed solve runs its steps uncompiled (`solve` ignores compile there).
     decide = (steps >= COMPILE_MIN_STEPS and config.solver.fixed_dt is None
+              and (config.time_limit is None or config.time_limit >= COMPILE_MIN_SECONDS)
               and config.seeds == 1 and config.solver.checkpoints is None
               and (config.device != "cpu" or have_cxx()))
     return config.model_copy(update={"solver": config.solver.model_copy(

@@ -19,7 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.terminal import suggested
 from mpnode_cli.textfiles import read_json
 from mpnode_cli.training.run import SUMMARY, read_config
@@ -86,8 +86,8 @@ def file_changes(config: TrainConfig, config_file: Path, run_dir: Path) -> dict[
         ValueError: a file that does not read or validate, or one that would change the
             run (one line naming its fields that differ).
     """
-    from mpnode_cli.config_file import read_config_file
-    from mpnode_cli.config_upgrade import upgrade_train_fields
+    from mpnode_cli.config.file import read_config_file
+    from mpnode_cli.config.upgrade import upgrade_train_fields
 
     fields = upgrade_train_fields(read_config_file(config_file))
     ours = config.model_dump()

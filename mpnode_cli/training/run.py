@@ -26,8 +26,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from mpnode_cli.config import TrainConfig
-from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_train_fields
+from mpnode_cli.config.train import TrainConfig
+from mpnode_cli.config.upgrade import pin_stored_solver, upgrade_train_fields
 from mpnode_cli.data.atomic import atomic_text
 from mpnode_cli.jsonable import jsonable
 from mpnode_cli.terminal import suggested
@@ -100,7 +100,7 @@ def default_root() -> Path:
 def default_run_dir(dataset: Path | list[Path], model: str, root: Path | None = None) -> Path:
     """`runs/<dataset stem>-<model>-<YYYYmmdd-HHMMSS>`, with a suffix if that exists;
     several datasets: `<first stem>+<how many more>`."""
-    from mpnode_cli.paths import NAME_MAX, shorten
+    from mpnode_cli.path_limits import NAME_MAX, shorten
 
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
     paths = dataset if isinstance(dataset, list) else [dataset]
@@ -126,6 +126,9 @@ def check_new(run_dir: Path) -> None:
 
     check_output_folder(run_dir)
     if run_dir.is_dir() and any(run_dir.iterdir()):
+        if not (run_dir / CONFIG).is_file():  # a folder of other files: nothing to resume
+            raise ValueError(f"{run_dir} is a folder of other files, not a run folder: "
+                             "choose a new or empty --run-dir")
         raise ValueError(f"run folder {run_dir} already exists: continue it with "
                          f"{suggested('train', '--resume', run_dir)}, or choose another --run-dir")
 

@@ -31,8 +31,9 @@ from typing import Any
 
 import torch
 
-from mpnode_cli.config import TrainConfig
-from mpnode_cli.config_upgrade import pin_stored_solver, upgrade_train_fields
+from mpnode_cli.config.train import TrainConfig
+from mpnode_cli.config.upgrade import pin_stored_solver, upgrade_train_fields
+from mpnode_cli.models.registry import build_model
 from mpnode_cli.textfiles import read_text
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
@@ -43,7 +44,7 @@ from mpnode_cli.training.runlock import RunLock, lock_run
 # may change, and where the run and its data are now.
 _MAY_DIFFER = (*RESUMABLE, "run_dir", "dataset")
 
-# `mpnode_cli.paths.temp_beside`'s names: `.<name>.<pid>.<random>.tmp`.
+# `mpnode_cli.path_limits.temp_beside`'s names: `.<name>.<pid>.<random>.tmp`.
 _TEMPORARY = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{8}\.tmp$")
 
 
@@ -136,8 +137,20 @@ def check_run_folder(run_dir: Path, config: TrainConfig
         `last.pt` and `best.pt` (None if there is none).
 
     Raises:
-        ValueError: the first problem, in one line.
+        ValueError: the first problem, in one line; a file or folder this process may not
+            read (`checkpoints/` without the permission to enter it) too.
     """
+    try:
+        return _check_run_folder(run_dir, config)
+    except OSError as exc:
+        if exc.filename is None:
+            raise
+        raise ValueError(f"cannot resume {run_dir}: cannot read {exc.filename}: "
+                         f"{exc.strerror or exc} (nothing was changed)") from None
+
+
+def _check_run_folder(run_dir: Path, config: TrainConfig
+                      ) -> tuple[Checkpoint, Checkpoint | None]:
     stored = runs.read_config(run_dir)
     if not runs.checkpoint_path(run_dir, "last").is_file():
         raise ValueError(f"{run_dir} has no checkpoints/last.pt to resume from (it stopped "
@@ -166,12 +179,13 @@ def recover(run_dir: Path, last: Checkpoint, best: Checkpoint | None) -> None:
     epochs = _best_epochs(last.loop)
     if max(epochs) == last.epoch and (best is None or best.epoch < last.epoch):
         row = last.metrics or next(r for r in rows if r["epoch"] == last.epoch)
-        state = dict(last.state_dict)
-        if best is not None and last.members > 1:  # the members that did not improve
-            state = dict(best.state_dict)
-            for k in (k for k, epoch in enumerate(epochs) if epoch == last.epoch):
-                state |= {n: v for n, v in last.state_dict.items()
-                          if n.startswith(f"members.{k}.")}
+        with torch.device("meta"):  # where each member's weights are, without memory
+            model = build_model(last.model_kind, last.model_config)
+        # best.pt's weights, but for the members that improved at last.pt's epoch.
+        state = dict((last if best is None else best).state_dict)
+        for k in (k for k, epoch in enumerate(epochs) if epoch == last.epoch):
+            state |= {n: v for n, v in last.state_dict.items()
+                      if n.startswith(model.member_prefix(k))}
         save_checkpoint(runs.checkpoint_path(run_dir, "best"),
                         dataclasses.replace(last, metrics=row, state_dict=state))
 
@@ -180,17 +194,18 @@ def _model_of(stored: TrainConfig, last: Checkpoint, run_dir: Path) -> torch.nn.
     """The model config.json builds (on the meta device: shapes without memory), at the
     data sizes `last` records (and its options where an earlier config.json left them
     out)."""
-    from mpnode_cli.models.registry import build_model
-
     try:
         recorded = {k: v for k, v in last.model_config.items() if k != "members"}
-        members = {"members": stored.seeds} if stored.seeds > 1 else {}
         with torch.device("meta"):
-            return build_model(stored.model, recorded | stored.model_options | members)
+            return build_model(stored.model, recorded | stored.model_options
+                               | {"members": stored.seeds})
     except (TypeError, ValueError, RuntimeError) as exc:
         first = (str(exc).splitlines() or [type(exc).__name__])[0]
-        raise ValueError(f"{run_dir}/{runs.CONFIG} does not build its model at the sizes of "
-                         f"checkpoints/last.pt: {first}") from None
+        # The model config.json names cannot take last.pt's options: most likely a
+        # checkpoint of another model put there, which is what the line names.
+        raise ValueError(f"{run_dir}/checkpoints/last.pt is not a checkpoint of the model "
+                         f"its {runs.CONFIG} builds ({first}): put the run's own last.pt "
+                         "back, or train again with another --run-dir") from None
 
 
 def _check_own(ckpt: Checkpoint, stored: TrainConfig, model: torch.nn.Module,
@@ -289,7 +304,7 @@ def _best_epochs(loop: dict[str, Any]) -> list[int]:
 
 def _check_writable(run_dir: Path, config: TrainConfig) -> None:
     """Refuse a run folder that the resumed run could not write to the end."""
-    from mpnode_cli.paths import check_writable_dir
+    from mpnode_cli.path_limits import check_writable_dir
 
     folders = [run_dir, run_dir / "checkpoints"]
     if config.plots and (run_dir / "plots").is_dir():

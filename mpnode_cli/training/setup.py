@@ -1,4 +1,5 @@
-"""A training run's setup: what the epochs work with, a `Run`.
+"""A training run's setup: what the epochs work with, a `Run`
+(`mpnode_cli.training.run_state`).
 
 Two calls, `load_data` and `set_up`, with the recipe's `resolve_compile` between them (it
 settles compiling by the number of train trajectories). In this order, which is the order
@@ -20,15 +21,13 @@ of the draws from torch's generator, so that one seed makes one run:
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.pooled import (
     check_ground_truth,
@@ -46,132 +45,13 @@ from mpnode_cli.training import distributed, step_memory
 from mpnode_cli.training import run as runs
 from mpnode_cli.training.checkpoint import Checkpoint, file_sha256, load_checkpoint
 from mpnode_cli.training.compat import check_compatible
-from mpnode_cli.training.extrapolation import training_range
 from mpnode_cli.training.losses import dataset_loss_scale
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.recipe import resolve_train_config
 from mpnode_cli.training.resume import check_resumable
 from mpnode_cli.training.run_folder import RunFolder
-
-OnEvent = Callable[[dict[str, Any]], None]
-
-
-@dataclass
-class MemberState:
-    """One model's own counters (an ensemble has one per member).
-
-    Attributes:
-        best_epoch, best_val: its best validation loss so far, and the epoch of it.
-        since_best: epochs without gain since the best or the last lr halving (plateau).
-        bad_run: skipped batches in a row. lr_scale: cosine's scale after rollbacks.
-        stopped: the epoch after which early stopping froze it (0: still training).
-    """
-
-    best_epoch: int = 0
-    best_val: float = math.inf
-    since_best: int = 0
-    bad_run: int = 0
-    lr_scale: float = 1.0
-    stopped: int = 0
-
-
-# MemberState's fields that a one-model checkpoint keeps at the top of its `loop` (the
-# layout every earlier version wrote).
-_OWN = ("best_epoch", "best_val", "since_best", "bad_run", "lr_scale")
-
-
-@dataclass
-class LoopState:
-    """The loop's counters, saved in every checkpoint so that a resume continues exactly.
-
-    `epoch`, `skipped`, `restores` and `seconds` are the run's; the rest is each member's
-    (`members`, one for a single model).
-    """
-
-    epoch: int = 0
-    skipped: int = 0
-    restores: int = 0
-    seconds: float = 0.0
-    members: list[MemberState] = field(default_factory=lambda: [MemberState()])
-
-    def to_dict(self) -> dict[str, Any]:
-        """The checkpoint's `loop`: flat for one model, with `members` for several."""
-        shared = {"epoch": self.epoch, "skipped": self.skipped, "restores": self.restores,
-                  "seconds": self.seconds}
-        if len(self.members) == 1 and not self.members[0].stopped:
-            return shared | {k: getattr(self.members[0], k) for k in _OWN}
-        return shared | {"members": [asdict(m) for m in self.members]}
-
-    @staticmethod
-    def from_dict(loop: dict[str, Any]) -> LoopState:
-        shared = {k: loop[k] for k in ("epoch", "skipped", "restores", "seconds") if k in loop}
-        if "members" in loop:
-            return LoopState(**shared, members=[MemberState(**m) for m in loop["members"]])
-        return LoopState(**shared, members=[MemberState(**{k: loop[k] for k in _OWN
-                                                            if k in loop})])
-
-
-@dataclass
-class Run:
-    """What a training run works with, from `set_up`.
-
-    Attributes:
-        config: resolved: the recipe applied, absolute dataset paths, the model that was
-            built and its options, `run_dir` set (what `config.json` holds).
-        run_dir: the run folder.
-        world: the processes (one without torchrun); rank 0 alone writes and reports.
-        emit: the progress callback (it ignores every event on the other ranks).
-        datas: every dataset, in order (`TrajectoryData`, or `StreamedTrajectories`).
-        names: their names in metrics and summary (`mpnode_cli.data.pooled.dataset_names`).
-        train_sets: each dataset's train split (its first `trajectories`).
-        val_parts: this rank's part of each dataset's validation split.
-        facts: what a checkpoint records of the datasets and their training range.
-        kind, model_config: the model's registry name and its full config.
-        model, normalizer, optimizer: on `device`.
-        shuffle: the loop's generator: batch order and noise, the same on any device.
-        shuffles: each member's generator (`shuffle` is the first: a single model's).
-        state: the loop's counters.
-        resumed: whether the run continues from its `last.pt`.
-        parent_sha: the SHA-256 of the checkpoint a finetune started from (None for a
-            run trained from scratch).
-    """
-
-    config: TrainConfig
-    run_dir: Path
-    world: distributed.World
-    emit: OnEvent
-    datas: list[TrajectoryData | StreamedTrajectories]
-    names: list[str]
-    train_sets: list[TrajectoryData | StreamedTrajectories]
-    val_parts: list[TrajectoryData | StreamedTrajectories]
-    facts: dict[str, Any]
-    kind: str
-    model_config: dict[str, Any]
-    model: torch.nn.Module
-    normalizer: Normalizer
-    optimizer: Adam
-    shuffle: torch.Generator
-    device: torch.device
-    state: LoopState
-    resumed: bool
-    parent_sha: str | None
-    shuffles: list[torch.Generator]
-    # Each training dataset's factor on its loss (`--balance-datasets`); None: 1 for each.
-    loss_scale: list[float] | None = None
-
-    @property
-    def ensemble(self) -> bool:
-        """Whether the run trains several members (`seeds` > 1)."""
-        return len(self.shuffles) > 1
-
-    @property
-    def members(self) -> list[torch.nn.Module]:
-        """The models trained: an ensemble's members, or the one model (its one member)."""
-        return list(self.model.members)
-
-    def active(self) -> list[int]:
-        """The members still training (not frozen by early stopping)."""
-        return [k for k, m in enumerate(self.state.members) if not m.stopped]
+from mpnode_cli.training.run_state import LoopState, MemberState, OnEvent, Run
+from mpnode_cli.training.train_range import training_range
 
 
 @dataclass
@@ -395,52 +275,33 @@ def members_of(config: TrainConfig, source: Checkpoint | None, finetune: bool) -
     """S, the members the run trains: `seeds`; a resumed run's, or a finetuned ensemble's.
 
     Raises:
-        ValueError: a finetune of an ensemble of S members asked for another number > 1,
-            or of a single model asked for several.
+        ValueError: a finetune asked for other members than the checkpoint's (`--seeds` 1
+            or theirs), or of an ensemble on several datasets.
     """
     have = int(source.model_config.get("members", 1)) if source is not None else 1
     if finetune and have > 1 and len(config.datasets) > 1:
         raise ValueError(f"the checkpoint is an ensemble of {have} members, which trains on "
                          "one dataset: finetune it on one, or export a member (mpnode check "
                          "CKPT --member K --out FILE) and finetune that on several")
-    if finetune and have == 1 and config.seeds > 1:
-        raise ValueError(f"the checkpoint is a single model: the {config.seeds} members of "
-                         "--seeds would all start from its weights, and their spread would "
-                         "measure nothing; finetune it with --seeds 1, or finetune an "
-                         "ensemble (train --seeds S)")
-    if source is None:
-        return config.seeds
     if finetune and config.seeds not in (1, have):
-        raise ValueError(f"the checkpoint is an ensemble of {have} members, each finetuned "
-                         f"from its own: give --seeds {have} (or leave it out), not "
-                         f"{config.seeds}")
-    return have
-
-
-def member_state(state_dict: dict[str, torch.Tensor], k: int, members: int
-                 ) -> dict[str, torch.Tensor]:
-    """Member k's weights in the `state_dict` of a model of `members` members: those under
-    `members.k.` of an ensemble's (the prefix taken off); all of a single model's."""
-    if members == 1:
-        return state_dict
-    prefix = f"members.{k}."
-    return {name.removeprefix(prefix): value for name, value in state_dict.items()
-            if name.startswith(prefix)}
+        # Members copied from fewer would start alike: their spread would measure nothing.
+        raise ValueError(f"the checkpoint holds {have} member(s), each finetuned from its "
+                         f"own weights: give --seeds {have} (or leave it out), not "
+                         f"{config.seeds}; an ensemble of new members is train --seeds S")
+    return config.seeds if source is None else have
 
 
 def _build_members(kind: str, model_config: dict[str, Any], seed: int, seeds: int):
-    """The model, built after seeding with `seed`; an `Ensemble` of `seeds` members, member
-    k built after seeding with seed + k, as a run of that seed alone builds it."""
+    """The ensemble of `seeds` members (a model of one, `ensemble_of`), member k built after
+    seeding with seed + k, as a run of that seed alone builds it."""
+    from mpnode_cli.models.ensemble import ensemble_of
+
     config = {k: v for k, v in model_config.items() if k != "members"}
     members = []
     for k in range(seeds):
         torch.manual_seed(seed + k)
         members.append(_build(kind, config))
-    if seeds == 1:
-        return members[0]
-    from mpnode_cli.models.ensemble import Ensemble
-
-    return Ensemble(members)
+    return ensemble_of(members)
 
 
 def _facts(datas: list, paths: list[Path], train_sets: list) -> dict[str, Any]:

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import estimate, generate, resolve_generate_config
-from mpnode_cli.edge_files import read_edge_list
+from mpnode_cli.graphs.edge_files import read_edge_list
 from mpnode_cli.report import plots
-from mpnode_cli.training import loop
+from mpnode_cli.training import epoch_record
 
 FAST = ["--batch-size", "8", "--lr", "1e-2", "--no-plots"]
 
@@ -78,7 +78,7 @@ def test_a_failed_train_leaves_no_husk(data, tmp_path, monkeypatch):
 
     folder = tmp_path / "r"
     with monkeypatch.context() as m:
-        m.setattr(loop, "evaluate", broken)
+        m.setattr(epoch_record, "evaluate", broken)
         assert "validation rollout failed" in one_line_error(
             invoke("train", data["lorenz"], "--epochs", 1, "--run-dir", folder, *FAST))
         assert not folder.exists()

@@ -16,7 +16,7 @@ import pytest
 import torch
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.training.checkpoint import load_checkpoint, save_checkpoint
 

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 
 FAST = ["--epochs", 1, "--batch-size", 2, "--no-plots"]
 LORENZ = ["generate", "lorenz", "--nodes", 3, "--trajectories", 4, "--t-end", 0.2, "--dt", 0.1]
@@ -70,7 +71,7 @@ def test_an_rtol_below_the_dtypes_reach_is_refused(user_files, tmp_path):
 def test_finetune_of_one_model_into_an_ensemble_is_refused(user_files, tmp_path):
     line = one_line_error(invoke("finetune", user_files["run"], user_files["data"], *FAST,
                                  "--seeds", 3, "--run-dir", tmp_path / "r"))
-    assert "single model" in line and "--seeds 1" in line, line
+    assert "holds 1 member" in line and "--seeds 1" in line, line
     assert not (tmp_path / "r").exists()
 
 

@@ -16,7 +16,7 @@ import os
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate
 
 SIMULATE = ["--t-end", "0.2", "--dt", "0.1"]

@@ -52,7 +52,7 @@ def test_a_stray_huge_id_is_refused_before_anything_is_sized_by_it(tmp_path, x0,
 
 
 def test_gaps_are_found_among_the_ids_present():
-    from mpnode_cli.edge_files import missing_ids
+    from mpnode_cli.graphs.edge_files import missing_ids
 
     assert missing_ids(np.array([0, 1, 2]), 3) == []
     assert missing_ids(np.array([2, 0, 5, 5]), 6) == [1, 3, 4]
@@ -96,8 +96,8 @@ def test_simulate_prints_its_size_and_asks(tmp_path, x0, tiny_checkpoint, monkey
     result = invoke(*args, "--yes")
     assert result.exit_code == 0, result.output
     assert "this job: 2 trajectories" in result.output and out.exists()
+    from mpnode_cli.data.size import simulate_estimate
     from mpnode_cli.training.checkpoint import load_checkpoint
-    from mpnode_cli.training.predict import simulate_estimate
 
     size = simulate_estimate(load_checkpoint(tiny_checkpoint), 2, 201, 3)
     assert size.values == 2 * 201 * 3 * 3

@@ -121,3 +121,24 @@ def test_an_entry_point_that_exits_as_it_loads_is_one_line(tmp_path, entry_point
     assert "entry point 'mine' (exits_on_import:Mine) does not load: it called " \
            "sys.exit(0)" in line, line
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_plugin_that_exits_while_it_runs_is_one_line_and_leaves_nothing(tmp_path):
+    path, out = tmp_path / "mine.py", tmp_path / "x.h5"
+    path.write_text(EXAMPLE.replace(RETURN_DY, "            os._exit(0)\n" + RETURN_DY)
+                    .replace("import numpy as np\n", "import os\n\nimport numpy as np\n", 1))
+    line = one_line_error(invoke("generate", "--system-file", path, "--nodes", 4,
+                                 "--trajectories", 4, "--out", out))
+    assert f"FitzHughNagumo.rhs ({path}): it called os._exit(0)" in line, line
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["mine.py"]
+    assert os._exit.__module__ == "posix" or os._exit.__name__ == "_exit"  # given back
+
+
+def test_a_plugin_named_custom_is_refused(tmp_path):
+    path = tmp_path / "mine.py"
+    assert 'name: ClassVar[str] = "fhn"' in EXAMPLE
+    path.write_text(EXAMPLE.replace('name: ClassVar[str] = "fhn"',
+                                    'name: ClassVar[str] = "custom"'))
+    line = one_line_error(invoke("generate", "--system-file", path, "--out", tmp_path / "x.h5"))
+    assert "'custom' names the data mpnode import makes" in line, line
+    assert not (tmp_path / "x.h5").exists()

@@ -18,10 +18,10 @@ import h5py
 import numpy as np
 from conftest import child_env, invoke
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data import importers, shards
 from mpnode_cli.data.generate import generate
-from mpnode_cli.training import predict
+from mpnode_cli.training import simulate
 
 
 def meanwhile(monkeypatch, module, name: str, *args) -> list[subprocess.CompletedProcess]:
@@ -71,7 +71,7 @@ def test_two_simulates_to_one_new_file(user_files, tmp_path, monkeypatch):
     f, out = user_files, tmp_path / "p.h5"
     common = [f["run"], "--x0", f["x0"], "--adjacency", f["adjacency"], "--dt", 0.1, "--out",
               out]
-    done = meanwhile(monkeypatch, predict, "roll_out", "simulate", *common, "--t-end", 0.3)
+    done = meanwhile(monkeypatch, simulate, "roll_out", "simulate", *common, "--t-end", 0.3)
     first = invoke("simulate", *common, "--t-end", 0.2)
     assert first.exit_code == 0, first.output
     assert_refused(done)

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.systems.registry import SYSTEMS
 

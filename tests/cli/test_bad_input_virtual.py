@@ -14,7 +14,7 @@ import shutil
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import DatasetFormatError, read_dataset

@@ -14,7 +14,7 @@ from conftest import invoke
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.validate import check_dataset

@@ -14,8 +14,8 @@ import torch
 from conftest import invoke
 
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES
-from mpnode_cli.topologies import make_graph
+from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES
+from mpnode_cli.graphs.topologies import make_graph
 
 N = 300
 
@@ -97,8 +97,8 @@ def test_simulate_from_edges_equals_a_rollout_from_the_matrix(trained, tmp_path)
 
 
 def test_big_graph_rollouts_are_batched_by_edges_with_the_same_errors(trained, monkeypatch):
-    from mpnode_cli import graphs as graphs_module
     from mpnode_cli.data.dataset import TrajectoryData
+    from mpnode_cli.graphs import matrices as graphs_module
     from mpnode_cli.training import evaluate as ev
     from mpnode_cli.training.checkpoint import load_checkpoint
 

@@ -14,7 +14,7 @@ from conftest import invoke
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.registry import OPTIONS
 from mpnode_cli.training import loop
@@ -202,7 +202,7 @@ def test_model_options_of_the_cli_are_the_ones_the_models_declare():
 def test_train_options_are_the_config_fields_with_their_descriptions():
     """No default or help is written twice: each option of a `TrainConfig` field leaves
     its value out (None) and opens its help with the field's description."""
-    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.config.train import TrainConfig
 
     for verb in ("train", "finetune"):
         command = typer.main.get_command(app).commands[verb]

@@ -67,7 +67,7 @@ def test_a_command_with_an_unknown_option_does_not_parse():
 def test_every_train_switch_is_spelt_as_the_cli_takes_it(value):
     """Each boolean train option, on and off, as a report would write it: the spelling
     both sides take from `mpnode_cli.flags` parses with the real app."""
-    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.config.train import TrainConfig
 
     booleans = [n for n, f in TrainConfig.model_fields.items() if f.annotation is bool]
     assert "even_batches" in booleans and "renormalize" in booleans
@@ -85,16 +85,17 @@ def _options_of(verb: str) -> dict:
 
 
 @pytest.mark.parametrize(("verb", "config", "elsewhere"), [
-    ("generate", "GenerateConfig", ("system", "params", "solver")),  # argument, -p, own
-    ("import", "ImportConfig", ()),
-    ("simulate", "SimulateConfig", ("checkpoint", "member")),  # argument, shared --member
+    ("generate", "generate.GenerateConfig", ("system", "params", "solver")),  # argument, -p, own
+    ("import", "importer.ImportConfig", ()),
+    ("simulate", "simulate.SimulateConfig", ("checkpoint", "member")),  # argument, --member
 ])
 def test_every_config_field_is_an_option_with_its_description_as_help(verb, config, elsewhere):
     """The verbs' options come from their configs' declarations: one per field, its help
     the field's description, required where the field is."""
-    import mpnode_cli.config
+    import importlib
 
-    fields = getattr(mpnode_cli.config, config).model_fields
+    module, name = config.split(".")
+    fields = getattr(importlib.import_module(f"mpnode_cli.config.{module}"), name).model_fields
     options = _options_of(verb)
     for name, field in fields.items():
         if name in elsewhere:
@@ -123,7 +124,7 @@ def test_the_model_options_help_gives_the_defaults_each_recipe_resolves_to(model
     resolves to."""
     import re
 
-    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.config.train import TrainConfig
     from mpnode_cli.data.dataset import TrajectoryData
     from mpnode_cli.training.recipe import resolve_train_config
 

@@ -57,7 +57,7 @@ def test_import_simulate_and_evaluate_show_progress(user_files, tmp_path, bars):
 
 
 def test_import_memory_maps_a_npy(tmp_path):
-    from mpnode_cli.data.importers import load_states
+    from mpnode_cli.data.user_inputs import load_states
 
     np.save(tmp_path / "s.npy", np.arange(2 * 3 * 2 * 1, dtype=np.float32).reshape(2, 3, 2, 1))
     assert isinstance(load_states(tmp_path / "s.npy").states, np.memmap)

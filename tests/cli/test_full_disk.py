@@ -22,12 +22,13 @@ import subprocess
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data import atomic
 from mpnode_cli.data import generate as generate_module
 from mpnode_cli.data import size as size_module
 from mpnode_cli.data.generate import generate
-from mpnode_cli.data.hdf5 import read_dataset, write_dataset
+from mpnode_cli.data.hdf5 import read_dataset
+from mpnode_cli.data.hdf5_write import write_dataset
 from mpnode_cli.paths import OutputError
 from mpnode_cli.training import run as run_module
 from mpnode_cli.training.checkpoint import load_checkpoint, save_checkpoint

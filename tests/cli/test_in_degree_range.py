@@ -2,7 +2,7 @@
 graph in a file, a multigraph's parallel edges counted by multiplicity, each graph once
 however many trajectories run on it.
 
-The references are independent of `mpnode_cli.graphs`: networkx's in-degrees of the graphs
+The references are independent of `mpnode_cli.graphs.matrices`: networkx's in-degrees of the graphs
 rebuilt from the file's raw arrays, or in-degrees known by construction.
 """
 
@@ -16,7 +16,7 @@ import networkx as nx
 import numpy as np
 from conftest import invoke
 
-from mpnode_cli.graphs import degree_range
+from mpnode_cli.graphs.matrices import degree_range
 
 
 def _reported(path) -> tuple[dict, dict]:

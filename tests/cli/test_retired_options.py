@@ -1,4 +1,4 @@
-"""Options that a bench measured and mpnode retired (`mpnode_cli.config_upgrade.RETIRED`,
+"""Options that a bench measured and mpnode retired (`mpnode_cli.config.upgrade.RETIRED`,
 docs/transfer.md): a checkpoint, a run's config.json or a config file that holds one at
 its "off" value reads as today's; one that used it is refused in one line that names it
 and the last mpnode that reads it.
@@ -15,7 +15,7 @@ import pytest
 import torch
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config_upgrade import RETIRED_AFTER, RetiredOptionError, upgrade_train_fields
+from mpnode_cli.config.upgrade import RETIRED_AFTER, RetiredOptionError, upgrade_train_fields
 from mpnode_cli.training.checkpoint import CheckpointFormatError, load_checkpoint, read_checkpoint
 from mpnode_cli.training.run import checkpoint_path
 

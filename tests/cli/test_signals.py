@@ -16,8 +16,8 @@ from conftest import child_env
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data import hdf5
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.data import hdf5_write
 from mpnode_cli.data.generate import generate
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.run import read_metrics
@@ -83,13 +83,13 @@ def test_generate_stopped_while_solving_writes_nothing(tmp_path, signum):
 def test_a_signal_during_the_hdf5_write_is_not_swallowed(tmp_path, monkeypatch, signum):
     """h5py used to swallow Ctrl-C in its calls ("Exception ignored") and finish the file;
     the signal now stops the write and the temporary file goes."""
-    real = hdf5._write
+    real = hdf5_write._write
 
     def write_and_signal(f, ds, *args):
         os.kill(os.getpid(), signum)  # arrives while the file is being written
         real(f, ds, *args)
 
-    monkeypatch.setattr(hdf5, "_write", write_and_signal)
+    monkeypatch.setattr(hdf5_write, "_write", write_and_signal)
     with pytest.raises(KeyboardInterrupt):
         generate(GenerateConfig(system="lorenz", nodes=3, trajectories=4, t_end=0.2, dt=0.1,
                                 out=tmp_path / "d.h5"))
@@ -132,7 +132,7 @@ def test_import_and_simulate_stopped_while_writing_leave_nothing(tmp_path, monke
     done, then the write stops, the temporary file goes, and the verb exits 143."""
     import numpy as np
 
-    write = hdf5._write
+    write = hdf5_write._write
 
     def interrupted_write(f, ds, *args):
         os.kill(os.getpid(), signal.SIGTERM)  # arrives inside the write
@@ -154,7 +154,7 @@ def test_import_and_simulate_stopped_while_writing_leave_nothing(tmp_path, monke
         np.save(tmp_path / "a.npy", np.ones((4, 4)) - np.eye(4))
         args = ["simulate", run, "--x0", tmp_path / "x0.npy", "--adjacency",
                 tmp_path / "a.npy", "--t-end", 0.2, "--dt", 0.05, "--out", out]
-    monkeypatch.setattr(hdf5, "_write", interrupted_write)
+    monkeypatch.setattr(hdf5_write, "_write", interrupted_write)
     result = CliRunner().invoke(app, [str(a) for a in args])
     assert result.exit_code == 128 + signal.SIGTERM, result.output
     assert "Interrupted (SIGTERM): nothing written" in result.output

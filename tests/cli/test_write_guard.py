@@ -141,9 +141,9 @@ def test_a_folder_of_the_users_where_a_report_goes_is_refused(tmp_path):
 def _no_work(monkeypatch):
     """Fail the test if an evaluation, or the reading of a trajectory to draw, starts."""
     import mpnode_cli.data.hdf5 as hdf5
-    import mpnode_cli.training.evaluate as evaluate
+    import mpnode_cli.training.checkpoint_report as report
 
-    monkeypatch.setattr(evaluate, "evaluate_checkpoint", lambda *a, **k: pytest.fail("ran"))
+    monkeypatch.setattr(report, "evaluate_checkpoint", lambda *a, **k: pytest.fail("ran"))
     monkeypatch.setattr(hdf5, "read_trajectory", lambda *a, **k: pytest.fail("ran"))
 
 

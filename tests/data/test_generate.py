@@ -15,8 +15,8 @@ import pytest
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig
-from mpnode_cli.data import hdf5, solve_rounds
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.data import hdf5_write, solve_rounds
 from mpnode_cli.data.generate import GenerateError, generate, resolve_generate_config
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.data.presets import PRESETS, get_preset
@@ -175,7 +175,7 @@ def test_interrupted_generation_leaves_nothing(tmp_path, monkeypatch):
         f.create_dataset("states", data=ds.states)
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(hdf5, "_write", interrupted)
+    monkeypatch.setattr(hdf5_write, "_write", interrupted)
     with pytest.raises(KeyboardInterrupt):
         generate(_config(tmp_path))
     assert list(tmp_path.iterdir()) == []
@@ -329,7 +329,7 @@ def test_cli_ctrl_c_writes_nothing(tmp_path, monkeypatch):
     def interrupted(f, ds, *check):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(hdf5, "_write", interrupted)
+    monkeypatch.setattr(hdf5_write, "_write", interrupted)
     out = tmp_path / "d.h5"
     result = runner.invoke(app, ["generate", "lorenz", *TINY_ARGS, "--out", str(out)])
     assert result.exit_code == 130 and "nothing written" in result.stderr

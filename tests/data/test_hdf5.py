@@ -9,15 +9,15 @@ import h5py
 import numpy as np
 import pytest
 
-from mpnode_cli.data import hdf5
+from mpnode_cli.data import hdf5_write
 from mpnode_cli.data.hdf5 import (
     Dataset,
     DatasetFormatError,
     read_dataset,
     read_header,
-    write_dataset,
 )
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.data.hdf5_write import write_dataset
+from mpnode_cli.graphs.matrices import Graphs
 
 K, T, N, D, U, G = 5, 4, 3, 2, 1, 2
 
@@ -118,13 +118,13 @@ def test_refuses_to_overwrite_unless_asked(tmp_path):
 
 @pytest.mark.parametrize("error", [KeyboardInterrupt, RuntimeError])
 def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch, error):
-    real_write = hdf5._write
+    real_write = hdf5_write._write
 
     def write_then_fail(f, ds, *check):
         real_write(f, ds, *check)  # a fully written temp file, then the interruption
         raise error("interrupted")
 
-    monkeypatch.setattr(hdf5, "_write", write_then_fail)
+    monkeypatch.setattr(hdf5_write, "_write", write_then_fail)
     with pytest.raises(error):
         write_dataset(tmp_path / "d.h5", _dataset())
     assert list(tmp_path.iterdir()) == []
@@ -136,7 +136,7 @@ def test_interrupted_overwrite_keeps_the_old_file(tmp_path, monkeypatch):
     def fail(f, ds, *check):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(hdf5, "_write", fail)
+    monkeypatch.setattr(hdf5_write, "_write", fail)
     with pytest.raises(KeyboardInterrupt):
         write_dataset(path, _dataset(seed=2), overwrite=True)
     assert read_dataset(path).seed == 1
@@ -208,7 +208,7 @@ def test_small_graphs_round_trip_as_edges_and_matrices(tmp_path):
 
 
 def test_large_graphs_round_trip_as_edges_only(tmp_path):
-    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, EdgeList
+    from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES, EdgeList
 
     n = DENSE_GRAPH_MAX_NODES + 44
     rng = np.random.default_rng(3)

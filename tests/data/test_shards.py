@@ -14,7 +14,7 @@ import pytest
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data import shards as shards_module
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import read_dataset

@@ -8,7 +8,7 @@ import networkx as nx
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import estimate, generate, resolve_generate_config
 from mpnode_cli.systems.lorenz import Lorenz
 
@@ -105,7 +105,7 @@ def test_simulate_and_train_name_the_step_that_ran_out(tmp_path, monkeypatch, us
     def out_of_memory(*args, **kw):
         raise MemoryError
 
-    monkeypatch.setattr("mpnode_cli.training.predict.roll_out", out_of_memory)
+    monkeypatch.setattr("mpnode_cli.training.simulate.roll_out", out_of_memory)
     line = one_line_error(invoke(
         "simulate", user_files["checkpoint"], "--x0", user_files["x0"], "--adjacency",
         user_files["adjacency"], "--t-end", 0.2, "--dt", 0.1, "--out", tmp_path / "p.h5"))

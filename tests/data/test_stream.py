@@ -16,13 +16,15 @@ import torch
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data import stream as stream_module
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
-from mpnode_cli.data.hdf5 import Dataset, write_dataset
+from mpnode_cli.data.hdf5 import Dataset
+from mpnode_cli.data.hdf5_write import write_dataset
 from mpnode_cli.data.stream import StreamedTrajectories, prefetched
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.graphs.matrices import Graphs
 from mpnode_cli.training.evaluate import baseline_mse
 from mpnode_cli.training.loop import TrainingInterrupted, train
 from mpnode_cli.training.run import read_metrics

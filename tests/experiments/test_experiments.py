@@ -429,7 +429,7 @@ def test_recorded_paths_are_relative_or_placeholders(tmp_path, monkeypatch):
     """What the runner and the benchmarks record of a path: relative as given, relative to
     the current folder when under it, else a placeholder; commands as run from --work."""
     from mpnode_cli.experiments.commands import from_work
-    from mpnode_cli.paths import shown_argv, shown_path
+    from mpnode_cli.file_records import shown_argv, shown_path
 
     monkeypatch.chdir(tmp_path)
     assert shown_path(tmp_path / "runs" / "x", "<work>") == "runs/x"

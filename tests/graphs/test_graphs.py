@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpnode_cli.edge_files import read_edge_list
-from mpnode_cli.graphs import edges
-from mpnode_cli.topologies import TOPOLOGIES, make_graph
+from mpnode_cli.graphs.edge_files import read_edge_list
+from mpnode_cli.graphs.matrices import edges
+from mpnode_cli.graphs.topologies import TOPOLOGIES, make_graph
 
 # One valid parameter set per topology.
 CASES = {
@@ -189,7 +189,7 @@ def test_read_edge_list_errors(tmp_path, text, message):
 
 @pytest.mark.parametrize("topology", TOPOLOGIES)
 def test_make_edges_is_make_graph_without_the_matrix(topology):
-    from mpnode_cli.topologies import make_edges
+    from mpnode_cli.graphs.topologies import make_edges
 
     a = make_graph(topology, 12, seed=7, **CASES[topology])
     e = make_edges(topology, 12, seed=7, **CASES[topology])
@@ -201,7 +201,7 @@ def test_make_edges_is_make_graph_without_the_matrix(topology):
 
 
 def test_read_edges_matches_read_edge_list(tmp_path):
-    from mpnode_cli.edge_files import read_edges
+    from mpnode_cli.graphs.edge_files import read_edges
 
     path = tmp_path / "g.txt"
     path.write_text("0 1\n1 2\n2 0\n3 2\n1 0\n")
@@ -213,7 +213,7 @@ def test_read_edges_matches_read_edge_list(tmp_path):
 
 def test_edge_batch_lays_graphs_out_over_the_batch():
     """`EdgeBatch.flat` against a loop: trajectory b's edges shifted by b·N."""
-    from mpnode_cli.graphs import EdgeList, Graphs
+    from mpnode_cli.graphs.matrices import EdgeList, Graphs
 
     lists = [EdgeList.build(4, [0, 1, 3], [1, 2, 0]), EdgeList.build(4, [2], [3]),
              EdgeList.build(4, [], [])]
@@ -231,8 +231,8 @@ def test_edge_batch_lays_graphs_out_over_the_batch():
 
 
 def test_graphs_refuse_matrices_above_the_threshold():
-    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES, Graphs
-    from mpnode_cli.topologies import make_edges
+    from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES, Graphs
+    from mpnode_cli.graphs.topologies import make_edges
 
     n = DENSE_GRAPH_MAX_NODES + 1
     graphs = Graphs.from_edge_lists(n, [make_edges("chain", n, seed=0)])

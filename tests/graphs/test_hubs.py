@@ -1,7 +1,7 @@
 """Degree coverage (`generate --hubs`): hubs joined to every other node.
 
 The reference graph is built with networkx from the same topology, by adding each hub's
-edges to all others, not with `mpnode_cli.topologies.join_hubs`.
+edges to all others, not with `mpnode_cli.graphs.topologies.join_hubs`.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 from conftest import invoke, one_line_error
 
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.graphs import EdgeList, edges
-from mpnode_cli.topologies import join_hubs, make_edges, make_graph
+from mpnode_cli.graphs.matrices import EdgeList, edges
+from mpnode_cli.graphs.topologies import join_hubs, make_edges, make_graph
 
 
 def _reference(adjacency: np.ndarray, hubs: int) -> np.ndarray:

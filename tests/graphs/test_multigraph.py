@@ -16,11 +16,11 @@ from conftest import invoke, one_line_error
 from scipy.integrate import solve_ivp
 
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.graphs import EdgeList, Graphs
+from mpnode_cli.graphs.matrices import EdgeList, Graphs
+from mpnode_cli.graphs.topologies import join_hubs, make_edges, make_graph
 from mpnode_cli.models.aggregate import in_degree
 from mpnode_cli.models.backend import strategy_for
 from mpnode_cli.models.registry import build_model
-from mpnode_cli.topologies import join_hubs, make_edges, make_graph
 
 F64 = torch.float64
 

@@ -115,7 +115,7 @@ def random_edges(graphs: int, nodes: int, edges: int, seed: int):
     and the same graphs as matrices written entry by entry: (Graphs, [G, N, N])."""
     import numpy as np
 
-    from mpnode_cli.graphs import EdgeList, Graphs
+    from mpnode_cli.graphs.matrices import EdgeList, Graphs
 
     rng = np.random.default_rng(seed)
     lists, mats = [], torch.zeros(graphs, nodes, nodes)
@@ -150,7 +150,7 @@ def test_aggregation_from_edges_matches_its_definition_and_the_dense_path(how, b
 def test_aggregation_from_edges_is_permutation_equivariant(how):
     import numpy as np
 
-    from mpnode_cli.graphs import EdgeList, Graphs
+    from mpnode_cli.graphs.matrices import EdgeList, Graphs
 
     graphs, _ = random_edges(1, 9, 20, seed=6)
     perm = np.random.default_rng(1).permutation(9)  # new node q is old node perm[q]
@@ -167,9 +167,9 @@ def test_aggregation_from_edges_is_permutation_equivariant(how):
 
 def test_large_graphs_aggregate_without_a_matrix():
     """1 000 nodes: the scatter path runs from the edges; asking for matrices is refused."""
-    from mpnode_cli.graphs import Graphs
+    from mpnode_cli.graphs.matrices import Graphs
+    from mpnode_cli.graphs.topologies import make_edges
     from mpnode_cli.models.aggregate import full_graph
-    from mpnode_cli.topologies import make_edges
 
     chain = make_edges("chain", 1000, seed=0)
     edges = Graphs.from_edge_lists(1000, [chain]).batch([0, 0])

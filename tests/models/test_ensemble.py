@@ -10,14 +10,17 @@ import torch
 import torch.nn.functional as F
 from torch.func import functional_call
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.generate import generate
-from mpnode_cli.graphs import EdgeBatch
+from mpnode_cli.graphs.matrices import EdgeBatch
+from mpnode_cli.models.base import NeuralModel
 from mpnode_cli.models.ensemble import Ensemble
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.models.stacked import LayerNorm, Linear, StackedMembers
-from mpnode_cli.training import loop
-from mpnode_cli.training.checkpoint import checkpoint_problems, load_checkpoint
+from mpnode_cli.training import distributed, epoch_record, step
+from mpnode_cli.training.checkpoint import load_checkpoint
+from mpnode_cli.training.checkpoint_contents import checkpoint_problems
 from mpnode_cli.training.eval_result import EvalResult
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.optim import Adam
@@ -73,17 +76,18 @@ def test_stacked_layers_are_each_members_own_layer():
 def test_an_ensemble_implements_the_model_interface_itself(kind):
     models = members(kind, {}, s=2)
     ensemble = Ensemble(models)
+    assert isinstance(ensemble, NeuralModel)
     assert "__getattr__" not in vars(Ensemble)  # nothing forwarded to a member
     for name in ("kind", "transferable", "statistics_need_states", "options", "node_dim",
                  "control_dim", "num_nodes", "initial_states"):
-        assert name in vars(Ensemble), name
         assert getattr(ensemble, name) == getattr(models[0], name), name
     assert ensemble.config == models[0].config | {"members": 2}
-    for name in ("fit_statistics", "check_states", "rollout", "rollout_from_data",
-                 "training_losses"):
+    for name in ("fit_statistics", "rollout", "training_losses"):
         assert callable(vars(Ensemble).get(name)), name
-    with pytest.raises(AttributeError):
-        ensemble.training_loss  # noqa: B018 (one model's, not the ensemble's)
+    with pytest.raises(TypeError, match="training_losses"):  # one model's, not the ensemble's
+        ensemble.training_loss(None, None, None, None, None)
+    assert ensemble.member_state(ensemble.state_dict(), 1).keys() == (
+        models[1].state_dict().keys())
     with pytest.raises(ValueError, match="features per node"):
         ensemble.check_states(torch.zeros(1, 5, 3))
 
@@ -188,7 +192,7 @@ def _fake_validation(schedule):
     def fake(model, data, normalizer, **kw):
         n = len(calls)
         calls.append(n)
-        size = model.size if isinstance(model, Ensemble) else 1
+        size = len(model.members)
         each = [EvalResult(len(data), 0, schedule(n, k), schedule(n, k), [1.0], [0.0], 0, 0.0)
                 for k in range(size)]
         return EvalResult(len(data), 0, sum(e.mse for e in each) / size, 0.0, [1.0], [0.0],
@@ -198,7 +202,7 @@ def _fake_validation(schedule):
 
 def test_early_stopping_freezes_a_member_and_ends_the_run(gene, tmp_path, monkeypatch):
     # Member 0 improves every epoch; member 1 never after its start.
-    monkeypatch.setattr(loop, "evaluate", _fake_validation(
+    monkeypatch.setattr(epoch_record, "evaluate", _fake_validation(
         lambda n, k: 1.0 / (n + 1) if k == 0 else 1.0))
     summary = train(config(gene, tmp_path / "run", seeds=2, epochs=6, stop_patience=2))
     rows = read_metrics(tmp_path / "run")
@@ -206,7 +210,7 @@ def test_early_stopping_freezes_a_member_and_ends_the_run(gene, tmp_path, monkey
     assert summary.epochs == 6 and summary.stopped_early is None
     assert all(r["members"][1].get("train_loss") is None for r in rows[3:])
     # Member 1 stopped after epoch 2: its weights at the end are those of a run of 2 epochs.
-    monkeypatch.setattr(loop, "evaluate", _fake_validation(
+    monkeypatch.setattr(epoch_record, "evaluate", _fake_validation(
         lambda n, k: 1.0 / (n + 1) if k == 0 else 1.0))
     train(config(gene, tmp_path / "two", seeds=2, epochs=2, stop_patience=2))
     two = load_checkpoint(checkpoint_path(tmp_path / "two", "last")).state_dict
@@ -215,7 +219,7 @@ def test_early_stopping_freezes_a_member_and_ends_the_run(gene, tmp_path, monkey
     assert frozen and all(torch.equal(two[k], last[k]) for k in frozen)
     assert not all(torch.equal(two[k], last[k]) for k in last if k.startswith("members.0."))
     # Nobody improves: the run ends once both have waited stop_patience epochs.
-    monkeypatch.setattr(loop, "evaluate", _fake_validation(lambda n, k: 1.0))
+    monkeypatch.setattr(epoch_record, "evaluate", _fake_validation(lambda n, k: 1.0))
     ended = train(config(gene, tmp_path / "ended", seeds=2, epochs=9, stop_patience=3))
     assert ended.epochs == 3 and ended.stopped_early == 3
 
@@ -241,13 +245,13 @@ def test_a_members_bad_batch_leaves_it_alone_and_the_others_step():
 
     before = [p.detach().clone() for p in models[1].parameters()]
     cfg = TrainConfig(dataset="x.h5")
-    world = loop.distributed.world()
-    out = loop.train_step(ensemble, optimizer, [(x[0], None), (x[1], None)], ts,
+    world = distributed.world()
+    out = step.train_step(ensemble, optimizer, [(x[0], None), (x[1], None)], ts,
                      [adjacency, adjacency], loss, cfg, world, [0, 1])
     assert out[0].skip is None and out[1].skip == "non-finite loss"
     assert all(torch.equal(p, q) for p, q in zip(models[1].parameters(), before, strict=True))
     assert not any(p in optimizer.state for p in models[1].parameters())
-    (solo,) = loop.train_step(alone, optimizer_alone, [(x[0], None)], ts, [adjacency],
+    (solo,) = step.train_step(alone, optimizer_alone, [(x[0], None)], ts, [adjacency],
                          lambda p, t: (p - t).square().mean(), cfg, world)
     assert solo.loss == pytest.approx(out[0].loss, rel=1e-12)
     for p, q in zip(models[0].parameters(), alone.parameters(), strict=True):
@@ -258,11 +262,11 @@ def test_a_finetune_takes_its_checkpoints_members(gene, tmp_path):
     """A single model finetunes as one: members copied from it would all start from its
     weights, their spread measuring nothing. An ensemble finetunes member by member."""
     parent = train(config(gene, tmp_path / "parent", epochs=1))
-    with pytest.raises(ValueError, match="the checkpoint is a single model"):
+    with pytest.raises(ValueError, match="the checkpoint holds 1 member"):
         train(config(gene, tmp_path / "copies", epochs=1, seeds=3,
                      init_checkpoint=checkpoint_path(parent.run_dir, "best")))
     child = train(config(gene, tmp_path / "child", epochs=2, seeds=3))
-    with pytest.raises(ValueError, match="ensemble of 3 members"):
+    with pytest.raises(ValueError, match="holds 3 member"):
         train(config(gene, tmp_path / "grandchild", epochs=1, seeds=2,
                      init_checkpoint=checkpoint_path(child.run_dir, "best")))
     other = generate(GenerateConfig(system="gene", grid=2, topology="ba", trajectories=12,
@@ -272,3 +276,15 @@ def test_a_finetune_takes_its_checkpoints_members(gene, tmp_path):
                      init_checkpoint=checkpoint_path(child.run_dir, "best")))
     assert not any((tmp_path / name).exists() for name in ("copies", "grandchild", "pooled"))
 
+
+
+def test_an_ensembles_config_keeps_what_its_kind_adds():
+    """MP-NODE adds `periodic_dims` to its config where it embeds angles: an ensemble's
+    config must carry it too, or its checkpoint would not build again."""
+    one = {"node_dim": 2, "control_dim": 0, "periodic": "embed", "periodic_dims": [0],
+           "hidden": 8}
+    model = build_model("mpnode", {**one, "members": 3})
+    assert model.config["periodic_dims"] == [0] and model.config["members"] == 3
+    again = build_model("mpnode", model.config)
+    assert again.config == model.config
+    assert [m.periodic_dims for m in again.members] == [(0,)] * 3

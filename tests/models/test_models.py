@@ -278,7 +278,7 @@ def test_step_statistics_of_several_datasets_pool_their_steps():
 def test_models_run_from_edge_lists_as_from_matrices(kind, aggregate):
     """Every model that aggregates, given its graphs as an `EdgeBatch` (what training passes
     for large graphs): the same δ, rollout and training loss as from `[B, N, N]` matrices."""
-    from mpnode_cli.graphs import EdgeBatch
+    from mpnode_cli.graphs.matrices import EdgeBatch
 
     adj = random_graph(3, 7, 0.4, seed=8)
     edges = EdgeBatch.from_adjacency(adj)

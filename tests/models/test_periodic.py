@@ -53,7 +53,7 @@ def test_a_plugin_declares_periodic_states_and_a_bad_name_is_refused(tmp_path):
 
 
 def test_a_kuramoto_dataset_generated_now_declares_its_phases(tmp_path):
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
 
     path = generate(GenerateConfig(system="kuramoto", nodes=6, trajectories=3, t_end=0.1,
@@ -220,7 +220,7 @@ def test_an_ensemble_of_periodic_models_rolls_out_like_its_members():
 
 @pytest.fixture(scope="module")
 def kuramoto_run(tmp_path_factory):
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
 
     root = tmp_path_factory.mktemp("periodic")

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import mpnode_cli.models.ode  # noqa: F401  (binds `solve` before the module is patched)
-from mpnode_cli.graphs import EdgeBatch
+from mpnode_cli.graphs.matrices import EdgeBatch
 from mpnode_cli.models.ensemble import Ensemble
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.solver.options import SolverOptions

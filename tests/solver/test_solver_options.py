@@ -13,8 +13,10 @@ from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
 from mpnode_cli.cli.train import train_config_from
-from mpnode_cli.config import GenerateConfig, TrainConfig, generate_solver, train_solver
-from mpnode_cli.config_upgrade import (
+from mpnode_cli.config.fields import generate_solver, train_solver
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
+from mpnode_cli.config.upgrade import (
     pin_stored_solver,
     stored_solver,
     upgrade_solver_fields,
@@ -175,29 +177,32 @@ def test_training_compiles_long_adaptive_runs_only(monkeypatch):
 
 
 def test_a_failed_compile_falls_back_to_the_eager_step(monkeypatch):
-    import importlib
+    import warnings
 
     import torch
 
-    solve_module = importlib.import_module("mpnode_cli.solver.solve")
-    from mpnode_cli.solver.compile_cache import CompileCache
-
-    adaptive = importlib.import_module("mpnode_cli.solver.adaptive")
+    from mpnode_cli.solver import solve
 
     def broken(fn, **options):
         def step(*args):
             raise RuntimeError("no C++ compiler\nmore detail")
         return step
 
-    # A cache as a fresh process has it, whose compiled step fails when first called.
-    monkeypatch.setattr(adaptive, "STEP", CompileCache(adaptive.attempt_step))
+    options = SolverOptions(compile=True)  # a fresh cache, whose compiled step fails
+    cache = options.solve_kwargs()["compile"]
+    assert cache is options.model_copy(update={"rtol": 1e-5}).solve_kwargs()["compile"]
+    assert options == SolverOptions(compile=True)  # the cache is no part of the value
     monkeypatch.setattr(torch, "compile", broken)
     y0 = torch.tensor([[1.0]], dtype=torch.float64)
     ts = torch.linspace(0.0, 1.0, 5, dtype=torch.float64)
     with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler"):
-        sol = solve_module.solve(lambda t, y: -y, y0, ts, compile=True)
+        sol = solve(lambda t, y: -y, y0, ts, **options.solve_kwargs())
     assert torch.allclose(sol.ys[0, :, 0], torch.exp(-ts), rtol=1e-6)
-    assert adaptive.STEP.failed  # later solves of this process run eagerly, without a warning
+    assert cache.failed
+    with warnings.catch_warnings():  # later solves with these options run eagerly, silently
+        warnings.simplefilter("error")
+        again = solve(lambda t, y: -y, y0, ts, **options.solve_kwargs())
+    assert torch.equal(again.ys, sol.ys)
 
 
 def test_each_controller_option_names_a_typed_controller():

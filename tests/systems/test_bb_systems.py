@@ -11,13 +11,13 @@ import torch
 from conftest import invoke
 from scipy.integrate import solve_ivp
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import read_dataset
-from mpnode_cli.graphs import Graphs
+from mpnode_cli.graphs.matrices import Graphs
+from mpnode_cli.graphs.topologies import TOPOLOGIES, make_graph
 from mpnode_cli.solver import solve
 from mpnode_cli.systems import get_system
-from mpnode_cli.topologies import TOPOLOGIES, make_graph
 
 NAMES = ["sis", "mak", "mm", "bd", "nd"]
 RNG_SEED = 20130813
@@ -118,7 +118,7 @@ def test_graph_kwargs_give_the_mean_degree():
 
 # ----- generated datasets against scipy ----------------------------------------------------------
 
-S1 = pytest.mark.skipif("s1" not in TOPOLOGIES, reason="the s1 topology is not in graphs.py yet")
+S1 = pytest.mark.skipif("s1" not in TOPOLOGIES, reason="no s1 topology yet")
 
 
 @pytest.mark.parametrize(("name", "topology"), [

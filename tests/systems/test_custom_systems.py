@@ -101,3 +101,15 @@ def test_a_plugins_options_are_checked(tmp_path, args, message):
                     tmp_path / "x.h5")
     assert result.exit_code == 2, result.output
     assert message in result.output, result.output
+
+
+def test_a_plugin_imports_the_graph_types_and_the_neighbour_sum_where_they_were():
+    """`mpnode_cli.graphs.EdgeList` (docs/custom-systems.md) and
+    `mpnode_cli.systems.base.NeighbourSum` still name the types that moved into modules."""
+    from mpnode_cli import graphs
+    from mpnode_cli.graphs import matrices
+    from mpnode_cli.systems import NeighbourSum, base, neighbour_sum
+
+    assert (graphs.EdgeList, graphs.EdgeBatch, graphs.Graphs) == (
+        matrices.EdgeList, matrices.EdgeBatch, matrices.Graphs)
+    assert base.NeighbourSum is neighbour_sum.NeighbourSum is NeighbourSum

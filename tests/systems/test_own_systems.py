@@ -80,7 +80,7 @@ def test_power_grid_import_keeps_the_arrays(grid):
     assert ds.periodic_states == ("theta",)
     assert len(ds.time) == 101 and ds.dt == pytest.approx(params.dt)
     # Two Barabási–Albert graphs, the ones `mpnode generate --topology ba` builds (m = 2).
-    from mpnode_cli.topologies import make_graph
+    from mpnode_cli.graphs.topologies import make_graph
 
     built = {make_graph("ba", 8, seed, m=2).tobytes() for seed in (5, 6)}
     assert {a.tobytes() for a in ds.adjacency} == built

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate, resolve_generate_config
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.solver import solve
@@ -299,7 +299,7 @@ def test_presets_and_limits():
 def test_mpnode_trains_on_a_small_quad3_set(quad3, tmp_path):
     """MP-NODE with ZOH controls (the solver's `tstops` at control changes) on a few quad3
     flights: its validation loss falls."""
-    from mpnode_cli.config import TrainConfig
+    from mpnode_cli.config.train import TrainConfig
     from mpnode_cli.training.loop import train
     from mpnode_cli.training.run import read_metrics
 

@@ -12,10 +12,10 @@ import pytest
 import torch
 from scipy.integrate import solve_ivp
 
+from mpnode_cli.graphs.topologies import make_graph
 from mpnode_cli.solver import solve
 from mpnode_cli.systems import SYSTEMS, System, get_system
-from mpnode_cli.systems.base import NeighbourSum
-from mpnode_cli.topologies import make_graph
+from mpnode_cli.systems.neighbour_sum import NeighbourSum
 
 RNG_SEED = 20221029
 
@@ -539,7 +539,7 @@ def _loop_ref(name: str, system: System, a: np.ndarray, y: np.ndarray, params: d
 @pytest.mark.parametrize("shared", [True, False], ids=["shared", "per_trajectory"])
 @pytest.mark.parametrize("name", ["kuramoto", "gene", "pendulum"])
 def test_rhs_on_edges_equals_dense_and_the_loop(name, shared):
-    from mpnode_cli.graphs import Graphs
+    from mpnode_cli.graphs.matrices import Graphs
 
     rng = np.random.default_rng(RNG_SEED)
     system = get_system(name)
@@ -573,8 +573,8 @@ def test_rhs_on_edges_equals_dense_and_the_loop(name, shared):
 def test_trajectories_on_edges_equal_the_dense_ones(name):
     """A whole solve from edges (scatter sums) and from the matrix (GEMMs): the same
     trajectories up to rounding, on a Barabási–Albert graph of 40 nodes."""
-    from mpnode_cli.graphs import Graphs
-    from mpnode_cli.topologies import make_edges
+    from mpnode_cli.graphs.matrices import Graphs
+    from mpnode_cli.graphs.topologies import make_edges
 
     rng = np.random.default_rng(RNG_SEED)
     system = get_system(name)
@@ -598,10 +598,10 @@ def test_generate_above_the_threshold_runs_on_edges(tmp_path):
     graph is networkx's BA graph of the seed, and the states are those of a dense solve."""
     import h5py
 
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import generate
     from mpnode_cli.data.hdf5 import read_dataset
-    from mpnode_cli.graphs import DENSE_GRAPH_MAX_NODES
+    from mpnode_cli.graphs.matrices import DENSE_GRAPH_MAX_NODES
 
     n = 300
     assert n > DENSE_GRAPH_MAX_NODES
@@ -626,7 +626,7 @@ def test_generate_above_the_threshold_runs_on_edges(tmp_path):
 
 
 def test_systems_that_need_the_matrix_are_refused_above_the_threshold():
-    from mpnode_cli.config import GenerateConfig
+    from mpnode_cli.config.generate import GenerateConfig
     from mpnode_cli.data.generate import resolve_generate_config
 
     with pytest.raises(ValueError, match=r"lorenz.*N×N matrix.*at most 256"):

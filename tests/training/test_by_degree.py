@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.training.by_degree import bin_bounds, degree_bin
 from mpnode_cli.training.checkpoint import load_checkpoint

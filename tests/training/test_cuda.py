@@ -17,7 +17,7 @@ import pytest
 import torch
 from conftest import invoke
 
-from mpnode_cli.config import GenerateConfig
+from mpnode_cli.config.generate import GenerateConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.solver import solve

@@ -22,13 +22,14 @@ from conftest import child_env
 from typer.testing import CliRunner
 
 from mpnode_cli.cli.app import app
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.mpnode import MPNODE
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.solver import Status
-from mpnode_cli.training import distributed, loop
+from mpnode_cli.training import distributed, loop, step
 from mpnode_cli.training.losses import LOSSES
 from mpnode_cli.training.optim import Adam
 from mpnode_cli.training.run import read_metrics
@@ -121,7 +122,7 @@ def one_step(gene, rank: int | None, out: Path, batch: int, fail: str | None = N
         MPNODE.rollout = failing
     x = normalizer.norm_x(mine.states).double()  # (B_r, T, N, D)
     before = [p.detach().clone() for p in model.parameters()]
-    (result,) = loop.train_step(model, optimizer, [(x, None)], train_set.time,
+    (result,) = step.train_step(model, optimizer, [(x, None)], train_set.time,
                            [mine.adjacency.double()], loss_fn, config, world,
                            share=len(mine) / batch)
     loss, norm, reason = result.loss, result.grad_norm, result.skip
@@ -304,7 +305,7 @@ def test_a_one_process_run_resumes_on_two_ranks(gene, one_process, tmp_path):
 
 
 def train_into_existing(rank, gene, run_dir):
-    with pytest.raises(ValueError, match="already exists"):  # on both ranks, none waits
+    with pytest.raises(ValueError, match="a folder of other files"):  # on both ranks, none waits
         loop.train(small(gene, run_dir))
 
 

@@ -20,17 +20,20 @@ import pytest
 import torch
 from conftest import invoke
 
-from mpnode_cli.config import GenerateConfig, SimulateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.simulate import SimulateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.ensemble import spread_error_correlation
 from mpnode_cli.report.tables import fmt
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.checkpoint_members import member_checkpoint
-from mpnode_cli.training.evaluate import evaluate_checkpoint
+from mpnode_cli.training.checkpoint_report import evaluate_checkpoint
 from mpnode_cli.training.loop import train
-from mpnode_cli.training.predict import rollout_solver, simulate
+from mpnode_cli.training.predict import rollout_solver
 from mpnode_cli.training.run import checkpoint_path
+from mpnode_cli.training.simulate import simulate
 
 S = 3
 

@@ -12,19 +12,16 @@ import pytest
 import torch
 from conftest import synthetic
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.models.registry import build_model
 from mpnode_cli.solver.options import SolverOptions
 from mpnode_cli.training.checkpoint import load_checkpoint
+from mpnode_cli.training.checkpoint_report import evaluate_checkpoint, train_reference
 from mpnode_cli.training.eval_result import pooled
-from mpnode_cli.training.evaluate import (
-    baseline_mse,
-    evaluate,
-    evaluate_checkpoint,
-    train_reference,
-)
+from mpnode_cli.training.evaluate import baseline_mse, evaluate
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.run import checkpoint_path
 

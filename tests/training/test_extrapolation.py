@@ -9,21 +9,17 @@ import numpy as np
 import pytest
 from conftest import invoke
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.data.generate import generate
 from mpnode_cli.data.stream import StreamedTrajectories
 from mpnode_cli.training.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from mpnode_cli.training.evaluate import evaluate_checkpoint
-from mpnode_cli.training.extrapolation import (
-    Extrapolation,
-    TrainRange,
-    data_extrapolation,
-    extrapolation,
-    training_range,
-)
+from mpnode_cli.training.checkpoint_report import evaluate_checkpoint
+from mpnode_cli.training.extrapolation import Extrapolation, data_extrapolation, extrapolation
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.run import checkpoint_path
+from mpnode_cli.training.train_range import TrainRange, training_range
 
 
 @pytest.fixture(scope="module")

@@ -14,19 +14,19 @@ import pytest
 import torch
 from conftest import invoke
 
-from mpnode_cli.data.hdf5 import read_dataset, write_dataset
+from mpnode_cli.data.hdf5 import read_dataset
+from mpnode_cli.data.hdf5_write import write_dataset
 from mpnode_cli.data.stream import StreamedTrajectories
-from mpnode_cli.training import extrapolation as extrapolation_module
+from mpnode_cli.training import extrapolation_nodes
 from mpnode_cli.training.checkpoint import load_checkpoint
-from mpnode_cli.training.extrapolation import (
+from mpnode_cli.training.extrapolation import data_extrapolation, node_lines
+from mpnode_cli.training.extrapolation_nodes import (
     IN_DEGREE_OUTSIDE,
     PREDICTED_SLACK,
     STATE_OUTSIDE,
-    TrainRange,
-    data_extrapolation,
     node_extrapolation,
-    node_lines,
 )
+from mpnode_cli.training.train_range import TrainRange
 
 NODE_KEYS = {"node_states", "trajectory_nodes", "trajectory_nodes_outside", "nodes_outside",
              "state_outside", "in_degree_outside", "worst"}
@@ -90,7 +90,7 @@ def test_blocks_chunks_file_rows_and_names(monkeypatch):
     x = hand_made()
     whole = node_extrapolation(TRAIN, DEGREE, GRAPH_INDEX, [torch.from_numpy(x)])
     # Several blocks, each compared a trajectory at a time: the same answer.
-    monkeypatch.setattr(extrapolation_module, "_BLOCK_VALUES", 1)
+    monkeypatch.setattr(extrapolation_nodes, "_BLOCK_VALUES", 1)
     parts = node_extrapolation(TRAIN, DEGREE, GRAPH_INDEX,
                                (torch.from_numpy(x[i:i + 2]) for i in (0, 2)),
                                trajectory=np.array([10, 11, 12]))

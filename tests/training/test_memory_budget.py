@@ -14,7 +14,8 @@ import pytest
 import torch
 from conftest import invoke, one_line_error
 
-from mpnode_cli.config import TrainConfig, train_solver
+from mpnode_cli.config.fields import train_solver
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.memory import parse_size
 from mpnode_cli.models.ensemble import Ensemble
 from mpnode_cli.models.registry import build_model

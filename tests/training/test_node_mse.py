@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.training.loop import train
 from mpnode_cli.training.losses import NODE_VARIANCE_FLOOR, mse_loss, node_mse_loss
 from mpnode_cli.training.run import read_metrics

@@ -23,7 +23,7 @@ from scipy.integrate import solve_ivp
 
 from mpnode_cli.data.hdf5 import read_dataset
 from mpnode_cli.data.validate import check_dataset
-from mpnode_cli.paths import file_sha256
+from mpnode_cli.file_records import file_sha256
 
 MU, COUPLING, DT, T_END = 1.0, 0.5, 0.1, 2.0
 TS = np.arange(round(T_END / DT) + 1) * DT

@@ -9,7 +9,7 @@ import pytest
 import torch
 from conftest import gene_data
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.dataset import TrajectoryData
 from mpnode_cli.systems.registry import SYSTEMS
 from mpnode_cli.training.loop import train

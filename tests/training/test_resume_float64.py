@@ -12,7 +12,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from mpnode_cli.config import GenerateConfig, TrainConfig
+from mpnode_cli.config.generate import GenerateConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.data.generate import generate
 from mpnode_cli.training.checkpoint import load_checkpoint
 from mpnode_cli.training.loop import train

@@ -6,10 +6,10 @@ import math
 
 import torch
 
-from mpnode_cli.config import TrainConfig
+from mpnode_cli.config.train import TrainConfig
 from mpnode_cli.training.lr_schedule import LRSchedule
 from mpnode_cli.training.optim import Adam
-from mpnode_cli.training.setup import MemberState
+from mpnode_cli.training.run_state import MemberState
 
 
 def schedule(**fields) -> LRSchedule:

@@ -79,3 +79,42 @@ def test_a_run_that_cannot_fit_is_refused_in_one_line_before_its_folder(
     line = one_line_error(result)
     assert "a training step needs at least" in line and "--batch-size" in line, line
     assert not run.exists()
+
+
+def test_measuring_never_saves_more_than_it_may_take():
+    """The measurement's own graph is capped: under a room below one solver step's bytes
+    the need is infinite (a refusal), and under a few steps' room it is still near the
+    whole rollout's, measured on one step and extrapolated (the solve's fixed cost spread
+    over one step's evaluations: a third more, not less)."""
+    from mpnode_cli.config.fields import train_solver
+
+    x, ts, graph = _batch()
+    model, x, graph = _model(), x[:1], graph[:1]
+    solver = train_solver().model_copy(update={"compile": False, "fixed_dt": 0.01})
+    whole = step_memory.saved_bytes(model, x, ts, graph, None, solver)  # 200 steps, no cap
+    one_step = step_memory.saved_bytes(model, x, ts, graph, None,
+                                       solver.model_copy(update={"max_steps": 1}))
+    assert whole > 50 * one_step
+    need = step_memory.batch_need(model, x, ts, graph, None, solver, 8, room=one_step // 2)
+    assert all(v == float("inf") for v in need), need
+    need = step_memory.batch_need(model, x, ts, graph, None, solver, 8, room=4 * one_step)
+    assert 0.95 * 8 * whole <= need.plain <= 1.5 * 8 * whole, (need, whole)
+
+
+def test_a_horizon_the_solver_cannot_finish_is_refused_before_its_folder(tmp_path):
+    """Samples 10⁶ time units apart: the model's solve of one trajectory cannot finish in
+    --max-steps, so every batch would fail; refused in one line, no run folder."""
+    import numpy as np
+    from conftest import invoke
+
+    states = tmp_path / "states.npy"
+    np.save(states, np.random.default_rng(0).normal(size=(8, 6, 3, 2)).astype("f4"))
+    edges = tmp_path / "ring.txt"
+    edges.write_text("0 1\n1 2\n2 0\n")
+    data, run = tmp_path / "long.h5", tmp_path / "run"
+    assert invoke("import", "--states", states, "--edge-list", edges, "--dt", 1e6,
+                  "--out", data).exit_code == 0
+    line = one_line_error(invoke("train", data, "--epochs", 1, "--no-plots", "--max-steps",
+                                 200, "--run-dir", run))
+    assert "does not finish its horizon" in line and "--max-steps 200" in line, line
+    assert not run.exists()

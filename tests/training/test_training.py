@@ -9,8 +9,8 @@ import pytest
 import torch
 from conftest import gene_data
 
-from mpnode_cli.config import TrainConfig
-from mpnode_cli.config_upgrade import upgrade_train_fields
+from mpnode_cli.config.train import TrainConfig
+from mpnode_cli.config.upgrade import upgrade_train_fields
 from mpnode_cli.data.dataset import Normalizer, TrajectoryData
 from mpnode_cli.models.mpnode import MPNODE
 from mpnode_cli.models.options import L2SOptions

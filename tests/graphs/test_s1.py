@@ -4,7 +4,7 @@ Serrano, Krioukov & Boguñá, PRL 100, 078701 (2008): angles θ ~ U(0, 2π) on a
 radius R = N/2π, hidden degrees κ ~ κ^(−γ) on [κ0, κ_c], κ_c = κ0 N^(1/(γ − 1)), with κ0 set
 so that E[κ] = ⟨k⟩ at this N, and p_ij = 1/(1 + (R Δθ_ij / (μ κ_i κ_j))^β) with
 μ = β sin(π/β)/(2π⟨k⟩). The references below are written out here, not taken from
-`mpnode_cli.s1_graph`; each tolerance states where it comes from.
+`mpnode_cli.graphs.s1`; each tolerance states where it comes from.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from mpnode_cli.graphs import EdgeList, edges
-from mpnode_cli.s1_graph import s1_edges, s1_hidden
-from mpnode_cli.topologies import make_edges, make_graph
+from mpnode_cli.graphs.matrices import EdgeList, edges
+from mpnode_cli.graphs.s1 import s1_edges, s1_hidden
+from mpnode_cli.graphs.topologies import make_edges, make_graph
 
 PARAMS = {"gamma": 2.5, "beta": 2.0, "mean_degree": 4.0}
 
@@ -169,7 +169,7 @@ def test_mean_degree_is_close_to_the_requested_one(gamma, n, graphs, cut, tol):
     # 4.3, κ ~ U^(−1/γ) 7.1 and 1.3, the uncorrected, untruncated κ's of before 2.45 at 2.1.
     k = 10.0
     reference = _ensemble_mean_degree(n, gamma, k)
-    assert abs(k - reference - cut) < 0.01  # the shortfall stated in mpnode_cli.s1_graph
+    assert abs(k - reference - cut) < 0.01  # the shortfall stated in mpnode_cli.graphs.s1
     means = [_degrees(n, seed, gamma, 2.0, k).mean() for seed in range(graphs)]
     assert abs(np.mean(means) - reference) < tol
 
