@@ -628,16 +628,7 @@ def main(argv=None) -> int:
               "estimate": estimate, "ran": ", ".join(names)}
     start = time.perf_counter()
 
-    def event(e: dict[str, Any]) -> None:
-        if e["event"] == "step" and e["status"] in ("ran", "resumed") \
-                and not e.get("worker"):  # a worker's step is reported once done
-            report(f"start {e['id']}")
-        elif e["event"] == "step-done" and e["status"] != "skipped":
-            report(f"done  {e['id']} ({e['seconds']:.0f} s)")
-        elif e["event"] == "step-failed":
-            report(f"FAIL  {e['id']}: {e['error']}")
-
-    failed = jobs.run_jobs(steps, args.runs, args.workers, event)
+    failed = jobs.run_jobs(steps, args.runs, args.workers, jobs.reporter(report))
     header["took"] = time.perf_counter() - start
     header["load_after"] = "/".join(f"{x:.2f}" for x in os.getloadavg())
     write_report(args, header)

@@ -416,8 +416,7 @@ def main(argv=None) -> int:
     if args.plan:
         return 0
     failed = {} if args.table_only else jobs.run_jobs(
-        steps, args.runs, 2, lambda e: e["event"] == "step-done" and e["status"] != "skipped"
-        and print(f"done {e['id']}", file=sys.stderr))
+        steps, args.runs, 2, jobs.reporter(lambda line: print(line, file=sys.stderr)))
     write_table(args)
     for name, why in failed.items():
         print(f"not run: {name}: {why}", file=sys.stderr)

@@ -462,18 +462,11 @@ def main(argv=None) -> int:
     def report(line: str) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {line}", flush=True)
 
-    def event(e: dict[str, Any]) -> None:
-        if e["event"] == "step" and e["status"] in ("ran", "resumed") \
-                and not e.get("worker"):  # a worker's step is reported once done
-            report(f"{'start ' if e['status'] == 'ran' else 'resume'} {e['id']}")
-        elif e["event"] == "step-done" and e["status"] != "skipped":
-            report(f"done  {e['id']}")
-            if not e["id"].startswith("gen-"):
-                report(write_table(args))
-        elif e["event"] == "step-failed":
-            report(f"FAIL  {e['id']}: {e['error']}")
+    def done(step: str) -> None:  # the table after every job but a dataset's
+        if not step.startswith("gen-"):
+            report(write_table(args))
 
-    failed = jobs.run_jobs(steps, args.runs, args.jobs, event)
+    failed = jobs.run_jobs(steps, args.runs, args.jobs, jobs.reporter(report, done))
     report(write_table(args))
     for name, why in failed.items():
         report(f"not done: {name}: {why}")

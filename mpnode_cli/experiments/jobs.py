@@ -124,6 +124,23 @@ def run_jobs(steps: list[CallStep], work: Path, workers: int,
     return failed
 
 
+def reporter(report: Callable[[str], None],
+             done: Callable[[str], None] | None = None) -> Callable[[dict[str, Any]], None]:
+    """The engine's events as a bench's lines (`report`): a step started here or resumed,
+    done (by any process of the run; then `done(id)`), failed or skipped."""
+    def event(e: dict[str, Any]) -> None:
+        if e["event"] == "step" and e["status"] in ("ran", "resumed") and not e.get("worker"):
+            report(f"{'start ' if e['status'] == 'ran' else 'resume'} {e['id']}")
+        elif e["event"] == "step-done" and e["status"] != "skipped":
+            report(f"done   {e['id']} ({e['seconds']:.0f} s)")
+            if done is not None:
+                done(e["id"])
+        elif e["event"] == "step-failed":
+            report(f"FAIL   {e['id']}: {e['error']}")
+
+    return event
+
+
 def records(work: Path) -> list[dict[str, Any]]:
     """The results of the `call` steps recorded in `work`, oldest first."""
     import json

@@ -114,3 +114,13 @@ def test_the_plans_wall_time_is_list_scheduling(module, tmp_path):
     jobs.run_jobs(steps[:1], tmp_path / "work", 1, lambda e: None)
     left = jobs.plan(steps, tmp_path / "work", 2)
     assert math.isclose(float(left.splitlines()[1].split()[-1]), 0.5)  # b's half hour left
+
+
+def test_the_reporter_says_what_ran_finished_and_failed(module, tmp_path):
+    lines, done = [], []
+    steps = [_step("a", module), _step("b", module, fail=True), _step("c", module, ["b"])]
+    jobs.run_jobs(steps, tmp_path / "work", 1, jobs.reporter(lines.append, done.append))
+    said = sorted(tuple(line.split()[:2]) for line in lines)  # b first: c waits for it
+    assert said == [("FAIL", "b:"), ("FAIL", "c:"), ("done", "a"), ("start", "a"),
+                    ("start", "b")]
+    assert done == ["a"] and "skipped" in next(x for x in lines if x.startswith("FAIL   c"))
