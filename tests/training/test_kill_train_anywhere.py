@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import random
 import shutil
-import signal
 import time
 
 import pytest
@@ -23,6 +22,7 @@ from test_resume_transactional import (  # noqa: F401 (runs: the module's fixtur
     _assert_same_run,
     _finished,
     _fork,
+    _killed,
     runs,
 )
 
@@ -46,14 +46,7 @@ def _train_in_child(data, run, kill_after: float | None) -> bool:
             code = invoke("train", *args, "--epochs", EPOCHS).exit_code
         finally:
             os._exit(code)
-    if kill_after is not None:
-        time.sleep(kill_after)
-        os.kill(pid, signal.SIGKILL)  # an exited child is a zombie until waited for
-    _, status = os.waitpid(pid, 0)
-    if os.WIFSIGNALED(status):
-        return True
-    assert os.WEXITSTATUS(status) == 0
-    return False
+    return _killed(pid, kill_after)
 
 
 def test_a_training_killed_anywhere_and_resumed_ends_as_one_never_stopped(

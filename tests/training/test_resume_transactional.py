@@ -119,6 +119,12 @@ def _resume_in_child(run: Path, *, kill_after: float | None = None,
             code = invoke("train", "--resume", run, "--epochs", EPOCHS).exit_code
         finally:
             os._exit(code)
+    return _killed(pid, kill_after)
+
+
+def _killed(pid: int, kill_after: float | None) -> bool:
+    """SIGKILL child `pid` after `kill_after` seconds (None: let it run); wait for it.
+    Returns whether it was killed (else it exited, and with 0)."""
     if kill_after is not None:
         time.sleep(kill_after)
         os.kill(pid, signal.SIGKILL)  # an exited child is a zombie until waited for
