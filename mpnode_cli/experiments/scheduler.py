@@ -105,12 +105,14 @@ def take_steps(steps: list[Planned], token: str, emit: OnEvent,
     announced: set[str] = set()
     while left:
         for entry in left:
-            if failed is not None and (why := _failure(entry, token, failed)):
+            ready = all(i in records for i in entry.step.inputs())
+            # A marker is read only for a step that could run: not on every poll of all.
+            if failed is not None and (why := _failure(entry, token, failed, ready)):
                 failed[entry.step.id] = why
                 emit({"event": "step-failed", "id": entry.step.id, "error": why})
                 left = [e for e in left if e.step.id != entry.step.id]
                 break
-            if not all(i in records for i in entry.step.inputs()):
+            if not ready:
                 continue
             done = _finished_record(entry, token)
             if done is None:
@@ -158,11 +160,14 @@ def take_steps(steps: list[Planned], token: str, emit: OnEvent,
     return records
 
 
-def _failure(entry: Planned, token: str, failed: dict[str, str]) -> str | None:
-    """Why `entry` cannot be done in this run: it failed (here or in another process of
-    the run), or a step it reads did."""
+def _failure(entry: Planned, token: str, failed: dict[str, str],
+             ready: bool) -> str | None:
+    """Why `entry` cannot be done in this run: a step it reads failed, or (once `ready`,
+    its inputs done) it failed itself, here or in another process of the run."""
     if bad := next((i for i in entry.step.inputs() if i in failed), None):
         return f"skipped: step '{bad}' failed"
+    if not ready:
+        return None
     try:
         mark = json.loads((entry.folder / FAILED_JSON).read_text())
     except (OSError, ValueError):
